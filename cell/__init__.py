@@ -1,0 +1,1 @@
+"""Vision-guided pick-and-place cell: calibration, vision, planning, state machine, CLI."""

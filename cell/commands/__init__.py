@@ -1,0 +1,1 @@
+"""Sub-commands of run-cell, one module per family."""

@@ -1,0 +1,1 @@
+"""Device drivers (cameras, arms) and their simulated twins (drivers.sim)."""

@@ -1,0 +1,1 @@
+"""Simulated twins of the hardware: camera model, renderers, emulated firmware."""
