@@ -13,7 +13,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from drivers.sim.camera_model import CameraModel
+from cell.camera_model import CameraModel
 
 
 class PlateGeometry(Protocol):

@@ -1,4 +1,4 @@
-"""Pinhole + Brown distortion camera looking down at the table: the simulator's optics.
+"""Pinhole + Brown distortion camera looking down at the table.
 
 Frames: the table (plate) frame has X along the plate's columns, Y along its rows and
 its origin at circle 1; heights are millimetres *above* the table. OpenCV's object frame

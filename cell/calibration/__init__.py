@@ -1,0 +1,1 @@
+"""Pixel -> table-mm calibration from a plate of circles."""

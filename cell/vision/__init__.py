@@ -1,0 +1,1 @@
+"""Finding, classifying and locating parts on the backlit table."""
