@@ -80,6 +80,7 @@ class DetectionConfig(Strict):
     lattice_tolerance: float = Field(
         0.25, gt=0, lt=0.5, description="largest distance of a blob from its lattice node, in pitches"
     )
+    max_missing: int = Field(10, ge=0, description="circles that may be missing or covered")
 
 
 class CalibrationConfig(Strict):

@@ -1,0 +1,170 @@
+"""Numbering circle centres by growing a lattice over them.
+
+Growth starts at a seed blob and steps to neighbours predicted by the local lattice
+vectors, which are updated at every step, so perspective, lens distortion and rotation
+are followed; one- and two-step predictions bridge missing circles. Several seeds are
+tried and the largest consistent lattice wins. The result must span exactly the
+configured columns x rows, or numbering fails with what was seen: a mis-numbered
+calibration is worse than none.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.config import PlateConfig
+from cell.errors import PlateNotFound
+
+
+@dataclass
+class Numbering:
+    """Blob index -> (column, row), zero-based, column along the plate's X."""
+
+    index: np.ndarray  # (M,) indices into the blob list
+    col_row: np.ndarray  # (M, 2) int
+    strays: np.ndarray  # blob indices not on the lattice
+    missing: list[tuple[int, int]]  # lattice nodes with no blob
+
+
+def _nearest(points: np.ndarray, candidates: np.ndarray, q: np.ndarray) -> tuple[int, float]:
+    d = np.hypot(points[candidates, 0] - q[0], points[candidates, 1] - q[1])
+    i = int(d.argmin())
+    return int(candidates[i]), float(d[i])
+
+
+def _seed_basis(points: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Two shortest non-parallel steps from point i to its neighbours."""
+    d = points - points[i]
+    dist = np.hypot(d[:, 0], d[:, 1])
+    order = np.argsort(dist)[1:9]
+    if len(order) < 4:
+        return None
+    u = d[order[0]]
+    for j in order[1:]:
+        v = d[j]
+        cos = abs(u @ v) / (np.linalg.norm(u) * np.linalg.norm(v))
+        if cos < 0.5 and np.linalg.norm(v) < 2.0 * np.linalg.norm(u):
+            return u, v
+    return None
+
+
+def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
+    basis = _seed_basis(points, seed)
+    if basis is None:
+        return {}, 1
+    node_of = {seed: (0, 0)}
+    blob_at = {(0, 0): seed}
+    local = {seed: basis}
+    conflicts = 0
+    queue = deque([seed])
+    while queue:
+        p = queue.popleft()
+        a, b = node_of[p]
+        u, v = local[p]
+        for step, (da, db) in ((u, (1, 0)), (-u, (-1, 0)), (v, (0, 1)), (-v, (0, -1))):
+            for k in (1, 2):
+                node = (a + k * da, b + k * db)
+                q = points[p] + k * step
+                j, dist = _nearest(points, neighbours[p], q)
+                if dist > tol * min(np.linalg.norm(u), np.linalg.norm(v)):
+                    continue
+                if j in node_of:
+                    if node_of[j] != node:
+                        conflicts += 1
+                    break
+                if node in blob_at:
+                    conflicts += 1
+                    break
+                node_of[j] = node
+                blob_at[node] = j
+                observed = (points[j] - points[p]) / (k * (da + db))
+                local[j] = (observed, v) if db == 0 else (u, observed)
+                queue.append(j)
+                break
+    return node_of, conflicts
+
+
+def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missing: int = 10) -> Numbering:
+    """Give each blob centre its (column, row) on the plate, or fail saying what was seen."""
+    n = len(points)
+    if n < 4:
+        raise PlateNotFound(f"found {n} blobs, too few for a {plate.columns} x {plate.rows} plate")
+    # Seeds: blobs nearest the middle of the crowd first, then spread through the list.
+    centre = np.median(points, axis=0)
+    order = np.argsort(np.hypot(*(points - centre).T))
+    seeds = list(order[:12]) + list(order[12 :: max(1, n // 12)])
+    # Steps of one or two pitches stay within a point's 24 nearest neighbours.
+    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    neighbours = np.argsort(dist, axis=1)[:, : min(n, 25)]
+    best = {}
+    for s in seeds:
+        grown, conflicts = _grow(points, neighbours, int(s), tol)
+        if conflicts == 0 and len(grown) > len(best):
+            best = grown
+            ab = np.array(list(grown.values()))
+            if sorted(ab.max(axis=0) - ab.min(axis=0) + 1) == sorted((plate.columns, plate.rows)):
+                break  # the whole plate: other seeds would grow the same lattice
+    if not best:
+        raise PlateNotFound(f"found {n} blobs, none form a consistent lattice")
+    idx = np.array(list(best.keys()))
+    ab = np.array([best[i] for i in idx])
+    ab -= ab.min(axis=0)
+    extent = ab.max(axis=0) + 1
+    col_row = _orient(points[idx], ab, extent, plate)
+    ext = col_row.max(axis=0) + 1
+    fit = f"found {n} blobs, {len(idx)} fit a {ext[0]} x {ext[1]} lattice"
+    if tuple(ext) != (plate.columns, plate.rows):
+        raise PlateNotFound(
+            f"{fit}, expected {plate.columns} x {plate.rows}"
+            + _missing_lines(col_row, plate)
+            + " (is the whole plate in view, and does the config's plate match it?)"
+        )
+    occupied = {tuple(cr) for cr in col_row}
+    missing = [(c, r) for r in range(plate.rows) for c in range(plate.columns) if (c, r) not in occupied]
+    if len(missing) > max_missing:
+        raise PlateNotFound(f"{fit} with {len(missing)} circles missing (at most {max_missing} allowed)")
+    strays = np.setdiff1d(np.arange(n), idx)
+    return Numbering(idx, col_row, strays, missing)
+
+
+def _missing_lines(col_row: np.ndarray, plate: PlateConfig) -> str:
+    cols, rows = col_row.max(axis=0) + 1
+    notes = []
+    if rows < plate.rows:
+        notes.append(f"{plate.rows - rows} row(s) missing")
+    if cols < plate.columns:
+        notes.append(f"{plate.columns - cols} column(s) missing")
+    if rows > plate.rows or cols > plate.columns:
+        notes.append("more rows or columns than the plate has")
+    return ", " + ", ".join(notes) if notes else ""
+
+
+def _orient(pts: np.ndarray, ab: np.ndarray, extent: np.ndarray, plate: PlateConfig) -> np.ndarray:
+    """Map grown lattice indices (a, b) to plate (column, row) with point 1 at the configured corner."""
+    # Mean image step along each lattice index, by least squares pts ~ a*sa + b*sb + o.
+    A = np.column_stack([ab, np.ones(len(ab))])
+    sol, *_ = np.linalg.lstsq(A, pts, rcond=None)
+    sa, sb = sol[0], sol[1]
+    la, lb = np.linalg.norm(sa), np.linalg.norm(sb)
+    ratio = plate.pitch_x_mm / plate.pitch_y_mm
+    if abs(np.log(ratio)) > 0.05:
+        # Distinct pitches: the longer image step is the longer pitch.
+        a_is_x = (la > lb) == (ratio > 1)
+    elif plate.columns != plate.rows and sorted(extent) == sorted((plate.columns, plate.rows)):
+        a_is_x = extent[0] == plate.columns
+    else:
+        # Symmetric plate: X is the lattice direction nearest the image's x axis.
+        a_is_x = abs(sa[0]) / la >= abs(sb[0]) / lb
+    cr = ab.copy() if a_is_x else ab[:, ::-1].copy()
+    sx, sy = (sa, sb) if a_is_x else (sb, sa)
+    # Signs: columns run left-to-right from a left corner, rows top-to-bottom from a top one.
+    want_x = -1.0 if plate.first_point.endswith("right") else 1.0
+    want_y = -1.0 if plate.first_point.startswith("bottom") else 1.0
+    # A rotated plate: decide by the axis's image direction (valid for rotations below 45 deg).
+    if np.sign(sx[0]) != want_x:
+        cr[:, 0] = cr[:, 0].max() - cr[:, 0]
+    if np.sign(sy[1]) != want_y:
+        cr[:, 1] = cr[:, 1].max() - cr[:, 1]
+    return cr

@@ -1,0 +1,107 @@
+"""Recalibration as the operator runs it: fit, report, and only then replace the active file.
+
+Exit codes: 0 replaced; 2 bad input (file, config, plate not found, size mismatch);
+3 fit rejected by the configured limits. In every failure the active file is untouched.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import sys
+from datetime import datetime
+from pathlib import Path
+
+from cell.calibration.pipeline import calibrate
+from cell.calibration.report import summary_text, write_report
+from cell.config import load_config
+from cell.errors import CalibrationRejected, CellError, InputError
+from cell.imageio import read_image
+from cell.oplog import log_to_file
+
+log = logging.getLogger(__name__)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="recalibrate.py",
+        description="Fit a new pixel -> table calibration from a plate image and make it active.",
+    )
+    p.add_argument("--image", type=Path, help="plate image (default: capture from the configured camera)")
+    p.add_argument("--out", type=Path, help="calibration file to replace (default: calibration.active_path)")
+    p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
+    p.add_argument("--model", choices=["auto", "quadratic", "homography", "polynomial", "camera"])
+    p.add_argument("--preset", choices=["default", "paper"], help="detector preset (overrides the config)")
+    p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
+    p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
+    p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")
+    return p
+
+
+def capture_plate(config):
+    """One frame from the configured camera."""
+    from drivers.cameras import open_camera  # the camera layer is only needed without --image
+
+    with open_camera(config.camera) as camera:
+        return camera.capture()
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.preset:
+        config.detection.preset = args.preset
+    out = args.out or config.calibration.active_path
+    log_to_file(args.log)
+    image = read_image(args.image) if args.image else capture_plate(config)
+    h, w = image.shape[:2]
+    want = (config.camera.width_px, config.camera.height_px)
+    if (w, h) != want:
+        raise InputError(
+            f"{args.image or 'camera frame'}: image is {w} x {h} px but the camera is configured for "
+            f"{want[0]} x {want[1]} px (camera.width_px, camera.height_px)"
+        )
+    result = calibrate(image, config, args.model)
+    print(summary_text(result, table=not args.quiet))
+    if args.report_dir:
+        for p in write_report(image, result, args.report_dir):
+            print(f"wrote {p}")
+    cv = result.chosen.cv
+    limits = config.calibration
+    if cv["rms_mm"] > limits.max_cv_rms_mm or cv["max_mm"] > limits.max_cv_error_mm:
+        raise CalibrationRejected(
+            f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
+            f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
+            f"{limits.max_cv_error_mm} mm; {out} left unchanged"
+        )
+    backup = None
+    if out.exists():
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        backup_dir = limits.backup_dir if args.out is None else out.parent / "backups"
+        backup_dir.mkdir(parents=True, exist_ok=True)
+        backup = backup_dir / f"{out.stem}.{stamp}{out.suffix}"
+        shutil.copy2(out, backup)
+    result.calibration.save(out)
+    log.info(
+        "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
+        out,
+        result.chosen.label,
+        cv["rms_mm"],
+        cv["max_mm"],
+        f"; previous kept as {backup}" if backup else "",
+    )
+    print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except CalibrationRejected as e:
+        log.error("recalibration refused: %s", e)
+        print(f"recalibrate: refused: {e}", file=sys.stderr)
+        return 3
+    except CellError as e:
+        log.error("recalibration failed: %s", e)
+        print(f"recalibrate: error: {e}", file=sys.stderr)
+        return 2

@@ -1,0 +1,159 @@
+"""The calibration report: the paper's Table III for every point, its summary lines, and
+the files an integrator keeps (CSV, the numbered plate image of Fig. 4, the deviation plot
+of Fig. 5)."""
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cell.calibration.pipeline import CalibrationResult
+
+
+def table3_rows(result: CalibrationResult) -> list[dict]:
+    """Calibrated X/Y, original X/Y, deviation = original - calibrated, per point."""
+    rows = []
+    for num, px, cal, orig in zip(
+        result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm
+    ):
+        rows.append(
+            {
+                "point": int(num),
+                "x_px": float(px[0]),
+                "y_px": float(px[1]),
+                "X_cal_mm": float(cal[0]),
+                "Y_cal_mm": float(cal[1]),
+                "X_mm": float(orig[0]),
+                "Y_mm": float(orig[1]),
+                "dX_mm": float(orig[0] - cal[0]),
+                "dY_mm": float(orig[1] - cal[1]),
+            }
+        )
+    return rows
+
+
+def write_csv(result: CalibrationResult, path: Path) -> None:
+    rows = table3_rows(result)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in r.items()})
+    _write_text_atomic(path, buf.getvalue())
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)
+
+
+def summary_text(result: CalibrationResult, table: bool = True) -> str:
+    """What the operator reads: model choice, fit and cross-validated figures, Table III."""
+    cal, pts = result.calibration, result.points
+    fit, cv = result.chosen.fit, result.chosen.cv
+    lines = [
+        f"plate: {len(pts.pixel)} circles numbered ({pts.blobs_found} blobs found, "
+        f"{pts.strays} strays ignored, missing: {pts.missing or 'none'})",
+        f"image: {cal.image_size[0]} x {cal.image_size[1]} px",
+        f"model: {result.why}",
+        "",
+        f"{'model':<24}{'fit RMS X':>11}{'fit RMS Y':>11}{'fit max':>9}{'CV RMS':>9}{'CV max':>9}  (mm)",
+    ]
+    for s in result.scores:
+        mark = "*" if s is result.chosen else " "
+        lines.append(
+            f"{mark}{s.label:<23}{s.fit['rms_x_mm']:>11.4f}{s.fit['rms_y_mm']:>11.4f}"
+            f"{s.fit['max_mm']:>9.4f}{s.cv['rms_mm']:>9.4f}{s.cv['max_mm']:>9.4f}"
+        )
+    lines += [
+        "",
+        "deviation (original - calibrated), chosen model:",
+        f"  fitted points:     max +dX {fit['max_pos_x_mm']:+.4f}  max -dX {fit['max_neg_x_mm']:+.4f}  "
+        f"max +dY {fit['max_pos_y_mm']:+.4f}  max -dY {fit['max_neg_y_mm']:+.4f}  "
+        f"RMS X {fit['rms_x_mm']:.4f}  RMS Y {fit['rms_y_mm']:.4f}",
+        f"  cross-validated:   max +dX {cv['max_pos_x_mm']:+.4f}  max -dX {cv['max_neg_x_mm']:+.4f}  "
+        f"max +dY {cv['max_pos_y_mm']:+.4f}  max -dY {cv['max_neg_y_mm']:+.4f}  "
+        f"RMS X {cv['rms_x_mm']:.4f}  RMS Y {cv['rms_y_mm']:.4f}",
+        "  (trust the cross-validated line: each point there was predicted by a fit made without it)",
+    ]
+    if cal.camera is not None:
+        C = cal.camera.center_table_mm
+        lines.append(
+            f"camera centre (table frame): X {C[0]:.1f} mm, Y {C[1]:.1f} mm, {C[2]:.1f} mm above the table"
+        )
+    lines.append(
+        f"time: detect+number {result.timings_ms['detect_number_ms']:.1f} ms, "
+        f"fit+cross-validate {result.timings_ms['fit_cv_ms']:.1f} ms"
+    )
+    if table:
+        lines += ["", "Table III (all points):", f"{'point':>5}{'X cal':>11}{'Y cal':>11}{'X':>9}{'Y':>9}{'dX':>9}{'dY':>9}"]
+        for r in table3_rows(result):
+            lines.append(
+                f"{r['point']:>5}{r['X_cal_mm']:>11.4f}{r['Y_cal_mm']:>11.4f}{r['X_mm']:>9.1f}"
+                f"{r['Y_mm']:>9.1f}{r['dX_mm']:>9.4f}{r['dY_mm']:>9.4f}"
+            )
+    return "\n".join(lines)
+
+
+def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
+    """Every centre marked and numbered (the paper's Fig. 4)."""
+    out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    scale = max(0.35, out.shape[1] / 3000)
+    for num, (x, y) in zip(result.points.number, result.points.pixel):
+        c = (int(round(x)), int(round(y)))
+        cv2.drawMarker(out, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1, cv2.LINE_AA)
+        cv2.putText(out, str(num), (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 160, 0), 1, cv2.LINE_AA)
+    return out
+
+
+def deviation_plot(result: CalibrationResult, path: Path) -> None:
+    """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = table3_rows(result)
+    num = [r["point"] for r in rows]
+    dx = np.array([r["dX_mm"] for r in rows])
+    dy = np.array([r["dY_mm"] for r in rows])
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(14, 5))
+    ax1.plot(num, dx, ".-", label="dX (mm)")
+    ax1.plot(num, dy, ".-", label="dY (mm)")
+    ax1.axhline(0, color="k", lw=0.5)
+    ax1.set_xlabel("point")
+    ax1.set_ylabel("deviation = original - calibrated (mm)")
+    ax1.set_title(f"{result.chosen.label}: deviation per point")
+    ax1.legend()
+    X = np.array([r["X_mm"] for r in rows])
+    Y = np.array([r["Y_mm"] for r in rows])
+    mag = np.hypot(dx, dy)
+    q = ax2.quiver(X, Y, dx, dy, mag, angles="xy", cmap="viridis")
+    fig.colorbar(q, ax=ax2, label="|deviation| (mm)")
+    ax2.set_aspect("equal")
+    ax2.invert_yaxis()
+    ax2.set_xlabel("X (mm)")
+    ax2.set_ylabel("Y (mm)")
+    ax2.set_title(f"error vectors (max {mag.max():.4f} mm, arrows not to scale)")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path) -> list[Path]:
+    """All report files into `report_dir`; returns their paths."""
+    report_dir.mkdir(parents=True, exist_ok=True)
+    paths = [report_dir / "table3.csv", report_dir / "plate_numbered.png", report_dir / "deviation.png", report_dir / "report.txt"]
+    write_csv(result, paths[0])
+    tmp = report_dir / ".plate_numbered.tmp.png"
+    cv2.imwrite(str(tmp), annotate_plate(image, result))
+    tmp.replace(paths[1])
+    deviation_plot(result, paths[2])
+    _write_text_atomic(paths[3], summary_text(result) + "\n")
+    return paths
