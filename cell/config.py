@@ -93,7 +93,7 @@ class CalibrationConfig(Strict):
     max_cv_error_mm: float = Field(
         1.0, gt=0, description="recalibration is refused above this cross-validated max error"
     )
-    cv_folds: int = Field(10, ge=2, le=1000)
+    cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
 

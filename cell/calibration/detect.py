@@ -148,7 +148,7 @@ def detect_blobs(
 
 
 def _subpixel_centre(norm, contour, rect, d, size) -> tuple[float, float] | None:
-    """Darkness-weighted centroid over the blob dilated by its blurred rim.
+    """Darkness-weighted centroid over the blob's moment ellipse grown by its blurred rim.
 
     Weights are (ring level - normalised intensity): the ring just outside the rim gives
     the residual background, so background pixels inside the window weigh zero on
@@ -156,24 +156,28 @@ def _subpixel_centre(norm, contour, rect, d, size) -> tuple[float, float] | None
     """
     w, h = size
     x, y, bw, bh = rect
-    rim = max(2, int(np.ceil(0.15 * d)))
-    ring = rim + max(2, int(np.ceil(0.1 * d)))
-    x0, y0 = max(0, x - ring), max(0, y - ring)
-    x1, y1 = min(w, x + bw + ring), min(h, y + bh + ring)
+    rim = max(2.0, 0.15 * d)
+    ring = rim + max(2.0, 0.1 * d)
+    x0, y0 = max(0, x - int(ring) - 1), max(0, y - int(ring) - 1)
+    x1, y1 = min(w, x + bw + int(ring) + 1), min(h, y + bh + int(ring) + 1)
     if x0 == 0 or y0 == 0 or x1 == w or y1 == h:
         return None  # cut by the image border: its centroid would be biased
+    m = cv2.moments(contour)
+    cx, cy = m["m10"] / m["m00"], m["m01"] / m["m00"]
+    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+    inv = np.linalg.inv(cov * 4.0)  # a uniform ellipse: boundary at rho = 1
+    r_min = 2.0 * np.sqrt(max(np.linalg.eigvalsh(cov)[0], 1e-6))
     roi = norm[y0:y1, x0:x1]
-    mask = np.zeros(roi.shape, np.uint8)
-    cv2.drawContours(mask, [contour - (x0, y0)], -1, 1, thickness=-1)
-    inner = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rim + 1,) * 2))
-    outer = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2))
-    ring_px = roi[(outer > 0) & (inner == 0)]
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    dx, dy = xx - cx, yy - cy
+    rho = np.sqrt(inv[0, 0] * dx * dx + 2 * inv[0, 1] * dx * dy + inv[1, 1] * dy * dy)
+    inner = rho <= 1.0 + rim / r_min
+    ring_px = roi[~inner & (rho <= 1.0 + ring / r_min)]
     if ring_px.size < 8:
         return None
     level = float(np.median(ring_px))
-    weight = (level - roi) * (inner > 0)
+    weight = (level - roi) * inner
     total = float(weight.sum())
     if total <= 0:
         return None
-    yy, xx = np.mgrid[y0:y1, x0:x1]
     return float((weight * xx).sum() / total), float((weight * yy).sum() / total)

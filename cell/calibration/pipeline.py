@@ -11,7 +11,7 @@ import numpy as np
 
 from cell.calibration.detect import Blob, detect_blobs, detect_paper
 from cell.calibration.lattice import number_lattice
-from cell.calibration.models import fit_camera, fit_model
+from cell.calibration.models import PolynomialMap, fit_camera, fit_model
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
@@ -123,14 +123,11 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
 
 
 def _local_pitch_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
-    """Geometric-mean lattice pitch in pixels around each point (affine fit of its neighbourhood)."""
-    out = np.empty(len(pixel))
-    for k in range(len(pixel)):
-        near = np.abs(cr - cr[k]).max(axis=1) <= 2
-        A = np.column_stack([cr[near] - cr[k], np.ones(near.sum())])
-        sol, *_ = np.linalg.lstsq(A, pixel[near], rcond=None)
-        out[k] = np.sqrt(abs(np.linalg.det(sol[:2])))
-    return out
+    """Geometric-mean lattice pitch in pixels at each point, from a quadratic fit of the lattice."""
+    fit = PolynomialMap.fit(cr.astype(np.float64), pixel, 2)
+    c = cr.astype(np.float64)
+    J = np.stack([(fit(c + (0.5, 0)) - fit(c - (0.5, 0))), (fit(c + (0, 0.5)) - fit(c - (0, 0.5)))], axis=2)
+    return np.sqrt(np.abs(np.linalg.det(J)))
 
 
 def error_stats(predicted: np.ndarray, truth: np.ndarray) -> dict:
