@@ -126,15 +126,23 @@ def detect_blobs(
     min_area_px: float = 12.0,
     min_axis_ratio: float = 0.35,
     min_solidity: float = 0.85,
+    threshold: float = 0.65,
 ) -> list[Blob]:
-    """Dark round blobs with sub-pixel centres. Size limits come later, from the lattice."""
+    """Dark round blobs with sub-pixel centres. Size limits come later, from the lattice.
+
+    `threshold` is a fraction of the local background: low-contrast (grey) dots still fall
+    below it; the centre itself does not depend on it (it is darkness-weighted).
+    """
     gray = to_gray(image)
     norm, _ = normalised_image(gray)
-    binary = (norm < 0.5).astype(np.uint8)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    binary = (norm < threshold).astype(np.uint8)
+    # CCOMP, not EXTERNAL: dots on a sheet held in front of a dark room are islands inside
+    # the hole that the sheet makes in the room's dark region; keep every outer boundary.
+    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     h, w = gray.shape
     blobs = []
-    for c in contours:
+    outer = [c for c, hier in zip(contours, hierarchy[0] if hierarchy is not None else []) if hier[3] < 0]
+    for c in outer:
         cx, cy, area, ratio, solidity = _blob_shape(c)
         if area < min_area_px or ratio < min_axis_ratio or solidity < min_solidity:
             continue

@@ -51,7 +51,6 @@ def run(args: argparse.Namespace) -> int:
     if args.preset:
         config.detection.preset = args.preset
     out = args.out or config.calibration.active_path
-    log_to_file(args.log)
     image = read_image(args.image) if args.image else capture_plate(config)
     h, w = image.shape[:2]
     want = (config.camera.width_px, config.camera.height_px)
@@ -95,6 +94,11 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        log_to_file(args.log)
+    except OSError as e:
+        print(f"recalibrate: error: cannot open log {args.log}: {e}", file=sys.stderr)
+        return 2
     try:
         return run(args)
     except CalibrationRejected as e:

@@ -1,0 +1,170 @@
+"""scripts/recalibrate.py and `run-cell map`, driven as operators and other tools call them."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cell.camera_model import CameraModel
+from cell.config import CellConfig
+from drivers.sim.render import render_plate
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "recalibrate.py"
+CAMERA = CameraModel.looking_down(1280, 720, 0.30, (132, 88), tilt_deg=3, k1=-0.06)
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=120)
+
+
+def run_cell(*args):
+    return run("-m", "cell.cli", *args, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recal")
+    cv2.imwrite(str(d / "plate.png"), render_plate(CAMERA, CellConfig().plate, seed=1))
+    (d / "cell.toml").write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n")
+    return d
+
+
+def recalibrate(work, out, *extra):
+    return run(SCRIPT, "--image", work / "plate.png", "--out", out, "--config", work / "cell.toml",
+               "--log", work / "cell.log", *extra)
+
+
+def test_recalibrate_writes_report_and_keeps_a_backup(work, tmp_path):
+    out = tmp_path / "active.json"
+    r = recalibrate(work, out, "--report-dir", tmp_path / "report")
+    assert r.returncode == 0, r.stderr
+    assert "cross-validated" in r.stdout and "Table III" in r.stdout
+    data = json.loads(out.read_text())
+    assert data["schema"] == "pick-cell/calibration" and data["version"] == 1
+    assert data["camera"] and data["camera_center_table_mm"][2] > 100
+    assert len(data["image_sha256"]) == 64
+    for name in ("table3.csv", "plate_numbered.png", "deviation.png", "report.txt"):
+        assert (tmp_path / "report" / name).stat().st_size > 0
+    rows = (tmp_path / "report" / "table3.csv").read_text().splitlines()
+    assert rows[0] == "point,x_px,y_px,X_cal_mm,Y_cal_mm,X_mm,Y_mm,dX_mm,dY_mm" and len(rows) == 157
+    first = out.read_bytes()
+    r = recalibrate(work, out, "--model", "polynomial")
+    assert r.returncode == 0, r.stderr
+    backups = list((tmp_path / "backups").glob("active.*.json"))
+    assert len(backups) == 1 and backups[0].read_bytes() == first
+    assert json.loads(out.read_text())["model"] == "polynomial"
+    assert "recalibrated" in (work / "cell.log").read_text()
+
+
+def _untouched_after(work, tmp_path, *args, image=None, code=2):
+    out = tmp_path / "active.json"
+    out.write_text('{"keep": "me"}')
+    cmd = [SCRIPT, "--image", image or work / "plate.png", "--out", out, "--log", work / "cell.log", *args]
+    if "--config" not in args:
+        cmd += ["--config", work / "cell.toml"]
+    r = run(*cmd)
+    assert r.returncode == code, r.stdout + r.stderr
+    assert out.read_text() == '{"keep": "me"}'
+    assert "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    return r.stderr
+
+
+def test_missing_image(work, tmp_path):
+    assert "not found" in _untouched_after(work, tmp_path, image=tmp_path / "nope.png")
+
+
+def test_unreadable_image(work, tmp_path):
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG garbage")
+    assert "cannot decode image" in _untouched_after(work, tmp_path, image=bad)
+
+
+def test_no_plate(work, tmp_path):
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((720, 1280, 3), 220, np.uint8))
+    assert "no plate" in _untouched_after(work, tmp_path, image=blank)
+
+
+def test_part_of_a_plate(work, tmp_path):
+    part = tmp_path / "part.png"
+    image = cv2.imread(str(work / "plate.png"))
+    image[:, 700:] = image[5, 5]  # cover the right half with backlight
+    cv2.imwrite(str(part), image)
+    assert "column(s) missing" in _untouched_after(work, tmp_path, image=part)
+
+
+def test_grid_mismatch(work, tmp_path):
+    cfg = tmp_path / "grid.toml"
+    cfg.write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n[plate]\ncolumns = 12\n")
+    assert "expected 12 x 12" in _untouched_after(work, tmp_path, "--config", cfg)
+
+
+def test_image_size_mismatch(work, tmp_path):
+    cfg = tmp_path / "size.toml"
+    cfg.write_text("[camera]\nwidth_px = 1920\nheight_px = 1080\n")
+    err = _untouched_after(work, tmp_path, "--config", cfg)
+    assert "1280 x 720" in err and "1920 x 1080" in err
+
+
+def test_bad_config_value(work, tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[plate]\npitch_x_mm = -22\n")
+    assert "plate.pitch_x_mm" in _untouched_after(work, tmp_path, "--config", cfg)
+
+
+def test_fit_over_the_limit_is_refused(work, tmp_path):
+    cfg = tmp_path / "strict.toml"
+    cfg.write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n[calibration]\nmax_cv_rms_mm = 0.05\n")
+    err = _untouched_after(work, tmp_path, "--config", cfg, "--model", "quadratic", code=3)
+    assert "max_cv_rms_mm" in err and "left unchanged" in err
+
+
+@pytest.fixture(scope="module")
+def calibration(work):
+    out = work / "cal.json"
+    assert recalibrate(work, out).returncode == 0
+    return out
+
+
+def test_map_csv_in_input_order(calibration, tmp_path):
+    truth = np.array([[0.0, 0.0], [264.0, 176.0], [100.0, 50.0]])
+    px = CAMERA.project(truth)
+    csv = tmp_path / "points.csv"
+    csv.write_text("x_px,y_px\n" + "".join(f"{x},{y}\n" for x, y in px))
+    r = run_cell("map", "--calibration", calibration, "--pixels", csv, "--json")
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)
+    assert [list(r) for r in rows] == [["x_px", "y_px", "X_mm", "Y_mm"]] * 3
+    got = np.array([[r["X_mm"], r["Y_mm"]] for r in rows])
+    assert np.abs(got - truth).max() < 0.03
+    one = run_cell("map", "--calibration", calibration, str(px[2, 0]), str(px[2, 1]), "--json")
+    assert json.loads(one.stdout)[0]["X_mm"] == pytest.approx(rows[2]["X_mm"])
+
+
+@pytest.mark.parametrize("content,message", [
+    ("x_px,y_px\n10,20\nnan,5\n", "line 3: not a finite number"),
+    ("x_px,y_px\n10,twenty\n", "line 2: not a number"),
+    ("x,y\n10,20\n", "line 1: header must be 'x_px,y_px'"),
+])
+def test_map_rejects_bad_pixels(calibration, tmp_path, content, message):
+    csv = tmp_path / "points.csv"
+    csv.write_text(content)
+    r = run_cell("map", "--calibration", calibration, "--pixels", csv, "--json")
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("content,message", [
+    ("{not json", "not JSON"),
+    ('{"schema": "pick-cell/calibration", "version": 1, "model": "quadratic", "coefficients": {}}', "corrupt calibration"),
+    ('{"schema": "other"}', "not a calibration file"),
+])
+def test_map_rejects_a_corrupt_calibration(tmp_path, content, message):
+    cal = tmp_path / "cal.json"
+    cal.write_text(content)
+    r = run_cell("map", "--calibration", cal, "1", "2")
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
