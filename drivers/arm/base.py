@@ -1,0 +1,85 @@
+"""The arm interface the cell programs against; each driver alone knows its wire protocol."""
+from __future__ import annotations
+
+import abc
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+from drivers.arm.kinematics import Pose
+
+log = logging.getLogger(__name__)
+
+ArmState = Literal["idle", "moving", "hold", "alarm", "fault", "disconnected"]
+
+
+@dataclass(frozen=True)
+class ArmStatus:
+    """What the arm reports about itself: state, tool pose (None if unknown), gripper."""
+
+    state: ArmState
+    pose: Pose | None
+    gripper_closed: bool | None
+    detail: str = ""
+
+
+class Arm(abc.ABC):
+    """One arm. Coordinates are the robot base frame in mm; angle_deg turns the gripper about z.
+
+    Every method raises an ArmError subclass on failure, after leaving the arm safe (motion
+    stopped, servo torque released); `with arm:` connects and always disconnects.
+    """
+
+    port: str
+
+    @abc.abstractmethod
+    def connect(self) -> None: ...
+
+    @abc.abstractmethod
+    def disconnect(self) -> None:
+        """Close the port; never raises."""
+
+    @property
+    @abc.abstractmethod
+    def is_connected(self) -> bool: ...
+
+    @abc.abstractmethod
+    def home(self) -> None:
+        """Run the homing cycle (or go to the configured home pose) and wait for it."""
+
+    @abc.abstractmethod
+    def check_target(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> None:
+        """Raise OutOfReach if the target cannot be reached; sends nothing."""
+
+    @abc.abstractmethod
+    def move_to(
+        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True
+    ) -> None:
+        """Move the tool point to (x, y, z); with wait, return once it has arrived."""
+
+    @abc.abstractmethod
+    def open_gripper(self) -> None: ...
+
+    @abc.abstractmethod
+    def close_gripper(self) -> None: ...
+
+    @abc.abstractmethod
+    def wait_until_idle(self, timeout_s: float | None = None) -> None:
+        """Block until all commanded motion is done; NoResponse after timeout_s."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop motion now and leave the arm safe; never raises."""
+
+    @abc.abstractmethod
+    def status(self) -> ArmStatus: ...
+
+    def __enter__(self) -> "Arm":
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            log.warning("stopping arm on %s after %s", getattr(self, "port", "?"), exc_type.__name__)
+            self.stop()
+        self.disconnect()

@@ -1,0 +1,199 @@
+"""Arm configuration: one model per device kind, validated like the rest of the cell's TOML.
+
+Lengths in mm, angles in degrees, times in seconds; servo quantities in the servo's own
+units (ticks), named so. Every model forbids unknown keys so a typo names itself.
+"""
+from __future__ import annotations
+
+import math
+import string
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+# Placeholders each serial command template may use, with sample values for validation.
+TEMPLATE_FIELDS = {"x_mm": 1.0, "y_mm": 2.0, "z_mm": 3.0, "angle_deg": 4.0, "feed_mm_min": 600.0}
+
+
+class _Strict(BaseModel):
+    # Same rules as cell.config.Strict (not imported: cell.config imports this module).
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class Workspace(_Strict):
+    """Box, in the robot base frame, that targets must lie in; checked before anything is sent."""
+
+    x_min_mm: float = 0.0
+    x_max_mm: float = 200.0
+    y_min_mm: float = 0.0
+    y_max_mm: float = 200.0
+    z_min_mm: float = 0.0
+    z_max_mm: float = 200.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Workspace":
+        for axis in "xyz":
+            lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
+            if lo >= hi:
+                raise ValueError(f"workspace.{axis}_min_mm ({lo} mm) must be below {axis}_max_mm ({hi} mm)")
+        return self
+
+    def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
+        """Why the point is outside the box, or None if inside."""
+        for axis, v in zip("xyz", (x_mm, y_mm, z_mm)):
+            lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
+            if not math.isfinite(v) or not lo <= v <= hi:
+                return f"{axis} = {v:g} mm is outside the workspace [{lo:g}, {hi:g}] mm"
+        return None
+
+
+class SerialCommands(_Strict):
+    """G-code templates, so GRBL, Marlin, uArm or custom firmware fit by configuration.
+
+    Placeholders: {x_mm} {y_mm} {z_mm} {angle_deg} {feed_mm_min}. An empty string means the
+    arm lacks that function.
+    """
+
+    setup: list[str] = Field(["G21", "G90"], description="sent after connect: mm units, absolute mode")
+    rapid: str = "G0 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f}"
+    feed: str = "G1 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f} F{feed_mm_min:.0f}"
+    rotate: str = Field("", description="turns the tool to angle_deg, e.g. 'G0 A{angle_deg:.2f}'")
+    gripper_open: str = "M5"
+    gripper_close: str = "M3 S1000"
+    wait: str = Field("G4 P0", description="answered only once all motion is done ('M400' on Marlin)")
+    home: str = Field("$H", description="homing cycle; empty: move to home_position_mm instead")
+
+    @field_validator("rapid", "feed", "rotate", "gripper_open", "gripper_close", "wait", "home")
+    @classmethod
+    def _template_ok(cls, v: str) -> str:
+        _check_template(v)
+        return v
+
+    @field_validator("setup")
+    @classmethod
+    def _setup_ok(cls, v: list[str]) -> list[str]:
+        for line in v:
+            _check_template(line)
+        return v
+
+
+def _check_template(template: str) -> None:
+    if "\n" in template or "\r" in template:
+        raise ValueError(f"{template!r}: one G-code line only, no line breaks")
+    try:
+        names = {f for _, f, _, _ in string.Formatter().parse(template) if f is not None}
+    except ValueError as e:
+        raise ValueError(f"bad template {template!r}: {e}") from None
+    unknown = names - set(TEMPLATE_FIELDS)
+    if unknown:
+        raise ValueError(
+            f"unknown placeholder {{{sorted(unknown)[0]}}} in {template!r} "
+            f"(allowed: {', '.join('{' + k + '}' for k in TEMPLATE_FIELDS)})"
+        )
+    try:
+        template.format(**TEMPLATE_FIELDS)
+    except (ValueError, IndexError) as e:
+        raise ValueError(f"bad template {template!r}: {e}") from None
+
+
+class SerialArmConfig(_Strict):
+    """A G-code arm on a serial line; GRBL 1.1 at its defaults unless told otherwise."""
+
+    baud: int = Field(115200, ge=300, le=4_000_000)
+    command_timeout_s: float = Field(2.0, gt=0, le=60, description="longest wait for 'ok' to a command")
+    motion_timeout_s: float = Field(30.0, gt=0, le=600, description="longest wait for a move to finish")
+    connect_timeout_s: float = Field(3.0, gt=0, le=60, description="longest wait for the start-up banner")
+    reconnect_timeout_s: float = Field(10.0, ge=0, le=600, description="how long to wait for a re-plugged port")
+    poll_interval_s: float = Field(0.05, gt=0, le=5, description="period of '?' status queries while moving")
+    status_query: bool = Field(True, description="firmware answers the GRBL real-time '?' status query")
+    soft_reset_on_connect: bool = Field(True, description="send Ctrl-X and expect the GRBL banner on connect")
+    speed_mm_s: float = Field(50.0, gt=0, le=5000, description="feed for moves; 0-length rapid moves unused")
+    rapid_moves: bool = Field(False, description="use the rapid template (firmware's top speed) for moves")
+    home_position_mm: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="where `home` moves when commands.home is empty"
+    )
+    workspace: Workspace = Workspace()
+    commands: SerialCommands = SerialCommands()
+
+    @model_validator(mode="after")
+    def _home_inside(self) -> "SerialArmConfig":
+        if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
+            raise ValueError(f"serial.home_position_mm: {why}")
+        return self
+
+
+class Geometry(_Strict):
+    """A 4-axis arm (base yaw, shoulder, elbow, wrist pitch), gripper pointing down.
+
+    Defaults: ROBOTIS OpenManipulator-X. Base frame: origin at the base, x forward, z up.
+    """
+
+    yaw_axis_x_mm: float = Field(12.0, ge=-500, le=500, description="x of the base yaw axis in the base frame")
+    shoulder_height_mm: float = Field(76.5, ge=0, le=2000, description="shoulder axis above the base origin")
+    upper_arm_rise_mm: float = Field(128.0, gt=0, le=2000, description="shoulder to elbow, along the arm at zero")
+    upper_arm_offset_mm: float = Field(24.0, ge=0, le=2000, description="shoulder to elbow, sideways (forward) at zero")
+    forearm_mm: float = Field(124.0, gt=0, le=2000, description="elbow to wrist")
+    tool_mm: float = Field(126.0, gt=0, le=2000, description="wrist axis to the gripper's tool point")
+    min_radius_mm: float = Field(60.0, ge=0, le=2000, description="closest the tool may come to the yaw axis")
+
+
+class DynamixelArmConfig(_Strict):
+    """Dynamixel Protocol 2.0 servos on one bus; defaults as on an OpenManipulator-X."""
+
+    baud: int = Field(1_000_000, ge=9600, le=4_500_000)
+    joint_ids: tuple[int, int, int, int] = Field((11, 12, 13, 14), description="base yaw to wrist pitch")
+    gripper_id: int = Field(15, ge=0, le=252)
+    geometry: Geometry = Geometry()
+    joint_min_deg: tuple[float, float, float, float] = (-162.0, -102.6, -54.0, -102.6)
+    joint_max_deg: tuple[float, float, float, float] = (162.0, 90.0, 79.2, 117.0)
+    joint_directions: tuple[int, int, int, int] = Field((1, 1, 1, 1), description="+1 or -1 per joint")
+    zero_ticks: int = Field(2048, ge=0, le=4095, description="servo position of joint angle 0 rad")
+    home_joints_deg: tuple[float, float, float, float] = (0.0, -60.0, 20.0, 40.0)
+    gripper_open_ticks: int = Field(1800, ge=0, le=4095)
+    gripper_closed_ticks: int = Field(2400, ge=0, le=4095)
+    profile_velocity: int = Field(100, ge=0, le=32767, description="servo units of 0.229 rev/min; 0 = top speed")
+    profile_acceleration: int = Field(20, ge=0, le=32767, description="servo units of 214.577 rev/min^2")
+    tolerance_ticks: int = Field(20, ge=1, le=400, description="arrival tolerance per servo (4096 ticks/rev)")
+    angle_tolerance_deg: float = Field(
+        1.0, gt=0, le=90, description="a 4-axis arm turns its gripper with the base: a requested angle must match"
+    )
+    move_timeout_s: float = Field(10.0, gt=0, le=600, description="longest wait for the servos to arrive")
+    poll_interval_s: float = Field(0.02, gt=0, le=5)
+    comm_retries: int = Field(1, ge=0, le=10, description="retries of a failed bus transfer before giving up")
+    workspace: Workspace = Workspace(
+        x_min_mm=-400, x_max_mm=400, y_min_mm=-400, y_max_mm=400, z_min_mm=-100, z_max_mm=400
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "DynamixelArmConfig":
+        ids = [*self.joint_ids, self.gripper_id]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"dynamixel.joint_ids {list(self.joint_ids)} and gripper_id {self.gripper_id} must be distinct")
+        for i in self.joint_ids:
+            if not 0 <= i <= 252:
+                raise ValueError(f"dynamixel.joint_ids: {i} is not a servo id (0-252)")
+        for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg), start=1):
+            if lo >= hi:
+                raise ValueError(f"dynamixel joint {j}: joint_min_deg ({lo} deg) must be below joint_max_deg ({hi} deg)")
+            if lo < -180 or hi > 180:
+                raise ValueError(f"dynamixel joint {j}: limits must lie within -180..180 deg (one servo turn)")
+        for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg), start=1):
+            if d not in (1, -1):
+                raise ValueError(f"dynamixel.joint_directions: joint {j} is {d}, must be 1 or -1")
+            if not self.joint_min_deg[j - 1] <= h <= self.joint_max_deg[j - 1]:
+                raise ValueError(f"dynamixel.home_joints_deg: joint {j} at {h} deg is outside its limits")
+        if self.gripper_open_ticks == self.gripper_closed_ticks:
+            raise ValueError("dynamixel.gripper_open_ticks and gripper_closed_ticks must differ")
+        return self
+
+
+class ArmConfig(_Strict):
+    """Which arm the cell drives and where it is plugged in."""
+
+    kind: Literal["serial", "dynamixel", "mock"] = Field(
+        "mock", description="'mock' records and validates commands and moves nothing"
+    )
+    mock_of: Literal["serial", "dynamixel"] = Field("serial", description="whose limits the mock arm checks")
+    port: str = Field("", description="device path or pyserial URL (socket://, spy://); see `run-cell ports`")
+    serial: SerialArmConfig = SerialArmConfig()
+    dynamixel: DynamixelArmConfig = DynamixelArmConfig()

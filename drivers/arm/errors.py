@@ -1,0 +1,81 @@
+"""Typed arm errors: each carries the port, the command sent and the device's own reply,
+so the one-line message the operator sees says what failed, where, and what to do."""
+from __future__ import annotations
+
+from cell.errors import CellError
+
+
+class ArmError(CellError):
+    """Base of every arm failure."""
+
+    default_hint: str | None = None
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        port: str | None = None,
+        command: str | None = None,
+        reply: str | None = None,
+        hint: str | None = None,
+    ):
+        details = []
+        if port:
+            details.append(f"port {port}")
+        if command:
+            details.append(f"command {command!r}")
+        if reply:
+            details.append(f"reply {reply!r}")
+        full = f"{message} [{', '.join(details)}]" if details else message
+        super().__init__(full, hint or self.default_hint)
+        self.port = port
+        self.command = command
+        self.reply = reply
+
+
+class NoResponse(ArmError):
+    """The device did not answer within its timeout (or answered with garbage)."""
+
+    default_hint = "check the arm is powered, the port and baud rate are right (`run-cell ports`)"
+
+
+class ErrorResponse(ArmError):
+    """The device refused a command with its own error code."""
+
+    def __init__(self, message: str, *, code: int | None = None, **kw):
+        super().__init__(message, **kw)
+        self.code = code
+
+
+class AlarmResponse(ArmError):
+    """The device is in alarm: motion stopped and locked until the operator acts."""
+
+    default_hint = "clear the cause, then re-home the arm (`run-cell home`); the driver never unlocks an alarm itself"
+
+    def __init__(self, message: str, *, code: int | None = None, **kw):
+        super().__init__(message, **kw)
+        self.code = code
+
+
+class HardwareFault(ArmError):
+    """A servo reported a hardware error (overload, overheating, ...); torque has been released."""
+
+    default_hint = "remove the load or obstruction, let the servo cool, then power-cycle the arm"
+
+
+class OutOfReach(ArmError):
+    """A target outside the workspace or the joint limits; refused before anything was sent."""
+
+    default_hint = "choose a point inside the arm's workspace (see the arm section of the config)"
+
+
+class ConnectionLost(ArmError):
+    """The port vanished or could not be opened (cable pulled, wrong path, device busy)."""
+
+    default_hint = "check the USB cable and the port path (`run-cell ports`); re-home after reconnecting"
+
+
+class NotConnected(ArmError):
+    """A command was issued before connect() or after disconnect()."""
+
+    default_hint = "call connect() first"

@@ -1,0 +1,210 @@
+"""The serial G-code driver against the GRBL emulator on a real pseudo-terminal, via pyserial."""
+import time
+
+import pytest
+
+from drivers.arm.config import SerialArmConfig, SerialCommands
+from drivers.arm.errors import AlarmResponse, ConnectionLost, ErrorResponse, NoResponse, OutOfReach
+from drivers.arm.serial_gcode import SerialGcodeArm
+from drivers.arm.serial_line import SerialLine
+from drivers.sim.grbl_emulator import GrblEmulator
+from drivers.sim.pty_port import serve_pty
+
+FAST = dict(command_timeout_s=0.5, motion_timeout_s=3.0, connect_timeout_s=0.5,
+            reconnect_timeout_s=2.0, poll_interval_s=0.02, speed_mm_s=100.0)
+
+
+def make_arm(path: str, **overrides) -> SerialGcodeArm:
+    return SerialGcodeArm(SerialLine(path, 115200), SerialArmConfig(**{**FAST, **overrides}))
+
+
+@pytest.fixture
+def grbl():
+    emu = GrblEmulator(speed_scale=20)
+    with serve_pty(emu) as path:
+        yield emu, path
+
+
+def assert_at(emu, x, y, z):
+    assert emu.tool_pose()[:3] == pytest.approx((x, y, z), abs=1e-9)
+
+
+def test_move_ends_at_commanded_position_with_grbl_lines(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        assert arm.firmware == "Grbl 1.1h"
+        arm.move_to(120.5, 40.25, 15.0)
+        assert_at(emu, 120.5, 40.25, 15.0)
+        assert emu.state == "Idle"
+        status = arm.status()
+        assert status.state == "idle"
+        assert (status.pose.x_mm, status.pose.y_mm, status.pose.z_mm) == (120.5, 40.25, 15.0)
+    assert emu.lines_received == ["G21", "G90", "G1 X120.500 Y40.250 Z15.000 F6000", "G4 P0"]
+
+
+def test_gripper_close_and_open_reach_the_listener_at_the_tool_pose(grbl):
+    emu, path = grbl
+    events = []
+    emu.add_tool_listener(lambda *a: events.append(a))
+    with make_arm(path) as arm:
+        arm.move_to(50, 60, 10)
+        arm.close_gripper()
+        arm.move_to(80, 20, 30)
+        arm.open_gripper()
+        assert arm.status().gripper_closed is False
+    assert events == [(True, 50.0, 60.0, 10.0, 0.0), (False, 80.0, 20.0, 30.0, 0.0)]
+
+
+def test_unreachable_target_refused_before_anything_is_sent(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        sent = list(emu.lines_received)
+        with pytest.raises(OutOfReach, match=r"x = 250 mm is outside the workspace \[0, 200\] mm"):
+            arm.move_to(250, 10, 10)
+        with pytest.raises(OutOfReach, match="no tool rotation command"):
+            arm.move_to(10, 10, 10, angle_deg=30)
+        assert emu.lines_received == sent
+
+
+def test_rotary_axis_by_configuration():
+    emu = GrblEmulator(speed_scale=20, rotary_axis=True)
+    with serve_pty(emu) as path:
+        cmds = SerialCommands(rotate="G0 A{angle_deg:.2f}")
+        with make_arm(path, commands=cmds) as arm:
+            arm.move_to(30, 40, 5, angle_deg=45)
+            assert arm.status().pose.angle_deg == 45.0
+    assert emu.tool_pose() == (30.0, 40.0, 5.0, 45.0)
+
+
+def test_error_reply_carries_code_meaning_port_and_command_and_holds(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.inject("error", code=33)
+        with pytest.raises(ErrorResponse) as info:
+            arm.move_to(10, 10, 10)
+        e = info.value
+        assert (e.code, e.port, e.command, e.reply) == (33, path, "G1 X10.000 Y10.000 Z10.000 F6000", "error:33")
+        assert "motion command has an invalid target" in str(e)
+        assert emu.state in ("Hold:0", "Idle")
+        # The next command flushes the held queue with a soft reset and works.
+        arm.move_to(20, 20, 20)
+        assert_at(emu, 20, 20, 20)
+
+
+def test_alarm_mid_move_is_reported_and_never_unlocked(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.inject("alarm", code=1, after_s=0.05)
+        with pytest.raises(AlarmResponse) as info:
+            arm.move_to(190, 190, 100)
+        assert info.value.code == 1 and "hard limit" in str(info.value)
+        assert "run-cell home" in str(info.value)
+        assert emu.state == "Alarm"
+        stopped_at = emu.tool_pose()
+        sent = len(emu.lines_received)
+        with pytest.raises(AlarmResponse, match="locked"):
+            arm.move_to(10, 10, 10)
+        assert len(emu.lines_received) == sent
+        assert arm.status().state == "alarm"
+    assert emu.tool_pose() == stopped_at
+    assert "$X" not in emu.lines_received
+
+
+def test_homing_required_at_start_up_then_home_unlocks_by_homing():
+    emu = GrblEmulator(speed_scale=20, homing_enabled=True, start_mm=(30.0, 30.0, 30.0))
+    with serve_pty(emu) as path, make_arm(path) as arm:
+        assert arm.status().state == "alarm"
+        with pytest.raises(AlarmResponse):
+            arm.move_to(10, 10, 10)
+        arm.home()
+        assert_at(emu, 0, 0, 0)
+        arm.move_to(10, 10, 10)
+        assert_at(emu, 10, 10, 10)
+    assert "$X" not in emu.lines_received
+
+
+def test_home_with_homing_disabled_says_how_to_fix(grbl):
+    _, path = grbl
+    with make_arm(path) as arm:
+        with pytest.raises(ErrorResponse, match=r"\$22"):
+            arm.home()
+
+
+def test_home_by_moving_when_no_homing_command(grbl):
+    emu, path = grbl
+    with make_arm(path, commands=SerialCommands(home=""), home_position_mm=(5.0, 6.0, 7.0)) as arm:
+        arm.home()
+    assert_at(emu, 5, 6, 7)
+
+
+def test_no_answer_times_out_as_no_response(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.inject("no_answer")
+        start = time.monotonic()
+        with pytest.raises(NoResponse) as info:
+            arm.move_to(10, 10, 10)
+        # command timeout, plus the stop's own bounded attempt to confirm the hold
+        assert time.monotonic() - start < 0.5 + 0.5 + 1.0
+        assert info.value.command.startswith("G1 X10.000") and info.value.port == path
+
+
+def test_garbage_reply_is_an_error_naming_the_bytes(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.inject("garbage")
+        with pytest.raises(NoResponse, match="unreadable reply") as info:
+            arm.move_to(10, 10, 10)
+        assert "baud" in str(info.value)
+        assert "\\x" in info.value.reply
+
+
+def test_silent_device_at_connect_is_no_banner(grbl):
+    emu, path = grbl
+    emu.inject("no_answer")
+    arm = make_arm(path)
+    with pytest.raises(NoResponse, match="no GRBL start-up banner"):
+        arm.connect()
+    assert not arm.is_connected
+
+
+def test_missing_port_is_connection_lost_with_hint(tmp_path):
+    arm = make_arm(str(tmp_path / "ttyNOPE"))
+    with pytest.raises(ConnectionLost, match="cannot open serial port") as info:
+        arm.connect()
+    assert "run-cell ports" in str(info.value)
+
+
+def test_cable_pulled_mid_move_then_reconnect_on_next_command(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.inject("unplug", after_s=0.05)
+        with pytest.raises(ConnectionLost):
+            arm.move_to(190, 190, 100)
+        assert not arm.is_connected
+        emu.replug()  # the controller powers up again
+        arm.move_to(10, 20, 30)
+        assert arm.is_connected
+        assert_at(emu, 10, 20, 30)
+
+
+def test_stop_holds_the_feed_mid_move(grbl):
+    emu, path = grbl
+    with make_arm(path, speed_mm_s=5.0) as arm:
+        arm.move_to(100, 0, 0, wait=False)
+        time.sleep(0.1)
+        arm.stop()
+        assert emu.state == "Hold:0"
+        x = emu.tool_pose()[0]
+        assert 0 < x < 100
+        time.sleep(0.1)
+        assert emu.tool_pose()[0] == x
+
+
+def test_spy_url_opens_through_serial_for_url(grbl, tmp_path):
+    emu, path = grbl
+    log_file = tmp_path / "spy.txt"
+    with make_arm(f"spy://{path}?file={log_file}") as arm:
+        arm.move_to(1, 2, 3)
+    assert_at(emu, 1, 2, 3)
+    assert "G1 X1.000" in log_file.read_text()
