@@ -1,8 +1,10 @@
 """Pinhole + Brown distortion camera looking down at the table.
 
 Frames: the table (plate) frame has X along the plate's columns, Y along its rows and
-its origin at circle 1; heights are millimetres *above* the table. OpenCV's object frame
-is right-handed with Z = X x Y pointing into the table, so internally z = -height.
+its origin at circle 1; heights are millimetres *above* the table, towards the camera.
+OpenCV's object frame has Z = X x Y; with point 1 at the top-left that points into the
+table (z = -height), with point 1 at another corner the frame may be mirrored and Z
+point at the camera (z = +height). `_up` holds that sign.
 """
 from __future__ import annotations
 
@@ -95,15 +97,20 @@ class CameraModel:
         return self._R
 
     @property
+    def _up(self) -> float:
+        """+1 if object z grows towards the camera, -1 if away from it."""
+        return 1.0 if (-self._R.T @ self.tvec)[2] > 0 else -1.0
+
+    @property
     def center_table_mm(self) -> np.ndarray:
         """Camera centre as (X, Y, height above the table) in table mm."""
         C = -self._R.T @ self.tvec
-        return np.array([C[0], C[1], -C[2]])
+        return np.array([C[0], C[1], abs(C[2])])
 
     def project(self, xy_table_mm: np.ndarray, height_mm: float | np.ndarray = 0.0) -> np.ndarray:
         """Pixel positions (N, 2) of table points (N, 2) at `height_mm` above the table."""
         xy = np.asarray(xy_table_mm, dtype=np.float64).reshape(-1, 2)
-        z = -np.broadcast_to(np.asarray(height_mm, dtype=np.float64), (len(xy),))
+        z = self._up * np.broadcast_to(np.asarray(height_mm, dtype=np.float64), (len(xy),))
         obj = np.column_stack([xy, z])
         px, _ = cv2.projectPoints(obj, self.rvec, self.tvec, self.camera_matrix, self.dist_coeffs)
         return px.reshape(-1, 2)
@@ -123,7 +130,7 @@ class CameraModel:
         rays_cam = np.column_stack([norm, np.ones(len(norm))])
         rays_table = rays_cam @ self._R  # R.T @ ray for each row
         C = -self._R.T @ self.tvec
-        z_plane = -height_mm
+        z_plane = self._up * height_mm
         s = (z_plane - C[2]) / rays_table[:, 2]
         return C[:2] + s[:, None] * rays_table[:, :2]
 

@@ -69,3 +69,23 @@ def test_height_correction_follows_the_ray():
     px = cam.project(truth, height_mm=8.0)
     assert np.abs(cal.pixel_to_table_mm(px, height_mm=8.0) - truth).max() < 0.05
     assert np.abs(cal.pixel_to_table_mm(px) - truth).max() > 1.0
+
+
+@pytest.mark.parametrize("corner", ["top-left", "top-right", "bottom-left", "bottom-right"])
+def test_point_1_at_any_corner_with_height_correction(corner):
+    """A mirrored plate frame (point 1 at top-right) still knows which way is up."""
+    cam = CameraModel.looking_down(1280, 720, 0.30, (132, 88), tilt_deg=5, k1=-0.05)
+    cfg = CONFIG.model_copy(deep=True)
+    cfg.plate.first_point = corner
+    result = calibrate(render_plate(cam, CONFIG.plate), cfg)
+    truth_tl = np.array([[20.0, 150.0], [250.0, 10.0]])  # in the top-left frame
+    truth = truth_tl.copy()
+    if corner.endswith("right"):
+        truth[:, 0] = 264 - truth[:, 0]
+    if corner.startswith("bottom"):
+        truth[:, 1] = 176 - truth[:, 1]
+    px = cam.project(truth_tl, height_mm=8.0)
+    assert np.abs(result.calibration.pixel_to_table_mm(px, height_mm=8.0) - truth).max() < 0.05
+    # Point 1 is the circle nearest that image corner.
+    first = result.points.pixel[result.points.number.tolist().index(1)]
+    assert (first[0] > 640) == corner.endswith("right") and (first[1] > 360) == corner.startswith("bottom")
