@@ -153,7 +153,7 @@ class DynamixelArmConfig(_Strict):
     gripper_closed_ticks: int = Field(2400, ge=0, le=4095)
     profile_velocity: int = Field(100, ge=0, le=32767, description="servo units of 0.229 rev/min; 0 = top speed")
     profile_acceleration: int = Field(20, ge=0, le=32767, description="servo units of 214.577 rev/min^2")
-    tolerance_ticks: int = Field(20, ge=1, le=400, description="arrival tolerance per servo (4096 ticks/rev)")
+    tolerance_ticks: int = Field(10, ge=1, le=400, description="arrival tolerance per servo (4096 ticks/rev)")
     angle_tolerance_deg: float = Field(
         1.0, gt=0, le=90, description="a 4-axis arm turns its gripper with the base: a requested angle must match"
     )

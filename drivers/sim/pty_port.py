@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import logging
 import os
 import select
+import struct
 import tempfile
+import termios
 import threading
 import time
 import tty
@@ -43,6 +46,7 @@ class PtyServer:
         self._master: int | None = None
         self._slave: int | None = None
         self._fd_lock = threading.Lock()
+        self._cycle_lock = threading.Lock()  # held from reading bytes until they are handled
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"pty-{name}", daemon=True)
         device.server = self
@@ -63,6 +67,16 @@ class PtyServer:
     @property
     def plugged(self) -> bool:
         return self._master is not None
+
+    def settle(self, timeout_s: float = 1.0) -> None:
+        """Wait until the device has handled every byte sent to it (for writes that get no reply)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._cycle_lock:
+                master = self._master
+                if master is None or _unread_bytes(master) == 0:
+                    return
+            time.sleep(self.tick_s)
 
     def unplug(self) -> None:
         """The cable is pulled: the device path disappears and open handles fail."""
@@ -116,25 +130,33 @@ class PtyServer:
                 with self.device.lock:
                     self.device.tick(time.monotonic())
                 continue
-            try:
-                ready, _, _ = select.select([master], [], [], self.tick_s)
-                data = os.read(master, 4096) if ready else b""
-            except (OSError, ValueError) as e:
-                if getattr(e, "errno", None) not in (errno.EIO, errno.EBADF, None):
-                    log.debug("pty read failed: %s", e)
-                time.sleep(self.tick_s)
-                continue
-            with self.device.lock:
-                now = time.monotonic()
-                out = self.device.receive(data, now) if data else b""
-                out += self.device.tick(now)
-                unplug = self.device.unplug_requested
-                self.device.unplug_requested = False
-            with self._fd_lock:
-                if self._master == master:
-                    self._write(out)
+            with self._cycle_lock:
+                try:
+                    ready, _, _ = select.select([master], [], [], self.tick_s)
+                    data = os.read(master, 4096) if ready else b""
+                except (OSError, ValueError) as e:
+                    if getattr(e, "errno", None) not in (errno.EIO, errno.EBADF, None):
+                        log.debug("pty read failed: %s", e)
+                    time.sleep(self.tick_s)
+                    continue
+                with self.device.lock:
+                    now = time.monotonic()
+                    out = self.device.receive(data, now) if data else b""
+                    out += self.device.tick(now)
+                    unplug = self.device.unplug_requested
+                    self.device.unplug_requested = False
+                with self._fd_lock:
+                    if self._master == master:
+                        self._write(out)
             if unplug:
                 self.unplug()
+
+
+def _unread_bytes(fd: int) -> int:
+    try:
+        return struct.unpack("I", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
 
 
 @contextlib.contextmanager

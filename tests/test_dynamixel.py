@@ -1,0 +1,171 @@
+"""The Dynamixel driver through the ROBOTIS SDK against the emulated Protocol 2.0 bus on a pty."""
+import math
+import time
+
+import pytest
+from dynamixel_sdk import PortHandler
+
+from drivers.arm.config import DynamixelArmConfig
+from drivers.arm.dynamixel import DynamixelArm
+from drivers.arm.errors import ConnectionLost, ErrorResponse, HardwareFault, NoResponse, OutOfReach
+from drivers.arm.kinematics import FourAxisKinematics
+from drivers.sim.dxl_emulator import SYNC_WRITE, DxlBusEmulator, packet
+from drivers.sim.pty_port import serve_pty
+
+CFG = DynamixelArmConfig(move_timeout_s=2.0, poll_interval_s=0.01)
+KIN = FourAxisKinematics(CFG)
+
+
+@pytest.fixture
+def bus():
+    emu = DxlBusEmulator(CFG, speed_scale=10)
+    with serve_pty(emu, "ttyDXL") as path:
+        yield emu, path
+
+
+def make_arm(path: str, cfg: DynamixelArmConfig = CFG) -> DynamixelArm:
+    return DynamixelArm(PortHandler(path), cfg)
+
+
+def torques(emu) -> list[bool]:
+    emu.server.settle()  # sync writes get no reply: let the emulator take them in first
+    with emu.lock:
+        return [s.torque for s in emu.servos.values()]
+
+
+def test_move_sends_one_sync_write_and_arrives(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        assert torques(emu) == [True] * 5
+        arm.move_to(200.0, 50.0, 30.0)
+        goals = KIN.to_ticks(KIN.inverse(200.0, 50.0, 30.0))
+        params = bytes([116, 0, 4, 0]) + b"".join(bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals))
+        assert packet(0xFE, SYNC_WRITE, params) in emu.packets_received
+        time.sleep(0.05)  # arrival is within tolerance; let the emulated servos finish
+        assert [round(emu.servos[i].position) for i in CFG.joint_ids] == goals
+        x, y, z, angle = emu.tool_pose()
+        assert math.dist((x, y, z), (200.0, 50.0, 30.0)) < 0.5  # one tick is 0.088 deg
+        assert angle == pytest.approx(math.degrees(math.atan2(50.0, 188.0)), abs=0.1)
+        status = arm.status()
+        assert status.state == "idle" and math.dist((status.pose.x_mm, status.pose.y_mm, status.pose.z_mm), (x, y, z)) < 1e-9
+
+
+def test_gripper_listener_and_home(bus):
+    emu, path = bus
+    events = []
+    emu.add_tool_listener(lambda *a: events.append(a))
+    with make_arm(path) as arm:
+        arm.move_to(180.0, -40.0, 20.0)
+        time.sleep(0.05)
+        arm.close_gripper()
+        assert arm.status().gripper_closed is True
+        arm.open_gripper()
+        arm.home()
+        assert [round(emu.servos[i].position) for i in CFG.joint_ids] == KIN.to_ticks(
+            [math.radians(v) for v in CFG.home_joints_deg])
+    (closed, x, y, z, _), (opened, *_) = events
+    assert closed and not opened
+    assert math.dist((x, y, z), (180.0, -40.0, 20.0)) < 0.5
+
+
+def test_unreachable_target_refused_before_anything_is_sent(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        before = len(emu.packets_received)
+        with pytest.raises(OutOfReach, match="beyond the arm's reach"):
+            arm.move_to(390.0, 0.0, 0.0)
+        with pytest.raises(OutOfReach, match="joint 1 at"):
+            arm.move_to(-150.0, 10.0, 50.0)
+        assert len(emu.packets_received) == before
+        assert torques(emu) == [True] * 5  # a refused target is not a fault
+
+
+def test_overload_mid_move_is_a_hardware_fault_with_torque_released(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("overload", id=12, after_s=0.02)
+        with pytest.raises(HardwareFault, match=r"servo 12: overload error") as info:
+            arm.move_to(150.0, -80.0, 10.0)
+        assert info.value.reply == "12: 0x20"
+        assert torques(emu) == [False] * 5
+        assert arm.status().state == "fault"
+        with pytest.raises(HardwareFault):  # torque stays off until the servo is cleared
+            arm.move_to(200.0, 0.0, 50.0)
+        assert torques(emu) == [False] * 5
+
+
+def test_no_answer_names_the_servo_and_times_out(bus):
+    emu, path = bus
+    emu.inject("no_answer", ids=[13])
+    arm = make_arm(path)
+    with pytest.raises(NoResponse, match="servo 13: no status packet") as info:
+        arm.connect()
+    assert "run-cell ports" in str(info.value)
+    assert not arm.is_connected
+
+
+def test_silent_bus_mid_move_releases_torque(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("no_answer")
+        start = time.monotonic()
+        with pytest.raises(NoResponse):
+            arm.move_to(200.0, 0.0, 50.0)
+        assert time.monotonic() - start < 2.0  # a few SDK packet timeouts, not the move timeout
+        assert torques(emu) == [False] * 5  # sync writes need no answer: the torque-off got through
+
+
+@pytest.mark.parametrize("fault", ["bad_crc", "garbage"])
+def test_corrupt_status_packets_fail_cleanly(bus, fault):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject(fault, count=10)
+        with pytest.raises(NoResponse, match="Incorrect status packet|no status packet"):
+            arm.move_to(200.0, 0.0, 50.0)
+        assert torques(emu) == [False] * 5
+
+
+def test_single_bad_crc_is_retried(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("bad_crc", count=1)
+        arm.move_to(200.0, 0.0, 50.0)
+        assert torques(emu) == [True] * 5
+
+
+def test_status_error_number_becomes_error_response(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("status_error", error=6)
+        with pytest.raises(ErrorResponse, match="data limit error") as info:
+            arm.close_gripper()
+        assert info.value.code == 6 and info.value.command == "close gripper"
+        assert torques(emu) == [False] * 5
+
+
+def test_slow_servos_time_out_with_torque_released(bus):
+    emu, path = bus
+    slow = CFG.model_copy(update={"profile_velocity": 1, "move_timeout_s": 0.3})
+    with make_arm(path, slow) as arm:
+        with pytest.raises(NoResponse, match="did not arrive within 0.3 s"):
+            arm.move_to(200.0, 0.0, 50.0)
+        assert torques(emu) == [False] * 5
+
+
+def test_cable_pulled_mid_move_then_reconnects(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("unplug", after_s=0.02)
+        with pytest.raises(ConnectionLost):
+            arm.move_to(150.0, -80.0, 10.0)
+        assert not arm.is_connected
+        emu.replug()
+        arm.move_to(200.0, 0.0, 50.0)
+        assert arm.is_connected
+        time.sleep(0.05)
+        assert math.dist(emu.tool_pose()[:3], (200.0, 0.0, 50.0)) < 0.5
+
+
+def test_missing_port_is_connection_lost(tmp_path):
+    with pytest.raises(ConnectionLost, match="cannot open the servo bus"):
+        make_arm(str(tmp_path / "ttyNOPE")).connect()
