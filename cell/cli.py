@@ -10,11 +10,14 @@ import importlib
 import logging
 import sys
 
+from cell.commands import run
 from cell.errors import CellError
 
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
     "cell.commands.calibration",
+    "cell.commands.locate",
+    "cell.commands.run",
 ]
 
 log = logging.getLogger(__name__)
@@ -26,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Vision-guided pick-and-place cell.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail to stderr")
+    run.add_run_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
@@ -40,8 +44,10 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+        if not (args.dry_run or args.run_config):
+            parser.print_help()
+            return 2
+        args.func, args.command = run.run_cell, "run"
     try:
         return int(args.func(args) or 0)
     except CellError as e:

@@ -12,6 +12,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
+from cell.run_config import PlanningConfig, RunConfig, SimConfig
+from cell.vision.config import PartsConfig
 
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
@@ -105,6 +107,10 @@ class CameraConfig(Strict):
     width_px: int = Field(1920, ge=16, le=20000)
     height_px: int = Field(1080, ge=16, le=20000)
     timeout_s: float = Field(5.0, gt=0, le=120)
+    focus: float | None = Field(None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)")
+    exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
+    warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
+    loop: bool = Field(False, description="video file or image folder: start again at the end")
 
 
 class CellConfig(Strict):
@@ -114,6 +120,10 @@ class CellConfig(Strict):
     detection: DetectionConfig = DetectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     camera: CameraConfig = CameraConfig()
+    planning: PlanningConfig = PlanningConfig()
+    run: RunConfig = RunConfig()
+    sim: SimConfig = SimConfig()
+    parts: PartsConfig = PartsConfig()
 
 
 def _format_errors(path: Path | str, err: ValidationError) -> str:

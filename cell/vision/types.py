@@ -22,6 +22,7 @@ class LocatedPart:
     jaw_opening_mm: float | None = None  # jaw opening needed to close on the part
     head_mm: tuple[float, float] | None = None  # bolts: head end, table mm
     features: dict = field(default_factory=dict)  # area_mm2, elongation, hexagonality, holes...
+    outline_px: object = field(default=None, repr=False, compare=False)  # (N, 1, 2) int32, for drawing
 
 
 @dataclass
@@ -29,3 +30,4 @@ class LocateResult:
     objects: list[LocatedPart]
     image_size: tuple[int, int]
     elapsed_ms: float
+    warnings: list[str] = field(default_factory=list)  # e.g. frame too dark: why nothing was found

@@ -1,0 +1,132 @@
+"""`run-cell locate`: find, classify and locate the parts in one image (the paper's Table IV, Fig. 6)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cell.calibration.store import Calibration
+from cell.config import load_config
+from cell.errors import InputError
+from cell.vision.locate import PixelScale, locate
+from cell.vision.types import LocateResult
+
+_COLOURS_BGR = {"bolt": (0, 140, 255), "nut": (0, 180, 0), "unknown": (0, 0, 230)}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("locate", help="find, classify and locate bolts and nuts in an image")
+    p.add_argument("--image", required=True, type=Path, help="the table seen by the calibrated camera")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--calibration", type=Path, help="calibration JSON (table mm, height correction)")
+    where.add_argument(
+        "--mm-per-px", type=float, help="a plain scale for an uncalibrated image (no height correction)"
+    )
+    p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
+    p.add_argument("--preset", choices=["default", "paper"], help="override parts.preset")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled")
+    p.set_defaults(func=cmd_locate)
+
+
+def read_image(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"{path}: image not found")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(f"{path}: cannot read image (not an image file, or corrupt)")
+    return image
+
+
+def cmd_locate(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    parts = config.parts
+    if args.preset:
+        parts = parts.model_copy(update={"preset": args.preset})
+    if args.calibration is not None:
+        mapper = Calibration.load(args.calibration)
+    else:
+        mapper = PixelScale(args.mm_per_px)
+    image = read_image(args.image)
+    h, w = image.shape[:2]
+    if mapper.image_size is not None and tuple(mapper.image_size) != (w, h):
+        cw, ch = mapper.image_size
+        raise InputError(f"{args.image}: image is {w}x{h} px but {args.calibration} was made at {cw}x{ch} px")
+    result = locate(image, mapper, parts)
+    if args.annotate:
+        write_annotated(args.annotate, image, result)
+    if args.json:
+        print(json.dumps(to_json(result)))
+    else:
+        print(format_table(result))
+    return 0
+
+
+def _round(values, digits: int = 3):
+    return None if values is None else [round(float(v), digits) for v in values]
+
+
+def to_json(result: LocateResult) -> dict:
+    objects = []
+    for p in result.objects:
+        objects.append(
+            {
+                "id": p.id,
+                "class": p.cls,
+                "reason": p.reason,
+                "pixel": _round(p.pixel),
+                "world_mm": _round(p.world_mm),
+                "angle_deg": None if p.angle_deg is None else round(p.angle_deg, 2),
+                "pick": p.pick,
+                "grasp_mm": _round(p.grasp_mm),
+                "jaw_opening_mm": None if p.jaw_opening_mm is None else round(p.jaw_opening_mm, 2),
+                "head_mm": _round(p.head_mm),
+            }
+        )
+    return {
+        "objects": objects,
+        "image_size": list(result.image_size),
+        "elapsed_ms": round(result.elapsed_ms, 2),
+        "warnings": result.warnings,
+    }
+
+
+def format_table(result: LocateResult) -> str:
+    w, h = result.image_size
+    lines = [f"{len(result.objects)} objects in a {w} x {h} image ({result.elapsed_ms:.1f} ms)"]
+    lines += [f"warning: {text}" for text in result.warnings]
+    lines.append(f"{'No.':>4}  {'Object':<8}{'x (px)':>9}{'y (px)':>9}{'X (mm)':>10}{'Y (mm)':>10}{'Angle':>8}  Pick  Reason")
+    for p in result.objects:
+        angle = "" if p.angle_deg is None else f"{p.angle_deg:.1f}"
+        lines.append(
+            f"{p.id:>4}  {p.cls.capitalize():<8}{p.pixel[0]:>9.1f}{p.pixel[1]:>9.1f}"
+            f"{p.world_mm[0]:>10.3f}{p.world_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
+        )
+    return "\n".join(lines)
+
+
+def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
+    """The image with each part outlined, numbered and labelled (the paper's Fig. 6)."""
+    out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    scale = max(out.shape[1] / 1280, 0.35)
+    thick = max(1, round(2 * scale))
+    for p in result.objects:
+        colour = _COLOURS_BGR[p.cls]
+        if p.outline_px is not None:
+            cv2.drawContours(out, [p.outline_px], -1, colour, thick, cv2.LINE_AA)
+        x, y = (int(round(v)) for v in p.pixel)
+        cv2.drawMarker(out, (x, y), colour, cv2.MARKER_CROSS, max(6, round(12 * scale)), thick)
+        label = f"{p.id} {p.cls}" + ("" if p.pick else " (no pick)")
+        org = (x + round(8 * scale), y - round(8 * scale))
+        cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), thick + 2, cv2.LINE_AA)
+        cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, thick, cv2.LINE_AA)
+    return out
+
+
+def write_annotated(path: Path, image: np.ndarray, result: LocateResult) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), annotate(image, result)):
+        raise InputError(f"{path}: cannot write the annotated image (unknown extension or unwritable)")

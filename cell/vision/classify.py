@@ -1,0 +1,129 @@
+"""Bolt, nut or unknown, from a blob's shape in millimetres, with the reason why.
+
+Only a clear match is a bolt or a nut: anything else (washers, coins, touching parts,
+parts cut by the border, debris, parts in an unexpected pose) is unknown and never picked.
+A nut lies flat: a hexagon with one centred round hole. A bolt lies on its side: a
+straight shaft of constant width with a clearly wider head at one end.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cell.vision.config import PartsConfig
+from cell.vision.features import Features, Profile, width_profile
+
+UNKNOWN, NUT, BOLT = "unknown", "nut", "bolt"
+
+
+@dataclass
+class Verdict:
+    cls: str
+    reason: str
+    size_mm: dict[str, float] = field(default_factory=dict)
+    profile: Profile | None = None  # bolts: width along the axis, head first
+    head_width_px: float | None = None  # bolts
+    shaft_width_px: float | None = None  # bolts
+
+
+def classify(feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig) -> Verdict:
+    """`mm_per_px` is the calibration's local table-plane scale at the blob."""
+    area_mm2 = feat.outer_area_px * mm_per_px**2
+    if feat.touches_border:
+        return Verdict(UNKNOWN, "cut by the image border")
+    if area_mm2 < config.min_part_area_mm2:
+        return Verdict(UNKNOWN, f"too small ({area_mm2:.1f} mm2): debris")
+    if config.preset == "paper":
+        return _classify_paper(feat, outline, config)
+    if len(feat.holes) >= 2:
+        return Verdict(UNKNOWN, f"{len(feat.holes)} holes: parts touching or overlapping")
+    if len(feat.holes) == 1:
+        return _classify_holed(feat, mm_per_px, config)
+    if feat.elongation >= config.nut.max_elongation:
+        return _classify_elongated(feat, outline, mm_per_px, config)
+    if feat.hexagonality >= config.nut.min_hexagonality:
+        return Verdict(UNKNOWN, "hexagon without a hole (a bolt standing on its head?)")
+    if feat.roundness >= 0.9:
+        return Verdict(UNKNOWN, "round without a hole (a coin or a plug?)")
+    return Verdict(UNKNOWN, f"matches no part (solidity {feat.solidity:.2f}: touching parts or debris?)")
+
+
+def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig) -> Verdict:
+    cfg = config.nut
+    across_flats_mm = math.sqrt(2 * feat.outer_area_px / math.sqrt(3)) * mm_per_px
+    hole = feat.holes[0]
+    hole_mm = math.sqrt(4 * hole.area_px / math.pi) * mm_per_px
+    offset_mm = math.dist(hole.centroid_px, feat.outer_centroid_px) * mm_per_px
+    size = {"across_flats_mm": across_flats_mm, "hole_mm": hole_mm}
+    if feat.hexagonality < cfg.min_hexagonality and feat.roundness >= 0.9:
+        return Verdict(UNKNOWN, "round with a hole: a washer (not picked)", size)
+    checks = [
+        (feat.hexagonality >= cfg.min_hexagonality, f"outline not hexagonal ({feat.hexagonality:.2f})"),
+        (feat.elongation <= cfg.max_elongation, f"elongated ({feat.elongation:.2f}): parts touching?"),
+        (
+            cfg.across_flats_mm[0] <= across_flats_mm <= cfg.across_flats_mm[1],
+            f"across flats {across_flats_mm:.1f} mm outside {cfg.across_flats_mm[0]:g}-{cfg.across_flats_mm[1]:g} mm",
+        ),
+        (
+            cfg.hole_ratio[0] <= hole_mm / across_flats_mm <= cfg.hole_ratio[1],
+            f"hole {hole_mm:.1f} mm does not fit a nut of {across_flats_mm:.1f} mm",
+        ),
+        (offset_mm <= cfg.max_hole_offset * across_flats_mm, f"hole off centre by {offset_mm:.1f} mm"),
+    ]
+    for ok, why in checks:
+        if not ok:
+            return Verdict(UNKNOWN, f"a hole, but not a nut: {why}", size)
+    return Verdict(NUT, f"hexagon with a round hole, {across_flats_mm:.1f} mm across flats", size)
+
+
+def _classify_elongated(feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig) -> Verdict:
+    cfg = config.bolt
+    prof = width_profile(outline, feat.centroid_px, feat.axis_px)
+    w = prof.widths_px
+    n = len(w)
+    head_px = float(np.percentile(w[: max(3, n // 4)], 90))
+    shaft_px = float(np.median(w[int(0.45 * n) : max(int(0.9 * n), int(0.45 * n) + 1)]))
+    peak = int(np.argmax(w[: max(3, n // 3)]))
+    below = np.flatnonzero(w[peak:] < (head_px + shaft_px) / 2)
+    head_len = peak + int(below[0]) if below.size else n
+    size = {
+        "length_mm": n * mm_per_px,
+        "head_width_mm": head_px * mm_per_px,
+        "shaft_mm": shaft_px * mm_per_px,
+    }
+    ratio = head_px / max(shaft_px, 1e-9)
+    if ratio < cfg.min_head_to_shaft:
+        return Verdict(UNKNOWN, f"elongated without a head (a nut on its side?): head/shaft {ratio:.2f}", size)
+    shaft = w[head_len : max(head_len, n - 2)]
+    misfit = float(np.mean(np.abs(shaft - shaft_px) > max(0.2 * shaft_px, 1.5))) if shaft.size else 1.0
+    checks = [
+        (cfg.length_mm[0] <= size["length_mm"] <= cfg.length_mm[1], f"length {size['length_mm']:.1f} mm out of range"),
+        (cfg.shaft_mm[0] <= size["shaft_mm"] <= cfg.shaft_mm[1], f"shaft {size['shaft_mm']:.1f} mm out of range"),
+        (
+            cfg.head_width_mm[0] <= size["head_width_mm"] <= cfg.head_width_mm[1],
+            f"head {size['head_width_mm']:.1f} mm out of range",
+        ),
+        (2 <= head_len <= 0.45 * n, "no distinct head at one end"),
+        (misfit <= cfg.max_profile_misfit, f"uneven shaft ({misfit:.0%} misfit): parts touching?"),
+    ]
+    for ok, why in checks:
+        if not ok:
+            return Verdict(UNKNOWN, f"elongated, but not a bolt: {why}", size)
+    return Verdict(
+        BOLT,
+        f"hex head and shaft, {size['shaft_mm']:.1f} mm x {size['length_mm']:.0f} mm",
+        size,
+        prof,
+        head_px,
+        shaft_px,
+    )
+
+
+def _classify_paper(feat: Features, outline: np.ndarray, config: PartsConfig) -> Verdict:
+    """The paper's rule as far as it is described: a long bounding box is a bolt."""
+    if feat.elongation >= config.paper.min_elongation_bolt:
+        prof = width_profile(outline, feat.centroid_px, feat.axis_px)
+        return Verdict(BOLT, f"bounding box elongation {feat.elongation:.2f} (paper preset)", {}, prof)
+    return Verdict(NUT, f"bounding box elongation {feat.elongation:.2f} (paper preset)")

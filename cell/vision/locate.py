@@ -1,0 +1,163 @@
+"""One frame in, parts out: segment, measure, classify, then map each centre to the table.
+
+Height correction: the calibration holds on the table plane, but a part's outline comes
+from faces up to its full height, which a camera off to one side sees displaced outwards.
+So each centroid is mapped on the plane at the part's reference height (half its height
+by default), which needs the class first and the camera pose the calibration stores.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+
+from cell.errors import InputError
+from cell.vision.classify import BOLT, NUT, Verdict, classify
+from cell.vision.config import PartsConfig
+from cell.vision.features import Features, measure
+from cell.vision.footprint import bolt_pose
+from cell.vision.segment import segment
+from cell.vision.types import LocatedPart, LocateResult
+
+log = logging.getLogger(__name__)
+
+
+class PixelScale:
+    """A plain scale for an uncalibrated image: X right, Y down, origin at pixel (0, 0).
+
+    It knows no camera pose, so it cannot correct for part height.
+    """
+
+    camera = None
+    image_size = None
+
+    def __init__(self, mm_per_px: float):
+        if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
+            raise InputError(f"mm per pixel must be a positive number, got {mm_per_px}")
+        self.scale = float(mm_per_px)
+
+    def pixel_to_table_mm(self, pixels, height_mm: float = 0.0) -> np.ndarray:
+        if height_mm:
+            raise InputError("a plain pixel scale cannot correct for part height")
+        return np.asarray(pixels, dtype=np.float64).reshape(-1, 2) * self.scale
+
+    def mm_per_px(self, pixel) -> float:
+        return self.scale
+
+
+def _parts_config(config) -> PartsConfig:
+    if config is None:
+        return PartsConfig()
+    return config if isinstance(config, PartsConfig) else config.parts
+
+
+def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateResult:
+    """Find, classify and locate the parts in one frame.
+
+    calibration_or_scale: a Calibration (table mm in its plate frame, height correction
+    possible) or a plain mm-per-pixel number. config: PartsConfig or CellConfig (its
+    .parts); None for the defaults.
+    """
+    cfg = _parts_config(config)
+    mapper = PixelScale(calibration_or_scale) if isinstance(calibration_or_scale, (int, float)) else calibration_or_scale
+    image = np.asarray(image_bgr)
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or image.size == 0:
+        raise InputError(f"expected an 8-bit grey or BGR image, got {image.dtype} with shape {image.shape}")
+    h, w = image.shape[:2]
+    if mapper.image_size is not None and tuple(mapper.image_size) != (w, h):
+        cw, ch = mapper.image_size
+        raise InputError(f"frame is {w}x{h} px but the calibration was made at {cw}x{ch} px")
+    t0 = time.perf_counter()
+    scale = mapper.mm_per_px((w / 2, h / 2))
+    seg = segment(
+        image,
+        cfg,
+        part_width_px=cfg.max_part_width_mm / scale,
+        noise_area_px=cfg.segment.noise_area_mm2 / scale**2,
+    )
+    warnings = list(seg.warnings)
+    correct = cfg.use_height_correction and mapper.camera is not None
+    if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
+        warnings.append("the calibration has no camera pose: no part-height correction")
+    found = []
+    for blob in seg.blobs:
+        feat = measure(blob, seg.mask)
+        local_scale = mapper.mm_per_px(feat.centroid_px)
+        verdict = classify(feat, blob.outer, local_scale, cfg)
+        part = _place(feat, verdict, local_scale, mapper, cfg, correct)
+        part.outline_px = blob.outer
+        found.append(part)
+    found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
+    for i, part in enumerate(found, start=1):
+        part.id = i
+    elapsed_ms = (time.perf_counter() - t0) * 1e3
+    log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
+    return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
+    """Height above the table of the plane a part's centroid is mapped on."""
+    if verdict.cls == NUT:
+        if config.nut.reference_height_mm is not None:
+            return config.nut.reference_height_mm
+        return 0.5 * config.nut.thickness_per_across_flats * verdict.size_mm["across_flats_mm"]
+    if verdict.cls == BOLT:
+        if config.bolt.reference_height_mm is not None:
+            return config.bolt.reference_height_mm
+        head_mm = verdict.size_mm.get("head_width_mm")
+        return 0.5 * config.bolt.head_across_flats_per_width * head_mm if head_mm else 0.0
+    return 0.0
+
+
+def _place(feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsConfig, correct: bool) -> LocatedPart:
+    height = reference_height_mm(verdict, cfg) if correct else 0.0
+    centre = np.asarray(feat.centroid_px, dtype=np.float64)
+    world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
+    angle = head = grasp = jaw = None
+    prof = verdict.profile
+    if verdict.cls == BOLT and verdict.head_width_px is not None:
+        pose = bolt_pose(
+            prof,
+            verdict.head_width_px,
+            verdict.shaft_width_px,
+            mapper,
+            height,
+            scale,
+            cfg.bolt.head_across_flats_per_width,
+        )
+        world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
+        jaw = pose.shaft_mm + cfg.jaw_clearance_mm
+    elif verdict.cls == BOLT:  # paper preset: the centroid, and the axis end to end
+        ends_px = np.array([prof.origin_px, prof.origin_px + prof.length_px * prof.axis_px])
+        ends = mapper.pixel_to_table_mm(ends_px, height_mm=height)
+        d = ends[1] - ends[0]
+        angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
+        head = ends[0]
+    elif verdict.cls == NUT:
+        grasp = world
+        jaw = feat.enclosing_diameter_px * scale + cfg.jaw_clearance_mm
+    features = {
+        "area_mm2": feat.area_px * scale**2,
+        "holes": len(feat.holes),
+        "elongation": feat.elongation,
+        "hexagonality": feat.hexagonality,
+        "roundness": feat.roundness,
+        "solidity": feat.solidity,
+        "reference_height_mm": height,
+        **verdict.size_mm,
+    }
+    return LocatedPart(
+        id=0,
+        cls=verdict.cls,
+        reason=verdict.reason,
+        pixel=(float(centre[0]), float(centre[1])),
+        world_mm=(float(world[0]), float(world[1])),
+        angle_deg=angle,
+        pick=verdict.cls in (BOLT, NUT),
+        grasp_mm=None if grasp is None else (float(grasp[0]), float(grasp[1])),
+        jaw_opening_mm=jaw,
+        head_mm=None if head is None else (float(head[0]), float(head[1])),
+        features=features,
+    )
