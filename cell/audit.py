@@ -1,0 +1,81 @@
+"""The run's audit log: one JSON object per line, flushed as it is written.
+
+A run killed at any moment leaves a valid file (at worst a last line cut short, which
+`read_events` drops) whose last complete line says the state it was in. Each event has
+`seq`, `t_utc`, `t_run_s`, `kind` and `state`; the rest depends on the kind.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _plain(value):
+    """JSON-safe copy: numpy scalars and arrays, tuples, enums, paths."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    return getattr(value, "value", None) or str(value)
+
+
+class AuditLog:
+    """Append-only JSON-lines writer; `state` is stamped on every event by the runner."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "a", encoding="utf-8")
+        self._seq = 0
+        self._t0 = time.monotonic()
+        self.state = "idle"
+
+    def event(self, kind: str, **fields) -> dict:
+        self._seq += 1
+        record = {
+            "seq": self._seq,
+            "t_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+            "t_run_s": round(time.monotonic() - self._t0, 4),
+            "kind": kind,
+            "state": self.state,
+            **_plain(fields),
+        }
+        self._file.write(json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n")
+        self._file.flush()
+        return record
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._file.close()
+
+    def __enter__(self) -> "AuditLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_events(path: str | Path) -> list[dict]:
+    """Every complete event of a log; a torn last line (a killed writer) is skipped."""
+    events = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            log.warning("%s: skipping a torn line: %.60s", path, line)
+    return events

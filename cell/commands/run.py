@@ -1,0 +1,187 @@
+"""`run-cell --config FILE` / `run-cell --dry-run` (the cell itself), `run-cell teach`
+(fit the table -> robot frame from jogged points) and `run-cell diagram`."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from cell.audit import AuditLog
+from cell.config import CellConfig, load_config
+from cell.errors import ConfigError, InputError
+from cell.oplog import log_to_file
+from cell.planning import Planner, TeachRejected, fit_table_to_robot, save_taught, table_to_robot
+from cell.runner import Controls, Runner
+from cell.statemachine import markdown, mermaid
+
+log = logging.getLogger(__name__)
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """Top-level options: `run-cell` with no sub-command runs the cell."""
+    g = parser.add_argument_group("running the cell (no sub-command)")
+    g.add_argument("--config", dest="run_config", type=Path, help="cell config (TOML); required unless --dry-run")
+    g.add_argument("--dry-run", action="store_true",
+                   help="rehearse: a mock arm that records and checks every command and moves nothing; "
+                        "with no --config, the built-in simulated cell")
+    g.add_argument("--arm", choices=["serial", "dynamixel", "mock"], help="override arm.kind")
+    g.add_argument("--port", help="override arm.port")
+    g.add_argument("--offset-x-mm", type=float, default=0.0,
+                   help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)")
+    g.add_argument("--offset-y-mm", type=float, default=0.0, help="add to planning.offset_y_mm")
+    g.add_argument("--log-dir", type=Path, help="override run.log_dir")
+
+
+def register(sub) -> None:
+    t = sub.add_parser("teach", help="fit the table -> robot transform from points jogged onto plate circles")
+    t.add_argument("--config", type=Path, help="cell config (TOML); default: built-in")
+    t.add_argument("--point", nargs=3, action="append", metavar=("CIRCLE", "X_MM", "Y_MM"), default=[],
+                   help="plate circle number (1 = point 1, row by row) and the robot X Y the gripper was jogged to")
+    t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
+    t.set_defaults(func=cmd_teach)
+
+    d = sub.add_parser("diagram", help="print the state machine as a Mermaid diagram")
+    d.add_argument("--markdown", action="store_true", help="the whole docs/state-machine.md")
+    d.set_defaults(func=cmd_diagram)
+
+
+def cmd_diagram(args: argparse.Namespace) -> int:
+    print(markdown() if args.markdown else mermaid(), end="")
+    return 0
+
+
+def circle_table_mm(number: int, config: CellConfig) -> tuple[float, float]:
+    plate = config.plate
+    if not 1 <= number <= plate.count:
+        raise InputError(f"circle {number} does not exist: the plate has circles 1 to {plate.count}")
+    row, col = divmod(number - 1, plate.columns)
+    return col * plate.pitch_x_mm, row * plate.pitch_y_mm
+
+
+def cmd_teach(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    cfg = config.planning
+    if len(args.point) < 3:
+        raise InputError(f"teach needs 3 or more --point CIRCLE X_MM Y_MM, got {len(args.point)}")
+    table, robot, points = [], [], []
+    for circle, x, y in args.point:
+        try:
+            n, rx, ry = int(circle), float(x), float(y)
+        except ValueError:
+            raise InputError(f"--point {circle} {x} {y}: expected a circle number and two numbers") from None
+        tx, ty = circle_table_mm(n, config)
+        table.append((tx, ty))
+        robot.append((rx, ry))
+        points.append({"circle": n, "table_mm": [tx, ty], "robot_mm": [rx, ry]})
+    fit, residuals = fit_table_to_robot(np.array(table), np.array(robot), cfg.table_z_mm, cfg.teach_fit_scale)
+    for p, r in zip(points, residuals):
+        print(f"circle {p['circle']:3d}: table ({p['table_mm'][0]:7.2f}, {p['table_mm'][1]:7.2f}) mm -> "
+              f"robot ({p['robot_mm'][0]:7.2f}, {p['robot_mm'][1]:7.2f}) mm, residual {r:.3f} mm")
+    print(f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
+          f"scale {fit.scale:.5f}; largest residual {residuals.max():.3f} mm")
+    if residuals.max() > cfg.teach_max_residual_mm:
+        worst = points[int(np.argmax(residuals))]["circle"]
+        raise TeachRejected(
+            f"largest residual {residuals.max():.3f} mm (circle {worst}) exceeds planning.teach_max_residual_mm "
+            f"{cfg.teach_max_residual_mm:g} mm; nothing written",
+            hint="re-jog that circle, or check the circle numbers",
+        )
+    if args.dry_run:
+        print("dry run: nothing written")
+        return 0
+    save_taught(cfg.taught_path, fit, points, residuals)
+    print(f"wrote {cfg.taught_path}; set planning.frame = \"taught\" to use it")
+    return 0
+
+
+def _apply_overrides(config: CellConfig, args: argparse.Namespace) -> CellConfig:
+    if args.offset_x_mm or args.offset_y_mm:
+        if config.planning.frame != "offset":
+            raise ConfigError("--offset-x-mm/--offset-y-mm change planning.offset_*, but planning.frame is 'taught'")
+        config.planning.offset_x_mm += args.offset_x_mm
+        config.planning.offset_y_mm += args.offset_y_mm
+    if args.log_dir:
+        config.run.log_dir = args.log_dir
+    if (args.arm or args.port) and not hasattr(config, "arm"):
+        raise ConfigError("--arm/--port need an arm section in the config, which this version lacks")
+    if args.arm:
+        config.arm.kind = args.arm
+    if args.port:
+        config.arm.port = args.port
+    return config
+
+
+def _devices(config: CellConfig, dry_run: bool):
+    """(camera, arm, calibration, expect_motion, sim world or None)."""
+    if config.camera.source == "sim":
+        from cell.simcell import build_sim_cell
+
+        sim = build_sim_cell(config)
+        return sim.camera, sim.arm, sim.calibration, True, sim
+    from cell.calibration.store import Calibration
+    from drivers.arm import factory
+    from drivers.cameras.factory import make_camera
+
+    calibration = Calibration.load(config.calibration.active_path)
+    arm_cfg = config.arm.model_copy(update={"kind": "mock"}) if dry_run else config.arm
+    return make_camera(config.camera), factory.make_arm(arm_cfg), calibration, not dry_run, None
+
+
+def run_cell(args: argparse.Namespace) -> int:
+    if args.run_config is None and not args.dry_run:
+        raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
+    config = _apply_overrides(load_config(args.run_config), args)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    log_dir = config.run.log_dir
+    audit_path = log_dir / f"run-{stamp}.jsonl"
+    if not args.verbose:  # the operator's file gets INFO; the terminal keeps to warnings
+        for h in logging.getLogger().handlers:
+            if type(h) is logging.StreamHandler:
+                h.setLevel(logging.WARNING)
+    log_to_file(log_dir / f"run-{stamp}.log")
+    from cell.vision.locate import locate
+
+    with AuditLog(audit_path) as audit:
+        audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
+                    config=config.model_dump(mode="json"))
+        try:
+            camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run)
+            planner = Planner(config.planning, table_to_robot(config.planning))
+        except Exception as e:
+            audit.event("fault", reason=f"{type(e).__name__}: {e}")
+            audit.event("run_end", outcome="fault", exit_code=2, reason=str(e))
+            raise
+        if sim is not None:
+            print(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
+        controls = Controls()
+        previous = signal.signal(signal.SIGTERM, lambda *_: controls.stop.set())
+        try:
+            with camera, arm:
+                runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
+                                config.run, audit, controls, expect_motion, progress=print)
+                summary = runner.run()
+                if sim is not None:
+                    truth = _sim_truth(sim.world)
+                    audit.event("sim_truth", **truth)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+    for line in summary.lines():
+        print(line)
+    if sim is not None:
+        print("simulated truth: " + "; ".join(f"{k}: {v}" for k, v in truth.items()))
+    print(f"audit log: {audit_path}")
+    return summary.exit_code
+
+
+def _sim_truth(world) -> dict:
+    """What actually happened in the simulated world, by place and kind."""
+    out: dict[str, dict[str, int]] = {}
+    for p in world.parts:
+        where = out.setdefault(p.where, {})
+        where[p.spec.kind] = where.get(p.spec.kind, 0) + 1
+    return out
+

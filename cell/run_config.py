@@ -1,0 +1,111 @@
+"""Config sections of the running cell: planning (table -> robot, per-class motion), the run
+loop, and the built-in simulated cell. Robot-frame values are mm in the arm's base frame;
+heights named *_above_table_mm are relative to the table surface.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class Strict(BaseModel):
+    """As cell.config.Strict (which imports this module, so it cannot be imported here)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ClassPlan(Strict):
+    """How one class of part is picked and where it goes."""
+
+    pick_above_table_mm: float = Field(ge=0, le=100, description="tool point height when the jaws close")
+    approach_above_table_mm: float = Field(40.0, gt=0, le=300, description="height of moves above the table")
+    jaw_across_axis: bool = Field(
+        False, description="turn the jaws to close across the part's axis (bolts); else leave the angle"
+    )
+    bin_robot_mm: tuple[float, float, float] = Field(description="where the gripper opens over the bin, robot frame")
+
+
+class RobotWorkspace(Strict):
+    """Where the planner lets the tool go, robot frame; checked before anything moves."""
+
+    x_min_mm: float = -300.0
+    x_max_mm: float = 300.0
+    y_min_mm: float = -300.0
+    y_max_mm: float = 300.0
+    z_min_mm: float = -5.0
+    z_max_mm: float = 200.0
+    reach_min_mm: float = Field(60.0, ge=0, description="closest the tool may come to the base axis (XY)")
+    reach_max_mm: float = Field(380.0, gt=0, description="farthest the tool may reach from the base axis (XY)")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "RobotWorkspace":
+        for lo, hi in (("x_min_mm", "x_max_mm"), ("y_min_mm", "y_max_mm"), ("z_min_mm", "z_max_mm"),
+                       ("reach_min_mm", "reach_max_mm")):
+            if getattr(self, lo) >= getattr(self, hi):
+                raise ValueError(f"planning.workspace.{lo} ({getattr(self, lo)}) must be below {hi} ({getattr(self, hi)})")
+        return self
+
+
+class PlanningConfig(Strict):
+    """Table mm -> robot mm, and the per-class pick and place moves."""
+
+    frame: Literal["offset", "taught"] = Field(
+        "offset", description="'offset': the fixed offset below (the paper's way); 'taught': the fit of `run-cell teach`"
+    )
+    offset_x_mm: float = Field(-132.0, description="robot X of the table origin (plate point 1)")
+    offset_y_mm: float = Field(40.0, description="robot Y of the table origin")
+    table_z_mm: float = Field(0.0, description="robot Z of the table surface")
+    taught_path: Path = Field(Path("calibration/robot_frame.json"), description="written by `run-cell teach`")
+    teach_max_residual_mm: float = Field(1.0, gt=0, description="a teach fit with a larger residual is refused")
+    teach_fit_scale: bool = Field(False, description="also fit a scale (a similarity instead of a rigid transform)")
+    pick_order: Literal["nearest", "rows", "as-found"] = Field(
+        "nearest", description="nearest to the gripper first; rows: table Y then X; as-found: vision's order"
+    )
+    workspace: RobotWorkspace = RobotWorkspace()
+    bolt: ClassPlan = ClassPlan(pick_above_table_mm=3.5, jaw_across_axis=True, bin_robot_mm=(-200.0, 60.0, 60.0))
+    nut: ClassPlan = ClassPlan(pick_above_table_mm=2.0, bin_robot_mm=(200.0, 60.0, 60.0))
+
+    def for_class(self, cls: str) -> ClassPlan:
+        return {"bolt": self.bolt, "nut": self.nut}[cls]
+
+
+class RunConfig(Strict):
+    """The pick loop."""
+
+    max_retries: int = Field(2, ge=0, le=20, description="further attempts at a part still there after a place")
+    verify_radius_mm: float = Field(
+        5.0, gt=0, le=50, description="a part seen this close to where one was picked is taken as still there"
+    )
+    max_attempts_total: int = Field(200, ge=1, description="safety stop: never more pick attempts than this per run")
+    log_dir: Path = Field(Path("logs"), description="audit (JSON lines) and operator logs, one pair per run")
+    motion_timeout_s: float = Field(30.0, gt=0, le=600, description="longest wait for the arm to finish a move")
+
+
+class SimConfig(Strict):
+    """The built-in simulated cell: the truth the planner's config should agree with."""
+
+    truth_offset_x_mm: float = Field(-132.0, description="true robot X of the table origin")
+    truth_offset_y_mm: float = Field(40.0, description="true robot Y of the table origin")
+    truth_rotation_deg: float = Field(0.0, ge=-180, le=180, description="true rotation table -> robot")
+    truth_table_z_mm: float = Field(0.0, description="true robot Z of the table surface")
+    layout: Literal["paper", "random"] = Field("paper", description="paper: Table IV's 9 bolts and 8 nuts plus a washer")
+    seed: int = Field(0, ge=0)
+    perfect_calibration: bool = Field(
+        False, description="use the camera model itself instead of calibrating the rendered plate"
+    )
+    jaw_across_tolerance_mm: float = Field(
+        1.5, gt=0, le=20, description="error allowed along the jaws' closing direction"
+    )
+    jaw_along_tolerance_mm: float = Field(
+        1.0, gt=0, le=20, description="error allowed along the jaw faces (nuts, washers)"
+    )
+    bolt_end_margin_mm: float = Field(
+        2.0, ge=0, le=50, description="the jaws must close on a bolt's body at least this far from either end"
+    )
+    bolt_angle_tolerance_deg: float = Field(5.0, gt=0, le=90)
+    bin_half_size_mm: float = Field(40.0, gt=0, le=500, description="a part released within this of a bin lands in it")
+    speed_mm_s: float = Field(150.0, gt=0, description="simulated tool speed")
+    gripper_s: float = Field(0.4, ge=0, description="simulated time to open or close the gripper")
+    realtime: bool = Field(False, description="sleep for the simulated motion time")

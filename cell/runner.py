@@ -1,0 +1,336 @@
+"""The cell's loop: the side effects of each state, driven by the state machine.
+
+Each handler does one state's work and returns the next state with its reason. Devices
+come in through their interfaces (Camera, Arm, a locate function), so the same loop runs
+the line, the dry run with a mock arm, and the simulated cell. Failures become FAULT,
+a stop request or Ctrl-C becomes STOPPED; both first make the arm safe.
+
+Parts are tracked across frames by position: a detection within verify_radius_mm of a
+tracked part is that part. Verify judges the part just placed on the next frame: still
+there is a miss, retried up to max_retries, then the part is marked failed and skipped.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from cell.audit import AuditLog
+from cell.errors import CellError
+from cell.planning import Planner, Target, Unreachable
+from cell.run_config import RunConfig
+from cell.statemachine import State, StateMachine, Transition
+from cell.summary import Summary
+from cell.vision.types import LocatedPart, LocateResult
+from drivers.arm.base import Arm
+from drivers.arm.errors import ArmError
+from drivers.cameras.base import Camera
+
+log = logging.getLogger(__name__)
+
+S = State
+PAUSABLE = frozenset({S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN})
+EXIT_DONE, EXIT_INCOMPLETE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 130
+
+
+class Controls:
+    """Operator requests, safe to set from another thread or a signal handler."""
+
+    def __init__(self):
+        self.stop = threading.Event()
+        self.pause = threading.Event()
+
+
+@dataclass
+class Track:
+    """One part followed across frames."""
+
+    id: int
+    cls: str
+    table_mm: tuple[float, float]
+    status: str = "pending"  # pending | picked | failed | unreachable | rehearsed
+    attempts: int = 0
+
+
+class Runner:
+    def __init__(
+        self,
+        camera: Camera,
+        arm: Arm,
+        locate: Callable[[np.ndarray], LocateResult],
+        planner: Planner,
+        cfg: RunConfig,
+        audit: AuditLog,
+        controls: Controls | None = None,
+        expect_motion: bool = True,
+        progress: Callable[[str], None] | None = None,
+    ):
+        self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
+        self.cfg = cfg
+        self.audit = audit
+        self.controls = controls or Controls()
+        self.expect_motion = expect_motion  # False: a mock arm over a real table, nothing can move
+        self.progress = progress or (lambda line: None)
+        self.sm = StateMachine([self._on_transition])
+        self.summary = Summary()
+        self.tracks: list[Track] = []
+        self.frame: np.ndarray | None = None
+        self.result: LocateResult | None = None
+        self.target: Target | None = None
+        self.track: Track | None = None
+        self.holding = False
+        self._handlers = {
+            S.IDLE: self._idle, S.HOME: self._home, S.CAPTURE: self._capture, S.LOCATE: self._locate,
+            S.VERIFY: self._verify, S.PLAN: self._plan, S.PICK: self._pick, S.PLACE: self._place,
+            S.PAUSED: self._paused,
+        }
+
+    # ---- the loop -------------------------------------------------------------------
+    def run(self) -> Summary:
+        t0 = time.perf_counter()
+        self.audit.event("run_start", expect_motion=self.expect_motion, camera=self.camera.source,
+                         arm=type(self.arm).__name__)
+        try:
+            while not self.sm.finished:
+                try:
+                    self._step()
+                except KeyboardInterrupt:
+                    self._finish(S.STOPPED, "Ctrl-C")
+                except (CellError, OSError) as e:
+                    self._finish(S.FAULT, f"{type(e).__name__}: {e}")
+        finally:
+            s = self.summary
+            s.wall_s = time.perf_counter() - t0
+            s.motion_sim_s = float(getattr(self.arm, "motion_time_s", 0.0))
+            s.software_s = max(s.wall_s - s.capture_s - s.arm_s - s.paused_s, 0.0)
+            if self.result is not None:
+                s.unknown_left = sum(1 for o in self.result.objects if not o.pick)
+            if self.sm.state == S.DONE:
+                s.exit_code = EXIT_DONE if not (s.failed or s.unreachable) else EXIT_INCOMPLETE
+            self.audit.event("summary", **s.to_dict())
+            self.audit.event("run_end", outcome=s.outcome, exit_code=s.exit_code, reason=s.reason)
+        return self.summary
+
+    def _step(self) -> None:
+        state = self.sm.state
+        if self.controls.stop.is_set():
+            self._finish(S.STOPPED, "stop requested")
+            return
+        if self.controls.pause.is_set() and state in PAUSABLE and not self.holding:
+            self.sm.go(S.PAUSED, "pause requested")
+            return
+        target, reason = self._handlers[state]()
+        if target in (S.DONE, S.FAULT, S.STOPPED):
+            self._finish(target, reason)
+        else:
+            self.sm.go(target, reason)
+
+    def _on_transition(self, t: Transition) -> None:
+        self.audit.event("state", source=t.source.value, target=t.target.value, reason=t.reason)
+        self.audit.state = t.target.value
+        log.info("%s -> %s: %s", t.source.name, t.target.name, t.reason)
+
+    def _finish(self, state: State, reason: str) -> None:
+        """Enter a terminal state; the arm is made safe first unless the job is simply done."""
+        s = self.summary
+        s.outcome, s.reason = state.value, reason
+        s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
+        if state == S.FAULT:
+            self.audit.event("fault", reason=reason)
+            log.error("fault in %s: %s", self.sm.state.name, reason)
+        self._make_safe(reason, park_only=state == S.DONE)
+        self.sm.go(state, reason)
+
+    def _make_safe(self, reason: str, park_only: bool) -> None:
+        """Finish the move in flight, open the gripper over the bin (or at the part), home,
+        release torque. Each step is tried even if an earlier one failed."""
+        steps: list[tuple[str, Callable[[], None]]] = [
+            ("finish motion", lambda: self.arm.wait_until_idle(self.cfg.motion_timeout_s)),
+        ]
+        if self.holding and self.target is not None:
+            bx, by, bz = self.target.bin_robot_mm
+            steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, self.target.approach_z_mm))))
+            steps.append(("open gripper over bin", self._release))
+        elif not park_only:
+            steps.append(("open gripper", self.arm.open_gripper))
+        steps.append(("home", self.arm.home))
+        if not park_only:
+            steps.append(("release torque", self.arm.stop))
+        for name, step in steps:
+            t0 = time.perf_counter()
+            try:
+                if self.arm.is_connected:
+                    step()
+                self.audit.event("safe_step", step=name, ok=True)
+            except (CellError, OSError, KeyboardInterrupt) as e:
+                self.audit.event("safe_step", step=name, ok=False, error=f"{type(e).__name__}: {e}")
+                log.warning("making safe after %s: %s failed: %s", reason, name, e)
+            finally:
+                self.summary.arm_s += time.perf_counter() - t0
+
+    # ---- devices, timed -------------------------------------------------------------
+    def _arm(self, method: str, *args, **kw) -> None:
+        t0 = time.perf_counter()
+        try:
+            getattr(self.arm, method)(*args, **kw)
+        finally:
+            self.summary.arm_s += time.perf_counter() - t0
+
+    def _release(self) -> None:
+        self._arm("open_gripper")
+        self.holding = False
+
+    # ---- state handlers -------------------------------------------------------------
+    def _idle(self):
+        return S.HOME, "start"
+
+    def _home(self):
+        self._arm("home")
+        self._arm("open_gripper")
+        return S.CAPTURE, "arm homed, gripper open"
+
+    def _capture(self):
+        t0 = time.perf_counter()
+        try:
+            self.frame = self.camera.capture()
+        finally:
+            self.summary.capture_s += time.perf_counter() - t0
+        self.summary.frames += 1
+        return S.LOCATE, f"frame {self.summary.frames}"
+
+    def _locate(self):
+        self.result = self.locate(self.frame)
+        objects = self.result.objects
+        self.audit.event(
+            "frame", frame=self.summary.frames, locate_ms=round(self.result.elapsed_ms, 3),
+            warnings=self.result.warnings if hasattr(self.result, "warnings") else [],
+            detections=[_detection(o) for o in objects],
+        )
+        n_pick = sum(o.pick for o in objects)
+        why = f"{len(objects)} parts, {n_pick} pickable"
+        if self.track is not None:
+            return S.VERIFY, f"{why}; checking part {self.track.id}"
+        return S.PLAN, why
+
+    def _verify(self):
+        track, target = self.track, self.target
+        self.track = None
+        still = [o for o in self.result.objects
+                 if np.hypot(o.world_mm[0] - track.table_mm[0], o.world_mm[1] - track.table_mm[1]) <= self.cfg.verify_radius_mm]
+        if not self.expect_motion:
+            track.status, result = "rehearsed", "rehearsed"
+            self.summary.rehearsed += 1
+        elif not still:
+            track.status, result = "picked", "picked"
+            self.summary.picked[track.cls] = self.summary.picked.get(track.cls, 0) + 1
+        else:
+            result = "missed"
+            self.summary.misses += 1
+        self.audit.event("verify", track=track.id, cls=track.cls, attempt=track.attempts, result=result,
+                         table_mm=track.table_mm, still_at_mm=[o.world_mm for o in still])
+        reason = f"part {track.id} {result}"
+        if result == "missed" and track.attempts > self.cfg.max_retries:
+            track.status = "failed"
+            self.summary.failed += 1
+            self.audit.event("failed", track=track.id, cls=track.cls, attempts=track.attempts)
+            reason += f", failed after {track.attempts} attempts"
+        elif result == "missed":
+            reason += ", will retry"
+        self.progress(self._pick_line(target, track, result))
+        return S.PLAN, reason
+
+    def _plan(self):
+        if self.summary.attempts >= self.cfg.max_attempts_total:
+            return S.FAULT, f"safety stop: {self.summary.attempts} pick attempts (run.max_attempts_total)"
+        candidates = []
+        for o in self.result.objects:
+            if not o.pick:
+                continue
+            track = self._track_for(o)
+            if track.status == "pending":
+                candidates.append((o, track))
+        by_id = {id(o): t for o, t in candidates}
+        status = self.arm.status()
+        here = (status.pose.x_mm, status.pose.y_mm) if status.pose is not None else None
+        for part in self.planner.order([o for o, _ in candidates], here):
+            track = by_id[id(part)]
+            try:
+                target = self.planner.target(part)
+                for point in target.waypoints():
+                    self.arm.check_target(*point, target.jaw_angle_deg)
+            except (Unreachable, ArmError) as e:
+                track.status = "unreachable"
+                self.summary.unreachable += 1
+                self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.world_mm, reason=str(e))
+                self.progress(f"part {track.id} {part.cls} at table ({part.world_mm[0]:.1f}, {part.world_mm[1]:.1f}) mm: "
+                              f"unreachable, skipped: {e}")
+                continue
+            track.attempts += 1
+            self.summary.attempts += 1
+            self.summary.retries += track.attempts > 1
+            self.target, self.track = target, track
+            self.audit.event("target", track=track.id, cls=target.cls, attempt=track.attempts,
+                             table_mm=target.table_mm, robot_mm=target.robot_mm, approach_z_mm=target.approach_z_mm,
+                             jaw_angle_deg=target.jaw_angle_deg, bin_robot_mm=target.bin_robot_mm)
+            return S.PICK, f"part {track.id} ({target.cls}), attempt {track.attempts}"
+        left = {st: sum(t.status == st for t in self.tracks) for st in ("failed", "unreachable")}
+        return S.DONE, f"no pickable part left ({left['failed']} failed, {left['unreachable']} unreachable)"
+
+    def _track_for(self, part: LocatedPart) -> Track:
+        """The tracked part this detection is (by position), or a new track."""
+        best, best_d = None, self.cfg.verify_radius_mm
+        for t in self.tracks:
+            if t.status == "picked":
+                continue
+            d = float(np.hypot(part.world_mm[0] - t.table_mm[0], part.world_mm[1] - t.table_mm[1]))
+            if d <= best_d:
+                best, best_d = t, d
+        if best is None:
+            best = Track(len(self.tracks) + 1, part.cls, part.world_mm)
+            self.tracks.append(best)
+        best.table_mm = tuple(part.world_mm)
+        return best
+
+    def _pick(self):
+        t = self.target
+        x, y, z = t.robot_mm
+        self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
+        self._arm("move_to", x, y, z, t.jaw_angle_deg)
+        self._arm("close_gripper")
+        self.holding = True
+        self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
+        return S.PLACE, f"part {self.track.id} gripped at robot ({x:.1f}, {y:.1f}, {z:.1f}) mm"
+
+    def _place(self):
+        t = self.target
+        bx, by, bz = t.bin_robot_mm
+        self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
+        self._arm("move_to", bx, by, bz)
+        self._release()
+        self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
+        return S.CAPTURE, f"part {self.track.id} released over the {t.cls} bin"
+
+    def _paused(self):
+        t0 = time.perf_counter()
+        while self.controls.pause.is_set() and not self.controls.stop.is_set():
+            time.sleep(0.05)
+        self.summary.paused_s += time.perf_counter() - t0
+        return S.CAPTURE, "resumed: a fresh frame, the table may have changed"
+
+    def _pick_line(self, t: Target, track: Track, result: str) -> str:
+        s = self.summary
+        angle = "" if t.jaw_angle_deg is None else f", jaws {t.jaw_angle_deg:+.1f} deg"
+        counts = ", ".join(f"{n} {c}s" for c, n in sorted(s.picked.items())) or "none"
+        return (f"pick {s.attempts:2d}: part {track.id:2d} {t.cls:4s} table ({t.table_mm[0]:6.1f}, {t.table_mm[1]:6.1f}) mm"
+                f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"
+                f"  [picked {counts}; misses {s.misses}, failed {s.failed}]")
+
+
+def _detection(o: LocatedPart) -> dict:
+    return {"id": o.id, "cls": o.cls, "pick": o.pick, "table_mm": [round(v, 3) for v in o.world_mm],
+            "pixel": [round(v, 2) for v in o.pixel], "angle_deg": None if o.angle_deg is None else round(o.angle_deg, 2),
+            "reason": o.reason}

@@ -1,0 +1,1 @@
+"""Frame sources: a camera device or URL, a video file, a folder of images, the simulation."""

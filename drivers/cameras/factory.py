@@ -1,0 +1,30 @@
+"""Which frame source a camera config names: a device index, a URL, a folder or a video file."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from drivers.cameras.base import Camera
+from drivers.cameras.errors import CameraError
+from drivers.cameras.folder import FolderCamera
+from drivers.cameras.opencv import OpenCVCamera
+from drivers.cameras.video import VideoFileCamera
+
+
+def make_camera(cfg) -> Camera:
+    """A Camera for cfg (a CameraConfig); 'sim' is built by the simulated cell, not here."""
+    source = cfg.source.strip()
+    if source == "sim":
+        raise CameraError("the simulated camera comes with the simulated cell", source=source)
+    if source.isdigit():
+        return OpenCVCamera(int(source), cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure,
+                            cfg.warmup_frames)
+    if "://" in source:
+        return OpenCVCamera(source, cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure,
+                            cfg.warmup_frames)
+    path = Path(source)
+    if path.is_dir():
+        return FolderCamera(path, cfg.width_px, cfg.height_px, cfg.loop)
+    if path.is_file():
+        return VideoFileCamera(path, cfg.width_px, cfg.height_px, cfg.loop)
+    raise CameraError("no such device, URL, folder or video file", source=source,
+                      hint="camera.source is 'sim', a device index (0), a URL (rtsp://...), a folder or a video file")

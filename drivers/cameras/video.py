@@ -1,0 +1,47 @@
+"""Frames from a video file, in order: a recorded job replayed through the cell."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivers.cameras.base import Camera
+from drivers.cameras.errors import CameraError
+
+
+class VideoFileCamera(Camera):
+    def __init__(self, path: str | Path, width_px: int, height_px: int, loop: bool = False):
+        self.path = Path(path)
+        self.source = str(path)
+        self.width_px = width_px
+        self.height_px = height_px
+        self.loop = loop
+        self._cap: cv2.VideoCapture | None = None
+
+    def connect(self) -> None:
+        if not self.path.is_file():
+            raise CameraError("video file not found", source=self.source)
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            cap.release()
+            raise CameraError("cannot decode the video file", source=self.source)
+        self._cap = cap
+
+    def disconnect(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    @property
+    def is_connected(self) -> bool:
+        return self._cap is not None
+
+    def _grab(self) -> np.ndarray | None:
+        ok, frame = self._cap.read()
+        if not ok and self.loop:
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            ok, frame = self._cap.read()
+        if not ok:
+            raise CameraError("the video has no more frames", source=self.source)
+        return frame
