@@ -16,6 +16,10 @@ from cell.vision.config import PartsConfig
 from cell.vision.features import Features, Profile, width_profile
 
 UNKNOWN, NUT, BOLT = "unknown", "nut", "bolt"
+# Area / minimum enclosing circle: a disc about 0.95 (blur, noise), a regular hexagon 0.83.
+_ROUND = 0.9
+_ROUND_WITH_HOLE = 0.85  # a ring's inner edge lets blur and glare eat more of it
+_HEXAGON_ROUNDNESS = 0.75
 
 
 @dataclass
@@ -43,10 +47,12 @@ def classify(feat: Features, outline: np.ndarray, mm_per_px: float, config: Part
         return _classify_holed(feat, mm_per_px, config)
     if feat.elongation >= config.nut.max_elongation:
         return _classify_elongated(feat, outline, mm_per_px, config)
-    if feat.hexagonality >= config.nut.min_hexagonality:
-        return Verdict(UNKNOWN, "hexagon without a hole (a bolt standing on its head?)")
-    if feat.roundness >= 0.9:
+    if feat.roundness >= _ROUND:
         return Verdict(UNKNOWN, "round without a hole (a coin or a plug?)")
+    if feat.hexagonality >= config.nut.min_hexagonality and feat.roundness >= _HEXAGON_ROUNDNESS:
+        return Verdict(UNKNOWN, "hexagon without a hole (a bolt standing on its head?)")
+    if feat.solidity >= 0.85:
+        return Verdict(UNKNOWN, "compact, no hole, not hexagonal (a nut on its side?)")
     return Verdict(UNKNOWN, f"matches no part (solidity {feat.solidity:.2f}: touching parts or debris?)")
 
 
@@ -57,7 +63,7 @@ def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig) -> Ve
     hole_mm = math.sqrt(4 * hole.area_px / math.pi) * mm_per_px
     offset_mm = math.dist(hole.centroid_px, feat.outer_centroid_px) * mm_per_px
     size = {"across_flats_mm": across_flats_mm, "hole_mm": hole_mm}
-    if feat.hexagonality < cfg.min_hexagonality and feat.roundness >= 0.9:
+    if feat.hexagonality < cfg.min_hexagonality and feat.roundness >= _ROUND_WITH_HOLE:
         return Verdict(UNKNOWN, "round with a hole: a washer (not picked)", size)
     checks = [
         (feat.hexagonality >= cfg.min_hexagonality, f"outline not hexagonal ({feat.hexagonality:.2f})"),
