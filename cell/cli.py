@@ -16,6 +16,7 @@ from cell.errors import CellError
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
     "cell.commands.calibration",
+    "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.run",
 ]

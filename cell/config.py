@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.vision.config import PartsConfig
+from drivers.arm.config import ArmConfig
 
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
@@ -120,6 +121,7 @@ class CellConfig(Strict):
     detection: DetectionConfig = DetectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     camera: CameraConfig = CameraConfig()
+    arm: ArmConfig = ArmConfig()
     planning: PlanningConfig = PlanningConfig()
     run: RunConfig = RunConfig()
     sim: SimConfig = SimConfig()

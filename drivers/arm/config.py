@@ -35,7 +35,7 @@ class Workspace(_Strict):
         for axis in "xyz":
             lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
             if lo >= hi:
-                raise ValueError(f"workspace.{axis}_min_mm ({lo} mm) must be below {axis}_max_mm ({hi} mm)")
+                raise ValueError(f"{axis}_min_mm ({lo:g} mm) must be below {axis}_max_mm ({hi:g} mm)")
         return self
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
@@ -118,7 +118,7 @@ class SerialArmConfig(_Strict):
     @model_validator(mode="after")
     def _home_inside(self) -> "SerialArmConfig":
         if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
-            raise ValueError(f"serial.home_position_mm: {why}")
+            raise ValueError(f"home_position_mm: {why}")
         return self
 
 
@@ -168,22 +168,22 @@ class DynamixelArmConfig(_Strict):
     def _consistent(self) -> "DynamixelArmConfig":
         ids = [*self.joint_ids, self.gripper_id]
         if len(set(ids)) != len(ids):
-            raise ValueError(f"dynamixel.joint_ids {list(self.joint_ids)} and gripper_id {self.gripper_id} must be distinct")
+            raise ValueError(f"joint_ids {list(self.joint_ids)} and gripper_id {self.gripper_id} must be distinct")
         for i in self.joint_ids:
             if not 0 <= i <= 252:
-                raise ValueError(f"dynamixel.joint_ids: {i} is not a servo id (0-252)")
+                raise ValueError(f"joint_ids: {i} is not a servo id (0-252)")
         for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg), start=1):
             if lo >= hi:
-                raise ValueError(f"dynamixel joint {j}: joint_min_deg ({lo} deg) must be below joint_max_deg ({hi} deg)")
+                raise ValueError(f"joint {j}: joint_min_deg ({lo:g} deg) must be below joint_max_deg ({hi:g} deg)")
             if lo < -180 or hi > 180:
-                raise ValueError(f"dynamixel joint {j}: limits must lie within -180..180 deg (one servo turn)")
+                raise ValueError(f"joint {j}: joint_min_deg/joint_max_deg must lie within -180..180 deg (one servo turn)")
         for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg), start=1):
             if d not in (1, -1):
-                raise ValueError(f"dynamixel.joint_directions: joint {j} is {d}, must be 1 or -1")
+                raise ValueError(f"joint_directions: joint {j} is {d}, must be 1 or -1")
             if not self.joint_min_deg[j - 1] <= h <= self.joint_max_deg[j - 1]:
-                raise ValueError(f"dynamixel.home_joints_deg: joint {j} at {h} deg is outside its limits")
+                raise ValueError(f"home_joints_deg: joint {j} at {h:g} deg is outside its limits")
         if self.gripper_open_ticks == self.gripper_closed_ticks:
-            raise ValueError("dynamixel.gripper_open_ticks and gripper_closed_ticks must differ")
+            raise ValueError("gripper_open_ticks and gripper_closed_ticks must differ")
         return self
 
 

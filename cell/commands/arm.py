@@ -1,0 +1,94 @@
+"""`run-cell ports`, `run-cell jog` and `run-cell home`: the operator's hands on the arm."""
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from cell.config import load_config
+from cell.errors import InputError
+from drivers.arm.base import Arm
+from drivers.arm.factory import make_arm, with_overrides
+
+log = logging.getLogger(__name__)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("ports", help="list serial ports with their USB descriptions")
+    p.set_defaults(func=cmd_ports)
+
+    j = sub.add_parser("jog", help="move the gripper to a robot-frame point, or open/close it")
+    add_arm_arguments(j)
+    what = j.add_mutually_exclusive_group(required=True)
+    what.add_argument("--to", nargs=3, type=float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
+    what.add_argument("--gripper", choices=["open", "close"])
+    j.add_argument("--angle", type=float, metavar="DEG", help="gripper angle about the vertical, with --to")
+    j.set_defaults(func=cmd_jog)
+
+    h = sub.add_parser("home", help="home the arm (homing cycle or home pose)")
+    add_arm_arguments(h)
+    h.set_defaults(func=cmd_home)
+
+
+def add_arm_arguments(p: argparse.ArgumentParser) -> None:
+    # SUPPRESS: the same options given before the sub-command (`run-cell --arm serial jog ...`) still count.
+    p.add_argument("--config", type=Path, default=argparse.SUPPRESS, help="cell config TOML (default: built-in)")
+    p.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS, help="override arm.kind")
+    p.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (device path or pyserial URL)")
+
+
+def arm_from_args(args: argparse.Namespace) -> Arm:
+    """The arm from --config (or run-cell's own --config), with --arm / --port applied."""
+    config = getattr(args, "config", None) or getattr(args, "run_config", None)
+    cfg = with_overrides(load_config(config).arm, kind=getattr(args, "arm", None), port=getattr(args, "port", None))
+    return make_arm(cfg)
+
+
+def jog(arm: Arm, to_mm: tuple[float, float, float] | None = None, angle_deg: float | None = None,
+        gripper: str | None = None) -> None:
+    """One jog on a connected arm, returning once it is done; what `run-cell teach` repeats."""
+    if to_mm is not None:
+        arm.move_to(*to_mm, angle_deg=angle_deg)
+    if gripper == "open":
+        arm.open_gripper()
+    elif gripper == "close":
+        arm.close_gripper()
+
+
+def cmd_ports(args: argparse.Namespace) -> int:
+    from serial.tools import list_ports
+
+    ports = sorted(list_ports.comports(), key=lambda p: p.device)
+    if not ports:
+        print("no serial ports found (is the arm's USB cable plugged in?)")
+        return 0
+    for p in ports:
+        print(f"{p.device}\t{p.description}\t{p.hwid}")
+    return 0
+
+
+def cmd_jog(args: argparse.Namespace) -> int:
+    if args.angle is not None and args.to is None:
+        raise InputError("--angle goes with --to X Y Z")
+    arm = arm_from_args(args)
+    if args.to is not None:
+        arm.check_target(*args.to, args.angle)  # refuse before connecting, let alone moving
+    with arm:
+        jog(arm, tuple(args.to) if args.to else None, args.angle, args.gripper)
+        print(_describe(arm))
+    return 0
+
+
+def cmd_home(args: argparse.Namespace) -> int:
+    with arm_from_args(args) as arm:
+        arm.home()
+        print(_describe(arm))
+    return 0
+
+
+def _describe(arm: Arm) -> str:
+    s = arm.status()
+    where = "position unknown" if s.pose is None else (
+        f"x={s.pose.x_mm:.2f} y={s.pose.y_mm:.2f} z={s.pose.z_mm:.2f} mm, angle {s.pose.angle_deg:.1f} deg")
+    grip = {None: "", True: ", gripper closed", False: ", gripper open"}[s.gripper_closed]
+    return f"arm on {arm.port}: {s.state}, {where}{grip}"

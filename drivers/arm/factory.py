@@ -1,0 +1,32 @@
+"""Build the configured arm; the one place that maps a config kind to a driver class."""
+from __future__ import annotations
+
+from dynamixel_sdk import PortHandler
+
+from cell.errors import ConfigError
+from drivers.arm.base import Arm
+from drivers.arm.config import ArmConfig
+from drivers.arm.dynamixel import DynamixelArm
+from drivers.arm.mock import MockArm
+from drivers.arm.serial_gcode import SerialGcodeArm
+from drivers.arm.serial_line import SerialLine
+
+
+def with_overrides(cfg: ArmConfig, kind: str | None = None, port: str | None = None) -> ArmConfig:
+    """The arm config with command-line --arm / --port applied."""
+    update = {k: v for k, v in (("kind", kind), ("port", port)) if v is not None}
+    return cfg.model_validate({**cfg.model_dump(), **update}) if update else cfg
+
+
+def make_arm(cfg: ArmConfig) -> Arm:
+    """An unconnected arm for the config; use it as `with make_arm(cfg) as arm:`."""
+    if cfg.kind == "mock":
+        return MockArm(cfg)
+    if not cfg.port:
+        raise ConfigError(
+            f"arm.port is empty but arm.kind is {cfg.kind!r}",
+            hint="set arm.port in the config or pass --port; `run-cell ports` lists the serial ports",
+        )
+    if cfg.kind == "serial":
+        return SerialGcodeArm(SerialLine(cfg.port, cfg.serial.baud), cfg.serial)
+    return DynamixelArm(PortHandler(cfg.port), cfg.dynamixel)
