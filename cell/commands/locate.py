@@ -111,7 +111,7 @@ def format_table(result: LocateResult) -> str:
 def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
     """The image with each part outlined, numbered and labelled (the paper's Fig. 6)."""
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    scale = max(out.shape[1] / 1280, 0.35)
+    scale = max(out.shape[1] / 1280, 0.6)
     thick = max(1, round(2 * scale))
     for p in result.objects:
         colour = _COLOURS_BGR[p.cls]
@@ -119,7 +119,7 @@ def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
             cv2.drawContours(out, [p.outline_px], -1, colour, thick, cv2.LINE_AA)
         x, y = (int(round(v)) for v in p.pixel)
         cv2.drawMarker(out, (x, y), colour, cv2.MARKER_CROSS, max(6, round(12 * scale)), thick)
-        label = f"{p.id} {p.cls}" + ("" if p.pick else " (no pick)")
+        label = f"{p.id} {p.cls}"  # red: unknown, never picked
         org = (x + round(8 * scale), y - round(8 * scale))
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), thick + 2, cv2.LINE_AA)
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, thick, cv2.LINE_AA)
