@@ -68,6 +68,7 @@ class Runner:
         controls: Controls | None = None,
         expect_motion: bool = True,
         progress: Callable[[str], None] | None = None,
+        truth: Callable[[], dict] | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
         self.cfg = cfg
@@ -75,6 +76,7 @@ class Runner:
         self.controls = controls or Controls()
         self.expect_motion = expect_motion  # False: a mock arm over a real table, nothing can move
         self.progress = progress or (lambda line: None)
+        self.truth = truth  # the simulated world's account, logged before the summary
         self.sm = StateMachine([self._on_transition])
         self.summary = Summary()
         self.tracks: list[Track] = []
@@ -102,7 +104,12 @@ class Runner:
                     self._finish(S.STOPPED, "Ctrl-C")
                 except (CellError, OSError) as e:
                     self._finish(S.FAULT, f"{type(e).__name__}: {e}")
+                except Exception as e:  # a bug must still leave the arm safe
+                    log.exception("internal error in %s", self.sm.state.name)
+                    self._finish(S.FAULT, f"internal error: {type(e).__name__}: {e}")
         finally:
+            self.camera.disconnect()
+            self.arm.disconnect()
             s = self.summary
             s.wall_s = time.perf_counter() - t0
             s.motion_sim_s = float(getattr(self.arm, "motion_time_s", 0.0))
@@ -111,6 +118,8 @@ class Runner:
                 s.unknown_left = sum(1 for o in self.result.objects if not o.pick)
             if self.sm.state == S.DONE:
                 s.exit_code = EXIT_DONE if not (s.failed or s.unreachable) else EXIT_INCOMPLETE
+            if self.truth is not None:
+                self.audit.event("sim_truth", where=self.truth())
             self.audit.event("summary", **s.to_dict())
             self.audit.event("run_end", outcome=s.outcome, exit_code=s.exit_code, reason=s.reason)
         return self.summary
@@ -186,7 +195,9 @@ class Runner:
 
     # ---- state handlers -------------------------------------------------------------
     def _idle(self):
-        return S.HOME, "start"
+        self.camera.connect()
+        self._arm("connect")
+        return S.HOME, f"camera {self.camera.source} and arm {self.arm.port} connected"
 
     def _home(self):
         self._arm("home")

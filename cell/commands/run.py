@@ -106,12 +106,10 @@ def _apply_overrides(config: CellConfig, args: argparse.Namespace) -> CellConfig
         config.planning.offset_y_mm += args.offset_y_mm
     if args.log_dir:
         config.run.log_dir = args.log_dir
-    if (args.arm or args.port) and not hasattr(config, "arm"):
-        raise ConfigError("--arm/--port need an arm section in the config, which this version lacks")
-    if args.arm:
-        config.arm.kind = args.arm
-    if args.port:
-        config.arm.port = args.port
+    if args.arm or args.port:
+        from drivers.arm.factory import with_overrides
+
+        config.arm = with_overrides(config.arm, args.arm, args.port)
     return config
 
 
@@ -127,7 +125,9 @@ def _devices(config: CellConfig, dry_run: bool):
     from drivers.cameras.factory import make_camera
 
     calibration = Calibration.load(config.calibration.active_path)
-    arm_cfg = config.arm.model_copy(update={"kind": "mock"}) if dry_run else config.arm
+    arm_cfg = config.arm
+    if dry_run and arm_cfg.kind != "mock":  # the mock checks every command as the real driver would
+        arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
     return make_camera(config.camera), factory.make_arm(arm_cfg), calibration, not dry_run, None
 
 
@@ -160,24 +160,23 @@ def run_cell(args: argparse.Namespace) -> int:
         controls = Controls()
         previous = signal.signal(signal.SIGTERM, lambda *_: controls.stop.set())
         try:
-            with camera, arm:
-                runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
-                                config.run, audit, controls, expect_motion, progress=print)
-                summary = runner.run()
-                if sim is not None:
-                    truth = _sim_truth(sim.world)
-                    audit.event("sim_truth", **truth)
+            runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
+                            config.run, audit, controls, expect_motion, progress=print,
+                            truth=None if sim is None else lambda: sim_truth(sim.world))
+            summary = runner.run()
         finally:
             signal.signal(signal.SIGTERM, previous)
     for line in summary.lines():
         print(line)
     if sim is not None:
-        print("simulated truth: " + "; ".join(f"{k}: {v}" for k, v in truth.items()))
+        print("simulated truth: " + "; ".join(
+            f"{where}: " + ", ".join(f"{n} {kind}" for kind, n in kinds.items())
+            for where, kinds in sim_truth(sim.world).items()))
     print(f"audit log: {audit_path}")
     return summary.exit_code
 
 
-def _sim_truth(world) -> dict:
+def sim_truth(world) -> dict:
     """What actually happened in the simulated world, by place and kind."""
     out: dict[str, dict[str, int]] = {}
     for p in world.parts:

@@ -1,0 +1,309 @@
+"""The runner with fakes above the driver layer: a fake table, camera, locator and arm.
+
+The fake arm removes a part from the fake table when it closes within 1 mm of it (mapped
+back through the true offset), so misses come from geometry as in the simulated cell.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cell.audit import AuditLog, read_events
+from cell.errors import CellError
+from cell.planning import Planner, TableToRobot
+from cell.run_config import PlanningConfig, RunConfig
+from cell.runner import EXIT_DONE, EXIT_FAULT, EXIT_INCOMPLETE, EXIT_STOPPED, Controls, Runner
+from cell.statemachine import TERMINAL, State
+from cell.summary import counts_from_log
+from cell.vision.types import LocatedPart, LocateResult
+from drivers.arm.base import Arm, ArmStatus
+from drivers.arm.errors import HardwareFault
+from drivers.arm.kinematics import Pose
+from drivers.cameras.base import Camera
+from drivers.cameras.errors import CameraError
+
+PLANNING = PlanningConfig()
+TRUE_FRAME = TableToRobot.from_offset(PLANNING)
+
+
+class FakeTable:
+    def __init__(self, parts):
+        self.parts = dict(enumerate(parts, start=1))  # id -> (cls, x, y, angle)
+        self.bins: list[int] = []
+        self.held: int | None = None
+
+
+class FakeCamera(Camera):
+    def __init__(self, fail_at: int | None = None):
+        self.source, self.width_px, self.height_px = "fake", 64, 48
+        self.connected, self.frames, self.fail_at = False, 0, fail_at
+
+    def connect(self):
+        self.connected = True
+
+    def disconnect(self):
+        self.connected = False
+
+    @property
+    def is_connected(self):
+        return self.connected
+
+    def _grab(self):
+        self.frames += 1
+        if self.frames == self.fail_at:
+            return None
+        return np.zeros((48, 64, 3), np.uint8)
+
+
+class FakeArm(Arm):
+    """Records calls; `fail` maps a method name to the call number (1-based) that raises."""
+
+    def __init__(self, table: FakeTable, truth: TableToRobot = TRUE_FRAME, fail: dict | None = None):
+        self.port, self.table, self.truth = "fake", table, truth
+        self.calls: list[tuple] = []
+        self.fail = fail or {}
+        self.pose = Pose(0.0, 150.0, 100.0, 0.0)
+        self.connected = False
+
+    def _record(self, name, *args):
+        self.calls.append((name, *args))
+        if self.fail.get(name) == sum(c[0] == name for c in self.calls):
+            raise HardwareFault(f"{name} failed (injected)", port=self.port)
+
+    def connect(self):
+        self._record("connect")
+        self.connected = True
+
+    def disconnect(self):
+        self.calls.append(("disconnect",))
+        self.connected = False
+
+    @property
+    def is_connected(self):
+        return self.connected
+
+    def home(self):
+        self._record("home")
+
+    def check_target(self, x_mm, y_mm, z_mm, angle_deg=None):
+        pass
+
+    def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True):
+        self._record("move_to", x_mm, y_mm, z_mm)
+        self.pose = Pose(x_mm, y_mm, z_mm, angle_deg or 0.0)
+
+    def open_gripper(self):
+        self._record("open_gripper")
+        if self.table.held is not None:
+            self.table.bins.append(self.table.held)
+            self.table.held = None
+
+    def close_gripper(self):
+        self._record("close_gripper")
+        tx, ty = self.truth.to_table([self.pose.x_mm, self.pose.y_mm])[0]
+        for pid, (cls, x, y, _) in list(self.table.parts.items()):
+            if math.hypot(x - tx, y - ty) <= 1.0:
+                self.table.held = pid
+                del self.table.parts[pid]
+                return
+
+    def wait_until_idle(self, timeout_s=None):
+        self._record("wait_until_idle")
+
+    def stop(self):
+        self.calls.append(("stop",))
+
+    def status(self):
+        self._record("status")
+        return ArmStatus("idle", self.pose, None)
+
+
+def fake_locator(table: FakeTable, fail_at: int | None = None):
+    calls = {"n": 0}
+
+    def locate(frame):
+        calls["n"] += 1
+        if calls["n"] == fail_at:
+            raise CellError("locate failed (injected)")
+        objs = [
+            LocatedPart(i, cls, "fake", (0.0, 0.0), (x, y), angle if cls == "bolt" else None, cls != "unknown")
+            for i, (pid, (cls, x, y, angle)) in enumerate(table.parts.items(), start=1)
+        ]
+        return LocateResult(objs, (64, 48), 0.1)
+
+    return locate
+
+
+PARTS = [("nut", 20.0, 30.0, None), ("bolt", 100.0, 60.0, 30.0), ("nut", 200.0, 120.0, None),
+         ("unknown", 150.0, 150.0, None)]
+
+
+def make_runner(tmp_path, parts=PARTS, truth=TRUE_FRAME, arm_fail=None, camera_fail=None, locate_fail=None,
+                run=RunConfig(), controls=None, expect_motion=True):
+    table = FakeTable(parts)
+    arm = FakeArm(table, truth, arm_fail)
+    camera = FakeCamera(camera_fail)
+    audit = AuditLog(tmp_path / "audit.jsonl")
+    runner = Runner(camera, arm, fake_locator(table, locate_fail), Planner(PLANNING, TRUE_FRAME), run, audit,
+                    controls, expect_motion)
+    return runner, table, arm, audit
+
+
+def test_clears_the_table_and_leaves_unknown_parts(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path)
+    summary = runner.run()
+    assert runner.sm.state == State.DONE and summary.exit_code == EXIT_DONE
+    assert summary.picked == {"nut": 2, "bolt": 1}
+    assert [cls for cls, *_ in table.parts.values()] == ["unknown"]
+    assert sorted(table.bins) == [1, 2, 3]
+    assert summary.unknown_left == 1
+    states = [t.target for t in runner.sm.history]
+    assert states[:6] == [State.HOME, State.CAPTURE, State.LOCATE, State.PLAN, State.PICK, State.PLACE]
+    assert states[6:9] == [State.CAPTURE, State.LOCATE, State.VERIFY]
+    audit.close()
+    events = read_events(audit.path)
+    assert counts_from_log(events) == summary.counts()
+    assert events[-1]["kind"] == "run_end" and events[-1]["state"] == "done"
+    assert arm.calls[-1] == ("disconnect",) and not runner.camera.is_connected
+
+
+def test_wrong_offset_misses_retries_then_fails_and_ends(tmp_path):
+    shifted = TableToRobot(0.0, TRUE_FRAME.tx_mm - 3.0, TRUE_FRAME.ty_mm, 0.0)  # the cell's offset is 3 mm off
+    runner, table, arm, audit = make_runner(tmp_path, truth=shifted, run=RunConfig(max_retries=2))
+    summary = runner.run()
+    assert runner.sm.state == State.DONE
+    assert summary.exit_code == EXIT_INCOMPLETE
+    assert summary.failed == 3 and summary.picked == {}
+    assert summary.attempts == 9 and summary.misses == 9 and summary.retries == 6
+    audit.close()
+    assert counts_from_log(read_events(audit.path)) == summary.counts()
+
+
+def test_unreachable_part_is_refused_before_motion(tmp_path):
+    far = [("nut", 20.0, 30.0, None), ("nut", 900.0, 30.0, None)]
+    runner, table, arm, audit = make_runner(tmp_path, parts=far)
+    summary = runner.run()
+    assert summary.unreachable == 1 and summary.picked == {"nut": 1}
+    assert summary.exit_code == EXIT_INCOMPLETE
+    assert all(abs(c[1] - (900.0 + TRUE_FRAME.tx_mm)) > 1 for c in arm.calls if c[0] == "move_to")
+
+
+def test_rehearsal_without_motion_plans_each_part_once(tmp_path):
+    class StillArm(FakeArm):
+        def close_gripper(self):
+            self._record("close_gripper")
+
+    table = FakeTable(PARTS)
+    audit = AuditLog(tmp_path / "a.jsonl")
+    runner = Runner(FakeCamera(), StillArm(table), fake_locator(table), Planner(PLANNING, TRUE_FRAME),
+                    RunConfig(), audit, expect_motion=False)
+    summary = runner.run()
+    assert summary.rehearsed == 3 and summary.attempts == 3 and summary.exit_code == EXIT_DONE
+
+
+# ---- faults raised in each state ---------------------------------------------------------
+FAULTS = {
+    State.IDLE: dict(arm_fail={"connect": 1}),
+    State.HOME: dict(arm_fail={"home": 1}),
+    State.CAPTURE: dict(camera_fail=1),
+    State.LOCATE: dict(locate_fail=1),
+    State.PLAN: dict(arm_fail={"status": 1}),
+    State.PICK: dict(arm_fail={"close_gripper": 1}),
+    State.PLACE: dict(arm_fail={"open_gripper": 2}),  # 1st open is at home
+}
+
+
+@pytest.mark.parametrize("state", list(FAULTS), ids=lambda s: s.name)
+def test_fault_in_each_state_ends_in_fault_with_reason(tmp_path, state):
+    runner, table, arm, audit = make_runner(tmp_path, **FAULTS[state])
+    summary = runner.run()
+    assert runner.sm.state == State.FAULT and summary.exit_code == EXIT_FAULT
+    assert "injected" in summary.reason or "no frame" in summary.reason
+    assert runner.sm.history[-1].source == state
+    audit.close()
+    events = read_events(audit.path)
+    assert [e for e in events if e["kind"] == "fault"][0]["reason"] == summary.reason
+    assert events[-1]["kind"] == "run_end" and events[-1]["state"] == "fault"
+
+
+def test_fault_while_holding_opens_the_gripper_over_the_bin(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path, arm_fail={"move_to": 4})  # moving to the bin
+    runner.run()
+    assert runner.sm.state == State.FAULT
+    i = max(i for i, c in enumerate(arm.calls) if c[0] == "open_gripper")
+    bins_xy = [PLANNING.nut.bin_robot_mm[:2], PLANNING.bolt.bin_robot_mm[:2]]
+    assert arm.calls[i - 1][0] == "move_to" and arm.calls[i - 1][1:3] in bins_xy
+    assert len(table.bins) == 1 and table.held is None
+    assert ("stop",) in arm.calls
+
+
+def test_plan_fault_from_the_safety_limit(tmp_path):
+    shifted = TableToRobot(0.0, TRUE_FRAME.tx_mm - 3.0, TRUE_FRAME.ty_mm, 0.0)
+    runner, *_ = make_runner(tmp_path, truth=shifted, run=RunConfig(max_retries=5, max_attempts_total=4))
+    summary = runner.run()
+    assert runner.sm.history[-1].source == State.PLAN and runner.sm.state == State.FAULT
+    assert summary.attempts == 4
+
+
+# ---- a stop request in each state --------------------------------------------------------
+@pytest.mark.parametrize("state", [s for s in State if s not in TERMINAL and s != State.PAUSED], ids=lambda s: s.name)
+def test_stop_request_in_each_state_makes_the_arm_safe(tmp_path, state):
+    controls = Controls()
+    runner, table, arm, audit = make_runner(tmp_path, controls=controls)
+    if state == State.IDLE:
+        controls.stop.set()
+    else:
+        runner.sm.listeners.append(lambda t: controls.stop.set() if t.target == state else None)
+    summary = runner.run()
+    assert runner.sm.state == State.STOPPED and summary.exit_code == EXIT_STOPPED
+    assert runner.sm.history[-1].source == state
+    if state != State.IDLE:
+        tail = [c[0] for c in arm.calls[-4:]]
+        assert tail[-3:] == ["home", "stop", "disconnect"]
+    assert table.held is None
+
+
+def test_stop_request_while_paused(tmp_path):
+    controls = Controls()
+    controls.pause.set()
+    runner, *_ = make_runner(tmp_path, controls=controls)
+    runner.sm.listeners.append(lambda t: controls.stop.set() if t.target == State.PAUSED else None)
+    runner.run()
+    assert [t.target for t in runner.sm.history][-2:] == [State.PAUSED, State.STOPPED]
+
+
+def test_pause_then_resume_takes_a_fresh_frame(tmp_path):
+    controls = Controls()
+    runner, *_ = make_runner(tmp_path, controls=controls)
+
+    def on(t):
+        if t.target == State.PLAN and not any(h.target == State.PAUSED for h in runner.sm.history):
+            controls.pause.set()
+        if t.target == State.PAUSED:
+            controls.pause.clear()
+
+    runner.sm.listeners.append(on)
+    summary = runner.run()
+    targets = [t.target for t in runner.sm.history]
+    i = targets.index(State.PAUSED)
+    assert targets[i + 1] == State.CAPTURE and summary.outcome == "done"
+
+
+def test_ctrl_c_during_pick_opens_at_bin_homes_and_releases(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path)
+    real_move = arm.move_to
+
+    def interrupted(*a, **k):
+        real_move(*a, **k)
+        if table.held is not None and not any(c[0] == "wait_until_idle" for c in arm.calls):
+            raise KeyboardInterrupt
+
+    arm.move_to = interrupted
+    summary = runner.run()
+    assert runner.sm.state == State.STOPPED and summary.reason == "Ctrl-C"
+    assert table.held is None and len(table.bins) == 1
+    assert [c[0] for c in arm.calls[-3:]] == ["home", "stop", "disconnect"]
+    audit.close()
+    assert read_events(audit.path)[-1]["state"] == "stopped"
