@@ -65,12 +65,16 @@ def bolt_pose(
         last += 1
     u_in = _crossing(pos, w, level, first - 1, first) if first > 0 else 0.0
     u_out = _crossing(pos, w, level, last, last + 1) if last + 1 < len(w) else float(pos[last])
-    shaft = prof.centres_px[last + 1 : max(last + 2, len(w) - 2)]
-    offset = float(np.median(shaft)) if shaft.size else 0.0
+    # The axis is the shaft's midline: the head's outline is skewed by perspective, which
+    # tilts the blob's principal axis on short bolts by up to a degree or so.
+    shaft = slice(last + 2, len(w) - 2)
+    if len(pos[shaft]) >= 5:
+        slope, offset = np.polyfit(pos[shaft], prof.centres_px[shaft], 1)
+    else:
+        slope, offset = 0.0, float(np.median(prof.centres_px))
     a = prof.axis_px
     n = np.array([-a[1], a[0]])
-    base = prof.origin_px + offset * n
-    pts = np.array([base + u_in * a, base + u_out * a, base + prof.length_px * a])
+    pts = np.array([prof.origin_px + u * a + (offset + slope * u) * n for u in (u_in, u_out, prof.length_px)])
     head_in, head_out, tip = mapper.pixel_to_table_mm(pts, height_mm=axis_height_mm)
     axis = tip - head_in
     axis /= max(float(np.hypot(*axis)), 1e-9)
