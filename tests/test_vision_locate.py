@@ -1,6 +1,7 @@
 """locate() on rendered scenes: classes, footprint centres, bolt angles, odd frames."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -147,3 +148,25 @@ def test_plain_scale_maps_pixels_without_height():
         PixelScale(-1.0)
     with pytest.raises(InputError):
         scale.pixel_to_table_mm([[1.0, 1.0]], height_mm=3.0)
+
+
+def test_random_drawings_never_crash_and_give_valid_records():
+    """Odd frames of every kind (noise, lines, blobs cut by the border, tiny images)."""
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        h, w = int(rng.integers(8, 240)), int(rng.integers(8, 320))
+        img = np.full((h, w), int(rng.integers(0, 256)), np.uint8)
+        for _ in range(int(rng.integers(0, 10))):
+            centre = (int(rng.integers(-20, w + 20)), int(rng.integers(-20, h + 20)))
+            axes = (int(rng.integers(1, 50)), int(rng.integers(1, 50)))
+            cv2.ellipse(img, centre, axes, float(rng.uniform(0, 180)), 0, 360, int(rng.integers(0, 256)), -1)
+            cv2.line(img, centre, (int(rng.integers(0, w)), int(rng.integers(0, h))), int(rng.integers(0, 256)), 2)
+        if rng.random() < 0.3:
+            img = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        for preset in ("default", "paper"):
+            result = locate(img, float(rng.uniform(0.05, 1.0)), PartsConfig(preset=preset))
+            assert result.image_size == (w, h)
+            for obj in result.objects:
+                assert obj.cls in ("nut", "bolt", "unknown") and obj.reason
+                assert obj.pick == (obj.cls != "unknown")
+                assert np.all(np.isfinite(obj.world_mm))
