@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/run-cell calibrate-demo
+	$(VENV)/bin/run-cell --dry-run
 
 test: $(STAMP)
 	$(PY) -m pytest

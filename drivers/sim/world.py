@@ -61,6 +61,12 @@ class GripResult:
     reason: str
 
 
+def _extent_mm(spec: PartSpec) -> float:
+    """Farthest point of the part's outline from its footprint centre."""
+    outline = spec.top_view_outline_mm()
+    return max(math.hypot(x - spec.x_mm, y - spec.y_mm) for x, y in outline)
+
+
 class World:
     def __init__(self, parts: list[PartSpec], truth: Truth, bins: list[Bin], tolerance: JawTolerance = JawTolerance()):
         self.parts = [SimPart(i + 1, p) for i, p in enumerate(parts)]
@@ -83,13 +89,13 @@ class World:
         tx, ty = self.truth.robot_to_table(robot_xyz[0], robot_xyz[1])
         height = robot_xyz[2] - self.truth.table_z_mm
         jaw_table_deg = jaw_angle_deg - self.truth.rotation_deg
-        nearest, nearest_d, why = None, math.inf, "no part between the jaws"
+        nearest, nearest_d = None, math.inf
         for part in self.on_table():
             d = math.hypot(part.spec.x_mm - tx, part.spec.y_mm - ty)
-            if d < nearest_d:
+            if d < nearest_d and d <= _extent_mm(part.spec) + 2.0:
                 nearest, nearest_d = part, d
-        if nearest is None or nearest_d > 15.0:
-            return GripResult(None, why)
+        if nearest is None:
+            return GripResult(None, "no part between the jaws")
         ok, why = self._holds(nearest.spec, tx, ty, height, jaw_table_deg)
         if not ok:
             return GripResult(None, f"part {nearest.id} ({nearest.spec.kind}) missed: {why}")

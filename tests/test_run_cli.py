@@ -1,0 +1,136 @@
+"""`run-cell --dry-run` end to end on the built-in simulated cell, and the CLI's errors."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from cell.audit import read_events
+from cell.cli import main
+from cell.summary import counts_from_log
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def audit_of(log_dir: Path) -> list[dict]:
+    (path,) = log_dir.glob("run-*.jsonl")
+    return read_events(path)
+
+
+def test_dry_run_clears_the_papers_table_and_agrees_with_its_log(tmp_path, capsys):
+    assert main(["--dry-run", "--log-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "DONE" in out and "picked 9 bolts, 8 nuts; 0 misses" in out
+    assert out.count("pick ") >= 17 and "software" in out
+    events = audit_of(tmp_path)
+    summary = next(e for e in events if e["kind"] == "summary")
+    assert {k: summary[k] for k in counts_from_log(events)} == counts_from_log(events)
+    assert summary["picked"] == {"bolt": 9, "nut": 8} and summary["unknown_left"] == 1
+    truth = next(e for e in events if e["kind"] == "sim_truth")["where"]
+    assert truth == {"bin:bolt": {"bolt": 9}, "bin:nut": {"nut": 8}, "table": {"washer": 1}}
+    assert events[-1]["kind"] == "run_end" and events[-1]["exit_code"] == 0
+    assert len((tmp_path).glob("run-*.log").__next__().read_text()) > 0
+
+
+def test_a_wrong_offset_misses_retries_and_fails(tmp_path, capsys):
+    code = main(["--dry-run", "--offset-x-mm", "3", "--log-dir", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 1
+    events = audit_of(tmp_path)
+    c = counts_from_log(events)
+    assert c["misses"] > 0 and c["retries"] > 0 and c["failed"] > 0
+    assert sum(c["picked"].values()) < 17
+    assert f"{c['failed']} failed" in out
+
+
+def test_no_config_and_no_dry_run_is_a_one_line_error(capsys):
+    assert main(["--config", "/nonexistent/cell.toml"]) == 2
+    err = capsys.readouterr().err
+    assert "config file not found" in err and err.count("\n") == 1
+
+
+def test_a_wrong_config_value_names_the_key(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[run]\nmax_retries = -1\n")
+    assert main(["--config", str(bad), "--dry-run"]) == 2
+    assert "run.max_retries" in capsys.readouterr().err
+
+
+def test_a_missing_camera_is_a_fault_in_the_log(tmp_path, capsys):
+    cal = tmp_path / "cal.json"
+    from cell.calibration.models import CameraMap
+    from cell.calibration.store import Calibration
+    from drivers.sim.rig import default_camera
+
+    cam = default_camera(64, 48)
+    Calibration("camera", CameraMap(cam), (64, 48), cam).save(cal)
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(
+        f'[camera]\nsource = "{tmp_path / "no-such-folder"}"\nwidth_px = 64\nheight_px = 48\n'
+        f'[calibration]\nactive_path = "{cal}"\n[run]\nlog_dir = "{tmp_path / "logs"}"\n'
+    )
+    assert main(["--config", str(cfg), "--dry-run"]) == 2
+    assert "no such device" in capsys.readouterr().err
+    events = audit_of(tmp_path / "logs")
+    assert events[-2]["kind"] == "fault" and "no such device" in events[-2]["reason"]
+    assert events[-1]["kind"] == "run_end"
+
+
+def test_an_empty_camera_folder_faults_in_idle_and_exits_non_zero(tmp_path, capsys):
+    from cell.calibration.models import CameraMap
+    from cell.calibration.store import Calibration
+    from drivers.sim.rig import default_camera
+
+    cam = default_camera(64, 48)
+    Calibration("camera", CameraMap(cam), (64, 48), cam).save(tmp_path / "cal.json")
+    (tmp_path / "frames").mkdir()
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(
+        f'[camera]\nsource = "{tmp_path / "frames"}"\nwidth_px = 64\nheight_px = 48\n'
+        f'[calibration]\nactive_path = "{tmp_path / "cal.json"}"\n[run]\nlog_dir = "{tmp_path / "logs"}"\n'
+    )
+    assert main(["--config", str(cfg), "--dry-run"]) == 3
+    out = capsys.readouterr().out
+    assert "FAULT" in out and "no images" in out
+    events = audit_of(tmp_path / "logs")
+    assert any(e["kind"] == "fault" and e["state"] == "idle" for e in events)
+
+
+def test_bare_run_cell_prints_help(capsys):
+    assert main([]) == 2
+    assert "--dry-run" in capsys.readouterr().out
+
+
+def test_teach_fits_prints_residuals_and_writes(tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[planning]\ntaught_path = "{tmp_path / "frame.json"}"\n')
+    # Circles 1, 13, 144, 156 (the plate's corners) at robot = table + (-132, 40), rotated 0.
+    points = ["1", "-132", "40", "13", "132", "40", "144", "-132", "216", "156", "132", "216"]
+    args = ["teach", "--config", str(cfg)]
+    for i in range(0, len(points), 3):
+        args += ["--point", *points[i:i + 3]]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "residual 0.000 mm" in out and (tmp_path / "frame.json").exists()
+
+
+def test_teach_refuses_a_fit_with_a_large_residual(tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[planning]\ntaught_path = "{tmp_path / "frame.json"}"\n')
+    args = ["teach", "--config", str(cfg), "--point", "1", "-132", "40", "--point", "13", "132", "40",
+            "--point", "144", "-132", "216", "--point", "156", "137", "216"]
+    assert main(args) == 2
+    assert "exceeds planning.teach_max_residual_mm" in capsys.readouterr().err
+    assert not (tmp_path / "frame.json").exists()
+
+
+def test_diagram_prints_mermaid(capsys):
+    assert main(["diagram"]) == 0
+    assert capsys.readouterr().out.startswith("stateDiagram-v2")
+
+
+def test_example_configs_load():
+    from cell.config import load_config
+
+    for name in ("sim.toml", "example-line.toml"):
+        load_config(REPO / "configs" / name)
