@@ -170,3 +170,19 @@ def test_random_drawings_never_crash_and_give_valid_records():
                 assert obj.cls in ("nut", "bolt", "unknown") and obj.reason
                 assert obj.pick == (obj.cls != "unknown")
                 assert np.all(np.isfinite(obj.world_mm))
+
+
+@pytest.mark.parametrize(
+    "part",
+    [
+        PartSpec("bolt", "M5", 12.0, 12.0, 30.0, 12.0),
+        PartSpec("bolt", "M8", 240.0, 160.0, 300.0, 40.0),
+        PartSpec("bolt", "M8", 25.0, 160.0, 45.0, 40.0),
+        PartSpec("nut", "M5", 250.0, 10.0),
+        PartSpec("nut", "M10", 10.0, 170.0, 17.0),
+    ],
+)
+def test_smallest_and_largest_parts_at_the_corners_of_the_field(camera, calibration, part):
+    result = locate(render_scene(camera, [part]), calibration, PartsConfig())
+    assert [o.cls for o in result.objects] == [part.kind], [o.reason for o in result.objects]
+    assert np.hypot(*(np.array(result.objects[0].world_mm) - part.footprint_centre_mm)) <= 0.7

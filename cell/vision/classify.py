@@ -32,8 +32,11 @@ class Verdict:
     shaft_width_px: float | None = None  # bolts
 
 
-def classify(feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig) -> Verdict:
-    """`mm_per_px` is the calibration's local table-plane scale at the blob."""
+def classify(
+    feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig, view_slope: float = 0.0
+) -> Verdict:
+    """`mm_per_px` is the calibration's local table-plane scale at the blob; `view_slope`
+    the tangent of the angle between the camera's ray to it and the vertical (0 unknown)."""
     area_mm2 = feat.outer_area_px * mm_per_px**2
     if feat.touches_border:
         return Verdict(UNKNOWN, "cut by the image border")
@@ -44,7 +47,7 @@ def classify(feat: Features, outline: np.ndarray, mm_per_px: float, config: Part
     if len(feat.holes) >= 2:
         return Verdict(UNKNOWN, f"{len(feat.holes)} holes: parts touching or overlapping")
     if len(feat.holes) == 1:
-        return _classify_holed(feat, mm_per_px, config)
+        return _classify_holed(feat, mm_per_px, config, view_slope)
     if feat.elongation >= config.nut.max_elongation:
         return _classify_elongated(feat, outline, mm_per_px, config)
     if feat.roundness >= _ROUND:
@@ -56,9 +59,12 @@ def classify(feat: Features, outline: np.ndarray, mm_per_px: float, config: Part
     return Verdict(UNKNOWN, f"matches no part (solidity {feat.solidity:.2f}: touching parts or debris?)")
 
 
-def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig) -> Verdict:
+def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig, view_slope: float) -> Verdict:
+    """Seen at a slope, a nut's flanks widen its silhouette by thickness x slope along the
+    ray: area grows by about that times the across-flats width, elongation likewise."""
     cfg = config.nut
-    across_flats_mm = math.sqrt(2 * feat.outer_area_px / math.sqrt(3)) * mm_per_px
+    flank = cfg.thickness_per_across_flats * view_slope
+    across_flats_mm = math.sqrt(feat.outer_area_px / (math.sqrt(3) / 2 + flank)) * mm_per_px
     hole = feat.holes[0]
     hole_mm = math.sqrt(4 * hole.area_px / math.pi) * mm_per_px
     offset_mm = math.dist(hole.centroid_px, feat.outer_centroid_px) * mm_per_px
@@ -67,7 +73,7 @@ def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig) -> Ve
         return Verdict(UNKNOWN, "round with a hole: a washer (not picked)", size)
     checks = [
         (feat.hexagonality >= cfg.min_hexagonality, f"outline not hexagonal ({feat.hexagonality:.2f})"),
-        (feat.elongation <= cfg.max_elongation, f"elongated ({feat.elongation:.2f}): parts touching?"),
+        (feat.elongation <= cfg.max_elongation + flank, f"elongated ({feat.elongation:.2f}): parts touching?"),
         (
             cfg.across_flats_mm[0] <= across_flats_mm <= cfg.across_flats_mm[1],
             f"across flats {across_flats_mm:.1f} mm outside {cfg.across_flats_mm[0]:g}-{cfg.across_flats_mm[1]:g} mm",

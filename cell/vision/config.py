@@ -69,7 +69,9 @@ class BoltConfig(Strict):
 
     shaft_mm: tuple[float, float] = (3.8, 10.0)
     head_width_mm: tuple[float, float] = (7.0, 18.0)
-    length_mm: tuple[float, float] = Field((13.0, 50.0), description="overall, head included")
+    length_mm: tuple[float, float] = Field(
+        (13.0, 56.0), description="overall, head included, as seen (perspective adds up to ~10 %)"
+    )
     min_head_to_shaft: float = Field(1.25, gt=1, description="head width / shaft width")
     max_profile_misfit: float = Field(
         0.15, gt=0, le=1, description="fraction of the length whose width fits neither head nor shaft"

@@ -85,7 +85,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     for blob in seg.blobs:
         feat = measure(blob, seg.mask)
         local_scale = mapper.mm_per_px(feat.centroid_px)
-        verdict = classify(feat, blob.outer, local_scale, cfg)
+        verdict = classify(feat, blob.outer, local_scale, cfg, _view_slope(mapper, feat.centroid_px))
         part = _place(feat, verdict, local_scale, mapper, cfg, correct)
         part.outline_px = blob.outer
         found.append(part)
@@ -95,6 +95,16 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def _view_slope(mapper, pixel) -> float:
+    """Tangent of the angle between the camera's ray to `pixel` and the vertical (0 without a pose)."""
+    camera = mapper.camera
+    if camera is None:
+        return 0.0
+    c = camera.center_table_mm
+    on_table = mapper.pixel_to_table_mm(np.asarray(pixel, dtype=np.float64))[0]
+    return float(np.hypot(*(on_table - c[:2])) / c[2])
 
 
 def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
