@@ -61,7 +61,7 @@ def camera_for(spec) -> CameraModel:
 def score(result, parts) -> dict:
     """Match each located object to the nearest true footprint; count and measure."""
     truth = np.array([p.footprint_centre_mm for p in parts])
-    out = {"confusion": Counter(), "centre": [], "angle": [], "wrong": [], "found": len(result.objects)}
+    out = {"confusion": Counter(), "centre": [], "angle": [], "head": [], "wrong": [], "found": len(result.objects)}
     for obj in result.objects:
         d = np.hypot(*(truth - np.array(obj.world_mm)).T)
         part = parts[int(d.argmin())]
@@ -74,6 +74,9 @@ def score(result, parts) -> dict:
             out["centre"].append(float(d.min()))
         if part.kind == "bolt":
             out["angle"].append(abs((obj.angle_deg - part.axis_angle_deg + 90.0) % 180.0 - 90.0))
+            # The head end is right when the reported head is nearer the true head than the tip.
+            tip = 2 * np.array(part.footprint_centre_mm) - np.array(part.head_centre_mm)
+            out["head"].append(np.hypot(*(np.array(obj.head_mm) - part.head_centre_mm)) < np.hypot(*(np.array(obj.head_mm) - tip)))
     return out
 
 
@@ -92,7 +95,7 @@ def main() -> int:
         "paper": PartsConfig(preset="paper"),
         "perfect cal.": PartsConfig(),
     }
-    totals = {run: {"confusion": Counter(), "centre": [], "angle": [], "wrong": []} for run in RUNS}
+    totals = {run: {"confusion": Counter(), "centre": [], "angle": [], "head": [], "wrong": []} for run in RUNS}
     times_ms: list[float] = []
     n_scenes = 0
     t_start = time.perf_counter()
@@ -115,7 +118,7 @@ def main() -> int:
                 s = score(locate(frame, cals[cal_for[run]], configs[run]), parts)
                 tot = totals[run]
                 tot["confusion"].update(s["confusion"])
-                for key in ("centre", "angle", "wrong"):
+                for key in ("centre", "angle", "head", "wrong"):
                     tot[key] += s[key]
                 c = s["centre"]
                 cells.append(f"{np.mean(c):.3f}/{np.max(c):.3f} ({len(s['wrong'])} wrong)" if c else "-")
@@ -137,7 +140,10 @@ def main() -> int:
         if c.size:
             print(f"  footprint-centre error: mean {c.mean():.3f} mm, max {c.max():.3f} mm over {c.size} parts")
         if a.size:
-            print(f"  bolt angle error: mean {a.mean():.2f} deg, max {a.max():.2f} deg over {a.size} bolts")
+            print(
+                f"  bolt angle error: mean {a.mean():.2f} deg, max {a.max():.2f} deg over {a.size} bolts; "
+                f"head end right for {sum(tot['head'])}/{len(tot['head'])}"
+            )
         for line in tot["wrong"][:5]:
             print(f"    {line}")
     t = np.array(times_ms)

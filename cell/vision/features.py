@@ -112,9 +112,10 @@ def resample(outline: np.ndarray, count: int | None = None, step_px: float = 0.5
 def hexagonality(outline: np.ndarray, centre: tuple[float, float]) -> float:
     """Sixth angular harmonic of the outline's radius, relative to a regular hexagon's."""
     d = resample(outline, _OUTLINE_SAMPLES) - centre
-    theta = np.arctan2(d[:, 1], d[:, 0])
-    r = np.hypot(d[:, 0], d[:, 1])
-    dtheta = np.diff(np.unwrap(np.append(theta, theta[0])))
+    z = d[:, 0] + 1j * d[:, 1]
+    theta = np.angle(z)
+    r = np.abs(z)
+    dtheta = np.angle(np.roll(z, -1) * np.conj(z))  # turn from each sample to the next
     mean_r = np.sum(r * dtheta) / (2 * np.pi)
     if abs(mean_r) < 1e-9:
         return 0.0

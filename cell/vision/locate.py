@@ -81,11 +81,11 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     correct = cfg.use_height_correction and mapper.camera is not None
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
+    feats = [measure(blob, seg.mask) for blob in seg.blobs]
+    scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
-    for blob in seg.blobs:
-        feat = measure(blob, seg.mask)
-        local_scale = mapper.mm_per_px(feat.centroid_px)
-        verdict = classify(feat, blob.outer, local_scale, cfg, _view_slope(mapper, feat.centroid_px))
+    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes):
+        verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct)
         part.outline_px = blob.outer
         found.append(part)
@@ -97,14 +97,23 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     return LocateResult(found, (w, h), elapsed_ms, warnings)
 
 
-def _view_slope(mapper, pixel) -> float:
-    """Tangent of the angle between the camera's ray to `pixel` and the vertical (0 without a pose)."""
-    camera = mapper.camera
-    if camera is None:
-        return 0.0
-    c = camera.center_table_mm
-    on_table = mapper.pixel_to_table_mm(np.asarray(pixel, dtype=np.float64))[0]
-    return float(np.hypot(*(on_table - c[:2])) / c[2])
+def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel: the table-plane scale (mm/px, as Calibration.mm_per_px) and the view slope
+    (tangent of the angle between the camera's ray and the vertical; 0 without a pose).
+
+    One mapping call for all parts: a calibration's mapping is the costly step per part.
+    """
+    n = len(pixels)
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    probes = np.concatenate([pixels, pixels + (1.0, 0.0), pixels + (0.0, 1.0)])
+    q = mapper.pixel_to_table_mm(probes).reshape(3, n, 2)
+    du, dv = q[1] - q[0], q[2] - q[0]
+    scales = np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
+    if mapper.camera is None:
+        return scales, np.zeros(n)
+    c = mapper.camera.center_table_mm
+    return scales, np.hypot(*(q[0] - c[:2]).T) / c[2]
 
 
 def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
