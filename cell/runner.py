@@ -163,7 +163,7 @@ class Runner:
         if self.holding and self.target is not None:
             bx, by, bz = self.target.bin_robot_mm
             steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, self.target.approach_z_mm))))
-            steps.append(("open gripper over bin", self._release))
+            steps.append(("open gripper over bin", self.arm.open_gripper))
         elif not park_only:
             steps.append(("open gripper", self.arm.open_gripper))
         steps.append(("home", self.arm.home))
@@ -172,17 +172,21 @@ class Runner:
         for name, step in steps:
             t0 = time.perf_counter()
             try:
-                if self.arm.is_connected:
-                    step()
+                if not self.arm.is_connected:
+                    self.audit.event("safe_step", step=name, ok=False, error="arm not connected")
+                    continue
+                step()
                 self.audit.event("safe_step", step=name, ok=True)
             except (CellError, OSError, KeyboardInterrupt) as e:
                 self.audit.event("safe_step", step=name, ok=False, error=f"{type(e).__name__}: {e}")
                 log.warning("making safe after %s: %s failed: %s", reason, name, e)
             finally:
                 self.summary.arm_s += time.perf_counter() - t0
+        self.holding = False
 
     # ---- devices, timed -------------------------------------------------------------
     def _arm(self, method: str, *args, **kw) -> None:
+        self.audit.event("arm", command=method, args=args)
         t0 = time.perf_counter()
         try:
             getattr(self.arm, method)(*args, **kw)
@@ -326,10 +330,13 @@ class Runner:
         return S.CAPTURE, f"part {self.track.id} released over the {t.cls} bin"
 
     def _paused(self):
+        self.progress("paused at a safe point")
         t0 = time.perf_counter()
         while self.controls.pause.is_set() and not self.controls.stop.is_set():
             time.sleep(0.05)
         self.summary.paused_s += time.perf_counter() - t0
+        if self.controls.stop.is_set():
+            return S.STOPPED, "stop requested while paused"
         return S.CAPTURE, "resumed: a fresh frame, the table may have changed"
 
     def _pick_line(self, t: Target, track: Track, result: str) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 from datetime import datetime, timezone
 from pathlib import Path
@@ -118,6 +119,8 @@ def _devices(config: CellConfig, dry_run: bool):
     if config.camera.source == "sim":
         from cell.simcell import build_sim_cell
 
+        if getattr(config, "arm", None) is not None and config.arm.kind != "mock":
+            log.warning("camera.source is 'sim': the simulated arm is used, not the configured %s arm", config.arm.kind)
         sim = build_sim_cell(config)
         return sim.camera, sim.arm, sim.calibration, True, sim
     from cell.calibration.store import Calibration
@@ -158,14 +161,18 @@ def run_cell(args: argparse.Namespace) -> int:
         if sim is not None:
             print(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
         controls = Controls()
-        previous = signal.signal(signal.SIGTERM, lambda *_: controls.stop.set())
+        previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),  # even if inherited ignored
+                    signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: controls.stop.set()),
+                    signal.SIGUSR1: signal.signal(signal.SIGUSR1, lambda *_: _toggle(controls.pause))}
+        print(f"pid {os.getpid()}: Ctrl-C stops safely; `kill -USR1 {os.getpid()}` pauses and resumes")
         try:
             runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
                             config.run, audit, controls, expect_motion, progress=print,
                             truth=None if sim is None else lambda: sim_truth(sim.world))
             summary = runner.run()
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     for line in summary.lines():
         print(line)
     if sim is not None:
@@ -174,6 +181,10 @@ def run_cell(args: argparse.Namespace) -> int:
             for where, kinds in sim_truth(sim.world).items()))
     print(f"audit log: {audit_path}")
     return summary.exit_code
+
+
+def _toggle(event) -> None:
+    event.clear() if event.is_set() else event.set()
 
 
 def sim_truth(world) -> dict:
