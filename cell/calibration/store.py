@@ -58,7 +58,8 @@ class Calibration:
         """Local scale at a pixel (geometric mean of the two axes), for size limits in mm."""
         p = np.asarray(pixel, dtype=np.float64).reshape(2)
         q = self.pixel_to_table_mm(np.array([p, p + (1, 0), p + (0, 1)]))
-        return float(math.sqrt(abs(np.cross(q[1] - q[0], q[2] - q[0]))))
+        (ax, ay), (bx, by) = q[1] - q[0], q[2] - q[0]
+        return float(math.sqrt(abs(ax * by - ay * bx)))
 
     def to_dict(self) -> dict:
         return {
