@@ -168,3 +168,36 @@ def test_map_rejects_a_corrupt_calibration(tmp_path, content, message):
     cal.write_text(content)
     r = run_cell("map", "--calibration", cal, "1", "2")
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
+
+
+def test_capture_from_the_configured_camera(work, tmp_path):
+    """Without --image the plate comes from camera.source (here a folder of images)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "0001.png").write_bytes((work / "plate.png").read_bytes())
+    cfg = tmp_path / "folder.toml"
+    cfg.write_text(f"[camera]\nsource = '{frames}'\nwidth_px = 1280\nheight_px = 720\n")
+    out = tmp_path / "active.json"
+    r = run(SCRIPT, "--out", out, "--config", cfg, "--log", work / "cell.log", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["image_size"] == [1280, 720]
+
+
+def test_camera_giving_the_wrong_size_is_refused(work, tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "0001.png").write_bytes((work / "plate.png").read_bytes())
+    cfg = tmp_path / "folder.toml"
+    cfg.write_text(f"[camera]\nsource = '{frames}'\nwidth_px = 1920\nheight_px = 1080\n")
+    out = tmp_path / "active.json"
+    out.write_text("{}")
+    r = run(SCRIPT, "--out", out, "--config", cfg, "--log", work / "cell.log")
+    assert r.returncode == 2 and "1280x720" in r.stderr and "Traceback" not in r.stderr
+    assert out.read_text() == "{}"
+
+
+def test_capture_from_the_simulated_camera(work, tmp_path):
+    out = tmp_path / "active.json"
+    r = run(SCRIPT, "--out", out, "--log", work / "cell.log", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["statistics"]["cross_validated"]["rms_mm"] < 0.015

@@ -39,10 +39,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def capture_plate(config):
-    """One frame from the configured camera."""
-    from drivers.cameras import open_camera  # the camera layer is only needed without --image
+    """One frame from the configured camera; the simulated camera sees the built-in plate."""
+    if config.camera.source.strip() == "sim":
+        from drivers.sim.render import render_plate
+        from drivers.sim.rig import default_camera
 
-    with open_camera(config.camera) as camera:
+        log.info("capturing the plate from the simulated camera")
+        return render_plate(default_camera(config.camera.width_px, config.camera.height_px), config.plate)
+    from drivers.cameras.factory import make_camera
+
+    log.info("capturing the plate from camera %s", config.camera.source)
+    with make_camera(config.camera) as camera:
         return camera.capture()
 
 
