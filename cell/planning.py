@@ -150,7 +150,7 @@ class Planner:
         angle = None
         if plan.jaw_across_axis:
             if part.angle_deg is None:
-                raise Unreachable(f"part {part.id}: no axis angle to put the jaws across")
+                raise Unreachable("no axis angle to put the jaws across")
             angle = self.frame.angle_to_robot(part.angle_deg + 90.0)
         t = Target(
             part.id, part.cls, (float(table_xy[0]), float(table_xy[1])),
@@ -159,8 +159,16 @@ class Planner:
         )
         for point in t.waypoints():
             if why := self.violation(*point):
-                raise Unreachable(f"part {part.id} ({part.cls}): {why}")
+                raise Unreachable(why)
         return t
+
+    def bin_problems(self) -> list[str]:
+        """Why a class's bin cannot be reached (checked once, before the first move)."""
+        out = []
+        for cls in ("bolt", "nut"):
+            if why := self.violation(*self.cfg.for_class(cls).bin_robot_mm):
+                out.append(f"planning.{cls}.bin_robot_mm: {why}")
+        return out
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point lies outside the configured workspace or reach, or None."""

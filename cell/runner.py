@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from cell.audit import AuditLog
-from cell.errors import CellError
+from cell.errors import CellError, ConfigError
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.statemachine import State, StateMachine, Transition
@@ -201,6 +201,14 @@ class Runner:
     def _idle(self):
         self.camera.connect()
         self._arm("connect")
+        problems = self.planner.bin_problems()
+        for cls in ("bolt", "nut"):
+            try:
+                self.arm.check_target(*self.planner.cfg.for_class(cls).bin_robot_mm)
+            except ArmError as e:
+                problems.append(f"{cls} bin: {e}")
+        if problems:
+            raise ConfigError("bins out of reach: " + "; ".join(problems))
         return S.HOME, f"camera {self.camera.source} and arm {self.arm.port} connected"
 
     def _home(self):

@@ -60,6 +60,9 @@ class Summary:
         ]
         if self.rehearsed:
             out.append(f"rehearsed {self.rehearsed} picks (nothing moved, nothing verified)")
+        if not self.attempts:
+            out.append(f"no pick attempts; {self.wall_s:.1f} s wall, software {1e3 * self.software_s:.1f} ms")
+            return out
         out.append(
             f"{self.attempts} pick attempts in {self.wall_s:.1f} s wall: {self.wall_ms_per_pick:.0f} ms per pick, "
             f"of which software {self.software_ms_per_pick:.1f} ms (locate, plan, verify, log) and "

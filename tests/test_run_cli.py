@@ -134,3 +134,94 @@ def test_example_configs_load():
 
     for name in ("sim.toml", "example-line.toml"):
         load_config(REPO / "configs" / name)
+
+
+def line_config(tmp_path: Path, nut_bin=(250.0, 250.0, 60.0)) -> Path:
+    """A line-like config: stills of the paper's table in a folder, a serial arm (mocked in the dry run)."""
+    import cv2
+
+    from cell.calibration.models import CameraMap
+    from cell.calibration.store import Calibration
+    from cell.simcell import paper_layout
+    from drivers.sim.parts import render_scene
+    from drivers.sim.rig import default_camera
+
+    cam = default_camera(960, 540)
+    (tmp_path / "frames").mkdir()
+    cv2.imwrite(str(tmp_path / "frames" / "000.png"), render_scene(cam, paper_layout()))
+    Calibration("camera", CameraMap(cam), (960, 540), cam).save(tmp_path / "cal.json")
+    cfg = tmp_path / "line.toml"
+    cfg.write_text(f"""
+[camera]
+source = "{tmp_path / 'frames'}"
+width_px = 960
+height_px = 540
+loop = true
+[calibration]
+active_path = "{tmp_path / 'cal.json'}"
+[arm]
+kind = "serial"
+port = "/dev/ttyUSB0"
+[arm.serial.workspace]
+x_max_mm = 300.0
+y_max_mm = 300.0
+[arm.serial.commands]
+rotate = "G0 A{{angle_deg:.2f}}"
+[planning]
+offset_x_mm = 20.0
+offset_y_mm = 20.0
+[planning.workspace]
+x_min_mm = 0.0
+y_min_mm = 0.0
+z_min_mm = 0.0
+reach_min_mm = 0.0
+[planning.bolt]
+pick_above_table_mm = 3.5
+jaw_across_axis = true
+bin_robot_mm = [290.0, 20.0, 60.0]
+[planning.nut]
+pick_above_table_mm = 2.0
+bin_robot_mm = {list(nut_bin)}
+[run]
+log_dir = "{tmp_path / 'logs'}"
+""")
+    return cfg
+
+
+def test_dry_run_of_a_line_config_rehearses_every_pick_with_the_mock_arm(tmp_path, capsys):
+    assert main(["--config", str(line_config(tmp_path)), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "rehearsed 17 picks" in out
+    events = audit_of(tmp_path / "logs")
+    assert counts_from_log(events)["rehearsed"] == 17
+    assert next(e for e in events if e["kind"] == "run_start")["arm"] == "MockArm"
+
+
+def test_a_bin_out_of_reach_is_a_fault_before_anything_moves(tmp_path, capsys):
+    assert main(["--config", str(line_config(tmp_path, (290.0, 280.0, 60.0))), "--dry-run"]) == 3
+    assert "bins out of reach: planning.nut.bin_robot_mm" in capsys.readouterr().out
+    events = audit_of(tmp_path / "logs")
+    assert [e["command"] for e in events if e["kind"] == "arm"] == ["connect"]
+
+
+def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "rt.toml"
+    cfg.write_text(f'[sim]\nrealtime = true\nperfect_calibration = true\nspeed_mm_s = 500.0\n'
+                   f'[run]\nlog_dir = "{tmp_path / "logs"}"\n')
+    proc = subprocess.Popen([sys.executable, "-m", "cell.cli", "--config", str(cfg)], cwd=REPO,
+                            stdout=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        if line.startswith("pick  1:"):
+            break
+    proc.send_signal(signal.SIGINT)
+    rest = proc.stdout.read()
+    assert proc.wait(timeout=60) == 130
+    assert "STOPPED: Ctrl-C" in rest
+    events = audit_of(tmp_path / "logs")
+    steps = [e["step"] for e in events if e["kind"] == "safe_step" and e["ok"]]
+    assert steps[-2:] == ["home", "release torque"]
+    assert events[-1]["kind"] == "run_end" and events[-1]["state"] == "stopped"
