@@ -3,8 +3,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
-
 from cell.audit import read_events
 from cell.cli import main
 from cell.summary import counts_from_log

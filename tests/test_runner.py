@@ -22,7 +22,6 @@ from drivers.arm.base import Arm, ArmStatus
 from drivers.arm.errors import HardwareFault
 from drivers.arm.kinematics import Pose
 from drivers.cameras.base import Camera
-from drivers.cameras.errors import CameraError
 
 PLANNING = PlanningConfig()
 TRUE_FRAME = TableToRobot.from_offset(PLANNING)
