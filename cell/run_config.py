@@ -95,6 +95,9 @@ class SimConfig(Strict):
     perfect_calibration: bool = Field(
         False, description="use the camera model itself instead of calibrating the rendered plate"
     )
+    camera_bumped_mm: tuple[float, float] = Field(
+        (0.0, 0.0), description="move the camera this far (table X, Y) after the plate was calibrated: a stale calibration"
+    )
     jaw_across_tolerance_mm: float = Field(
         1.5, gt=0, le=20, description="error allowed along the jaws' closing direction"
     )

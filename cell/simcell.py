@@ -15,6 +15,7 @@ import numpy as np
 
 from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
+from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from drivers.arm.config import Workspace
 from drivers.sim.parts import PartSpec, random_scene
@@ -90,6 +91,12 @@ def paper_layout(seed: int = 0) -> list[PartSpec]:
     return parts
 
 
+def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
+    """The same camera moved parallel to the table: its calibration no longer holds."""
+    t = model.tvec - model.rotation @ np.array([shift_mm[0], shift_mm[1], 0.0])
+    return CameraModel(model.width_px, model.height_px, model.camera_matrix, model.dist_coeffs, model.rvec, t)
+
+
 def build_sim_cell(config: CellConfig) -> SimCell:
     """Camera, plate calibration, world, arm and camera of the simulated cell."""
     sim = config.sim
@@ -105,6 +112,9 @@ def build_sim_cell(config: CellConfig) -> SimCell:
         calibration = result.calibration
         note = result.why
         model.cache.clear()  # the plate's ray maps are not needed again
+    if any(sim.camera_bumped_mm):
+        model = _bumped(model, sim.camera_bumped_mm)
+        note += f"; camera since moved by {sim.camera_bumped_mm} mm"
     parts = paper_layout(sim.seed) if sim.layout == "paper" else random_scene(sim.seed)
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
     plan = config.planning

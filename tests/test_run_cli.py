@@ -223,3 +223,12 @@ def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
     steps = [e["step"] for e in events if e["kind"] == "safe_step" and e["ok"]]
     assert steps[-2:] == ["home", "release torque"]
     assert events[-1]["kind"] == "run_end" and events[-1]["state"] == "stopped"
+
+
+def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
+    cfg = tmp_path / "bumped.toml"
+    cfg.write_text(f'[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\n'
+                   f'[run]\nmax_retries = 1\nlog_dir = "{tmp_path / "logs"}"\n')
+    assert main(["--config", str(cfg)]) == 1
+    c = counts_from_log(audit_of(tmp_path / "logs"))
+    assert c["misses"] > 0 and c["failed"] > 0
