@@ -227,12 +227,11 @@ class Runner:
 
     def _locate(self):
         self.result = self.locate(self.frame)
-        objects = self.result.objects
-        self.audit.event(
-            "frame", frame=self.summary.frames, locate_ms=round(self.result.elapsed_ms, 3),
-            warnings=self.result.warnings if hasattr(self.result, "warnings") else [],
-            detections=[_detection(o) for o in objects],
-        )
+        objects, warnings = self.result.objects, self.result.warnings
+        self.audit.event("frame", frame=self.summary.frames, locate_ms=round(self.result.elapsed_ms, 3),
+                         warnings=warnings, detections=[_detection(o) for o in objects])
+        if warnings and not objects:  # blind, not empty: never "table clear" or "part gone"
+            raise CellError("cannot see the table: " + "; ".join(warnings))
         n_pick = sum(o.pick for o in objects)
         why = f"{len(objects)} parts, {n_pick} pickable"
         if self.track is not None:

@@ -238,6 +238,22 @@ def test_fault_while_holding_opens_the_gripper_over_the_bin(tmp_path):
     assert ("stop",) in arm.calls
 
 
+def test_a_blind_frame_is_a_fault_not_a_clear_table_or_a_verified_pick(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path)
+    seen = runner.locate
+
+    def blind_after_first_pick(frame):
+        result = seen(frame)
+        if table.bins or table.held is not None:
+            return LocateResult([], result.image_size, 0.1, ["frame too dark (backlight level 3 < 40)"])
+        return result
+
+    runner.locate = blind_after_first_pick
+    summary = runner.run()
+    assert runner.sm.state == State.FAULT and "frame too dark" in summary.reason
+    assert runner.sm.history[-1].source == State.LOCATE and summary.picked == {}
+
+
 def test_plan_fault_from_the_safety_limit(tmp_path):
     shifted = TableToRobot(0.0, TRUE_FRAME.tx_mm - 3.0, TRUE_FRAME.ty_mm, 0.0)
     runner, *_ = make_runner(tmp_path, truth=shifted, run=RunConfig(max_retries=5, max_attempts_total=4))
