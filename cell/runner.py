@@ -226,7 +226,9 @@ class Runner:
         return S.LOCATE, f"frame {self.summary.frames}"
 
     def _locate(self):
+        t0 = time.perf_counter()
         self.result = self.locate(self.frame)
+        self.summary.locate_s += time.perf_counter() - t0
         objects, warnings = self.result.objects, self.result.warnings
         self.audit.event("frame", frame=self.summary.frames, locate_ms=round(self.result.elapsed_ms, 3),
                          warnings=warnings, detections=[_detection(o) for o in objects])
