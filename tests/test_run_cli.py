@@ -232,3 +232,28 @@ def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
     assert main(["--config", str(cfg)]) == 1
     c = counts_from_log(audit_of(tmp_path / "logs"))
     assert c["misses"] > 0 and c["failed"] > 0
+
+
+def test_a_rotated_robot_frame_needs_teach_and_then_clears_the_table(tmp_path, capsys):
+    """The table sits 2 degrees rotated in the robot frame: the paper's fixed offset misses
+    the far parts; a frame taught from four jogged circles picks everything."""
+    import math
+
+    truth = (2.0, -132.0, 40.0)
+    base = (f'[sim]\nperfect_calibration = true\ntruth_rotation_deg = {truth[0]}\n'
+            f'[run]\nmax_retries = 0\nlog_dir = "{tmp_path / "logs"}"\n')
+    offset_cfg = tmp_path / "offset.toml"
+    offset_cfg.write_text(base)
+    assert main(["--config", str(offset_cfg)]) == 1
+
+    taught_cfg = tmp_path / "taught.toml"
+    taught_cfg.write_text(base + f'[planning]\nframe = "taught"\ntaught_path = "{tmp_path / "frame.json"}"\n')
+    a = math.radians(truth[0])
+    args = ["teach", "--config", str(taught_cfg)]
+    for circle, (x, y) in {1: (0, 0), 13: (264, 0), 144: (0, 176), 156: (264, 176)}.items():
+        rx = math.cos(a) * x - math.sin(a) * y + truth[1]
+        ry = math.sin(a) * x + math.cos(a) * y + truth[2]
+        args += ["--point", str(circle), f"{rx:.3f}", f"{ry:.3f}"]
+    assert main(args) == 0
+    assert "rotation +2.000 deg" in capsys.readouterr().out
+    assert main(["--config", str(taught_cfg)]) == 0
