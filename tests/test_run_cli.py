@@ -41,17 +41,34 @@ def test_a_wrong_offset_misses_retries_and_fails(tmp_path, capsys):
     assert f"{c['failed']} failed" in out
 
 
-def test_no_config_and_no_dry_run_is_a_one_line_error(capsys):
-    assert main(["--config", "/nonexistent/cell.toml"]) == 2
+def test_a_missing_config_is_a_one_line_error_and_a_fault_in_the_log(tmp_path, capsys):
+    assert main(["--config", "/nonexistent/cell.toml", "--log-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "config file not found" in err and err.count("\n") == 1
+    events = audit_of(tmp_path)
+    assert events[0]["kind"] == "fault" and "config file not found" in events[0]["reason"]
+    assert events[-1]["kind"] == "run_end" and events[-1]["exit_code"] == 2
+
+
+def test_no_config_and_no_dry_run_is_refused(capsys):
+    from cell.commands.run import run_cell
+    from cell.errors import ConfigError
+    import argparse
+
+    try:
+        run_cell(argparse.Namespace(run_config=None, dry_run=False))
+    except ConfigError as e:
+        assert "--dry-run" in str(e)
+    else:
+        raise AssertionError("ran without a config")
 
 
 def test_a_wrong_config_value_names_the_key(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("[run]\nmax_retries = -1\n")
-    assert main(["--config", str(bad), "--dry-run"]) == 2
+    assert main(["--config", str(bad), "--dry-run", "--log-dir", str(tmp_path / "logs")]) == 2
     assert "run.max_retries" in capsys.readouterr().err
+    assert "run.max_retries" in audit_of(tmp_path / "logs")[0]["reason"]
 
 
 def test_a_missing_camera_is_a_fault_in_the_log(tmp_path, capsys):

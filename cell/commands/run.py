@@ -13,9 +13,10 @@ import numpy as np
 
 from cell.audit import AuditLog
 from cell.config import CellConfig, load_config
-from cell.errors import ConfigError, InputError
+from cell.errors import CellError, ConfigError, InputError
 from cell.oplog import log_to_file
 from cell.planning import Planner, TeachRejected, fit_table_to_robot, save_taught, table_to_robot
+from cell.run_config import RunConfig
 from cell.runner import Controls, Runner
 from cell.statemachine import markdown, mermaid
 
@@ -137,8 +138,13 @@ def _devices(config: CellConfig, dry_run: bool):
 def run_cell(args: argparse.Namespace) -> int:
     if args.run_config is None and not args.dry_run:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
-    config = _apply_overrides(load_config(args.run_config), args)
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    try:
+        config = _apply_overrides(load_config(args.run_config), args)
+    except CellError as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
+        with AuditLog((args.log_dir or RunConfig().log_dir) / f"run-{stamp}.jsonl") as audit:
+            _log_fault(audit, args, e)
+        raise
     log_dir = config.run.log_dir
     audit_path = log_dir / f"run-{stamp}.jsonl"
     if not args.verbose:  # the operator's file gets INFO; the terminal keeps to warnings
@@ -154,9 +160,8 @@ def run_cell(args: argparse.Namespace) -> int:
         try:
             camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run)
             planner = Planner(config.planning, table_to_robot(config.planning))
-        except Exception as e:
-            audit.event("fault", reason=f"{type(e).__name__}: {e}")
-            audit.event("run_end", outcome="fault", exit_code=2, reason=str(e))
+        except BaseException as e:
+            _log_fault(audit, args, e)
             raise
         if sim is not None:
             print(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
@@ -181,6 +186,16 @@ def run_cell(args: argparse.Namespace) -> int:
             for where, kinds in sim_truth(sim.world).items()))
     print(f"audit log: {audit_path}")
     return summary.exit_code
+
+
+def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> None:
+    """A run that never started still ends its log with the reason."""
+    stopped = isinstance(e, KeyboardInterrupt)
+    outcome, code = ("stopped", 130) if stopped else ("fault", getattr(e, "exit_code", 2))
+    reason = "Ctrl-C" if stopped else f"{type(e).__name__}: {e}"
+    if not stopped:
+        audit.event("fault", reason=reason, config_file=str(args.run_config or "built-in"))
+    audit.event("run_end", outcome=outcome, exit_code=code, reason=reason)
 
 
 def _toggle(event) -> None:
