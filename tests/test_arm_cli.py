@@ -1,5 +1,6 @@
 """`run-cell ports / jog / home` end to end: the CLI opens a real pty with emulated firmware."""
 import math
+import time
 
 import pytest
 
@@ -41,6 +42,9 @@ def test_jog_dynamixel_arrives(capsys):
     emu = DxlBusEmulator(speed_scale=10)
     with serve_pty(emu, "ttyDXL") as path:
         assert main(["jog", "--arm", "dynamixel", "--port", path, "--to", "200", "0", "50"]) == 0
+        deadline = time.monotonic() + 1.0  # jog returns within tolerance; the servos finish their last ticks
+        while math.dist(emu.tool_pose()[:3], (200.0, 0.0, 50.0)) >= 0.5 and time.monotonic() < deadline:
+            time.sleep(0.005)
     assert math.dist(emu.tool_pose()[:3], (200.0, 0.0, 50.0)) < 0.5
     assert "arm on" in capsys.readouterr().out
 

@@ -1,5 +1,6 @@
 """The Dynamixel driver through the ROBOTIS SDK against the emulated Protocol 2.0 bus on a pty."""
 import math
+import threading
 import time
 
 import pytest
@@ -23,6 +24,16 @@ def bus():
         yield emu, path
 
 
+def wait_still(emu) -> None:
+    """Arrival is within tolerance: let the emulated servos finish their last ticks."""
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:
+        with emu.lock:
+            if all(round(s.position) == s.get(116, 4) or not s.torque for s in emu.servos.values()):
+                return
+        time.sleep(0.005)
+
+
 def make_arm(path: str, cfg: DynamixelArmConfig = CFG) -> DynamixelArm:
     return DynamixelArm(PortHandler(path), cfg)
 
@@ -41,7 +52,7 @@ def test_move_sends_one_sync_write_and_arrives(bus):
         goals = KIN.to_ticks(KIN.inverse(200.0, 50.0, 30.0))
         params = bytes([116, 0, 4, 0]) + b"".join(bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals))
         assert packet(0xFE, SYNC_WRITE, params) in emu.packets_received
-        time.sleep(0.05)  # arrival is within tolerance; let the emulated servos finish
+        wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == goals
         x, y, z, angle = emu.tool_pose()
         assert math.dist((x, y, z), (200.0, 50.0, 30.0)) < 0.5  # one tick is 0.088 deg
@@ -56,11 +67,12 @@ def test_gripper_listener_and_home(bus):
     emu.add_tool_listener(lambda *a: events.append(a))
     with make_arm(path) as arm:
         arm.move_to(180.0, -40.0, 20.0)
-        time.sleep(0.05)
+        wait_still(emu)
         arm.close_gripper()
         assert arm.status().gripper_closed is True
         arm.open_gripper()
         arm.home()
+        wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == KIN.to_ticks(
             [math.radians(v) for v in CFG.home_joints_deg])
     (closed, x, y, z, _), (opened, *_) = events
@@ -71,6 +83,7 @@ def test_gripper_listener_and_home(bus):
 def test_unreachable_target_refused_before_anything_is_sent(bus):
     emu, path = bus
     with make_arm(path) as arm:
+        emu.server.settle()
         before = len(emu.packets_received)
         with pytest.raises(OutOfReach, match="beyond the arm's reach"):
             arm.move_to(390.0, 0.0, 0.0)
@@ -119,7 +132,7 @@ def test_silent_bus_mid_move_releases_torque(bus):
 def test_corrupt_status_packets_fail_cleanly(bus, fault):
     emu, path = bus
     with make_arm(path) as arm:
-        emu.inject(fault, count=10)
+        emu.inject(fault, count=1000)  # every status packet, past all retries
         with pytest.raises(NoResponse, match="Incorrect status packet|no status packet"):
             arm.move_to(200.0, 0.0, 50.0)
         assert torques(emu) == [False] * 5
@@ -162,10 +175,25 @@ def test_cable_pulled_mid_move_then_reconnects(bus):
         emu.replug()
         arm.move_to(200.0, 0.0, 50.0)
         assert arm.is_connected
-        time.sleep(0.05)
+        wait_still(emu)
         assert math.dist(emu.tool_pose()[:3], (200.0, 0.0, 50.0)) < 0.5
 
 
 def test_missing_port_is_connection_lost(tmp_path):
     with pytest.raises(ConnectionLost, match="cannot open the servo bus"):
         make_arm(str(tmp_path / "ttyNOPE")).connect()
+
+
+def test_reconnect_waits_for_the_adapter_to_come_back(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(200.0, 0.0, 50.0)
+        replug = threading.Timer(0.3, emu.replug)
+        replug.start()
+        try:
+            arm.move_to(200.0, 0.0, 50.0)
+        finally:
+            replug.join()
+        assert arm.is_connected and torques(emu) == [True] * 5

@@ -1,4 +1,5 @@
 """The serial G-code driver against the GRBL emulator on a real pseudo-terminal, via pyserial."""
+import threading
 import time
 
 import pytest
@@ -208,3 +209,28 @@ def test_spy_url_opens_through_serial_for_url(grbl, tmp_path):
         arm.move_to(1, 2, 3)
     assert_at(emu, 1, 2, 3)
     assert "G1 X1.000" in log_file.read_text()
+
+
+def test_reconnect_waits_for_the_cable_to_come_back(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(10, 10, 10)
+        replug = threading.Timer(0.3, emu.replug)
+        replug.start()
+        try:
+            arm.move_to(10, 20, 30)  # waits up to reconnect_timeout_s for the port to reappear
+        finally:
+            replug.join()
+        assert_at(emu, 10, 20, 30)
+
+
+def test_reconnect_gives_up_after_its_timeout(grbl):
+    emu, path = grbl
+    with make_arm(path, reconnect_timeout_s=0.2) as arm:
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(10, 10, 10)
+        with pytest.raises(ConnectionLost, match="cannot open serial port"):
+            arm.move_to(10, 10, 10)

@@ -159,7 +159,8 @@ class DynamixelArmConfig(_Strict):
     )
     move_timeout_s: float = Field(10.0, gt=0, le=600, description="longest wait for the servos to arrive")
     poll_interval_s: float = Field(0.02, gt=0, le=5)
-    comm_retries: int = Field(1, ge=0, le=10, description="retries of a failed bus transfer before giving up")
+    reconnect_timeout_s: float = Field(10.0, ge=0, le=600, description="how long to wait for a re-plugged adapter")
+    comm_retries: int = Field(2, ge=0, le=10, description="retries of a failed bus transfer before giving up")
     workspace: Workspace = Workspace(
         x_min_mm=-400, x_max_mm=400, y_min_mm=-400, y_max_mm=400, z_min_mm=-100, z_max_mm=400
     )

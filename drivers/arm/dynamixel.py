@@ -34,6 +34,7 @@ from drivers.arm.errors import (
     OutOfReach,
 )
 from drivers.arm.kinematics import FourAxisKinematics, Pose
+from drivers.arm.serial_line import wait_for_port
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +183,7 @@ class DynamixelArm(Arm):
             if not self._lost:
                 raise NotConnected("the arm is not connected", port=self.port)
             log.warning("reconnecting to the servo bus on %s", self.port)
+            wait_for_port(self.port, self.cfg.reconnect_timeout_s)
             self.connect()
         elif self._torque_off:
             self._torque_on()
@@ -298,8 +300,7 @@ class DynamixelArm(Arm):
         for attempt in range(self.cfg.comm_retries + 1):
             try:
                 out = fn()
-            except (serial.SerialException, OSError, TypeError, termios.error) as e:
-                # TypeError: the SDK reading from a port pyserial has already closed.
+            except (serial.SerialException, OSError, termios.error) as e:
                 self.ph.is_using = False
                 raise ConnectionLost(f"servo bus connection lost: {e}", port=self.port, command=what) from None
             result, error, value = _unpack(out)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import termios
 import time
 
 import serial
@@ -13,6 +14,16 @@ import serial
 from drivers.arm.errors import ConnectionLost
 
 log = logging.getLogger(__name__)
+
+# What pyserial lets through when a device vanishes: termios.error is not an OSError.
+_PORT_ERRORS = (serial.SerialException, OSError, termios.error)
+
+
+def wait_for_port(port: str, timeout_s: float) -> None:
+    """Wait for a re-plugged device path to reappear (URLs are tried at once)."""
+    deadline = time.monotonic() + timeout_s
+    while "://" not in port and not os.path.exists(port) and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 class SerialLine:
@@ -31,7 +42,7 @@ class SerialLine:
         self.close()
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.01, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as e:
+        except (*_PORT_ERRORS, ValueError) as e:
             raise ConnectionLost(
                 f"cannot open serial port: {e}",
                 port=self.port,
@@ -40,16 +51,13 @@ class SerialLine:
         self._buf.clear()
 
     def wait_until_present(self, timeout_s: float) -> None:
-        """Wait for a re-plugged device path to reappear (URLs are tried at once)."""
-        deadline = time.monotonic() + timeout_s
-        while "://" not in self.port and not os.path.exists(self.port) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_for_port(self.port, timeout_s)
 
     def close(self) -> None:
         if self._ser is not None:
             try:
                 self._ser.close()
-            except (serial.SerialException, OSError) as e:
+            except _PORT_ERRORS as e:
                 log.debug("closing %s: %s", self.port, e)
             self._ser = None
 
@@ -58,7 +66,7 @@ class SerialLine:
         try:
             ser.write(data)
             ser.flush()
-        except (serial.SerialException, OSError) as e:
+        except _PORT_ERRORS as e:
             self.close()
             raise ConnectionLost(f"connection lost while writing: {e}", port=self.port, command=what) from None
 
@@ -67,7 +75,7 @@ class SerialLine:
         ser = self._require(None)
         try:
             ser.reset_input_buffer()
-        except (serial.SerialException, OSError) as e:
+        except _PORT_ERRORS as e:
             self.close()
             raise ConnectionLost(f"connection lost: {e}", port=self.port) from None
 
@@ -84,7 +92,7 @@ class SerialLine:
                 return None
             try:
                 chunk = ser.read(max(1, ser.in_waiting))
-            except (serial.SerialException, OSError) as e:
+            except _PORT_ERRORS as e:
                 self.close()
                 raise ConnectionLost(f"connection lost while reading: {e}", port=self.port, command=what) from None
             self._buf += chunk

@@ -92,15 +92,16 @@ class PtyServer:
 
     def replug(self) -> None:
         """The cable is plugged back: a new pty behind the same path, the device powers up."""
-        if not self.plugged:
-            self._plug()
+        self._plug()
 
     def _plug(self) -> None:
-        master, slave = os.openpty()
-        # Raw from the start so nothing is echoed or translated before a driver opens it.
-        tty.setraw(slave)
-        os.set_blocking(master, False)
         with self._fd_lock:
+            if self._master is not None:
+                return
+            master, slave = os.openpty()
+            # Raw from the start so nothing is echoed or translated before a driver opens it.
+            tty.setraw(slave)
+            os.set_blocking(master, False)
             # Keeping a slave fd open stops the master reading EIO while no driver has it open.
             self._master, self._slave = master, slave
             tmp = self.path + ".new"
@@ -108,8 +109,8 @@ class PtyServer:
                 os.unlink(tmp)
             os.symlink(os.ttyname(slave), tmp)
             os.replace(tmp, self.path)
-        with self.device.lock:
-            self._write(self.device.power_on(time.monotonic()))
+            with self.device.lock:
+                self._write(self.device.power_on(time.monotonic()))
         log.debug("plugged %s -> %s", self.path, os.ttyname(slave))
 
     def _write(self, data: bytes) -> None:
