@@ -95,6 +95,7 @@ def test_real_arm_without_port_is_a_config_error(capsys):
         ('[arm.serial.commands]\nfeed = "G1 X{x}"\n', "arm.serial.commands.feed: unknown placeholder {x}"),
         ('[arm.dynamixel]\ngripper_id = 12\n', "must be distinct"),
         ('[arm.serial.workspace]\nz_min_mm = 50.0\nz_max_mm = 10.0\n', "z_min_mm (50 mm) must be below z_max_mm (10 mm)"),
+        ('[arm.serial]\nstatus_query = false\n[arm.serial.commands]\nwait = ""\n', "the end of a move could not be known"),
     ],
 )
 def test_bad_arm_config_names_the_key(tmp_path, capsys, toml, message):

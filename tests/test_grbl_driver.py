@@ -158,6 +158,18 @@ def test_garbage_reply_is_an_error_naming_the_bytes(grbl):
             arm.move_to(10, 10, 10)
         assert "baud" in str(info.value)
         assert "\\x" in info.value.reply
+        assert emu.state in ("Hold:0", "Idle")  # feed hold sent once the reply made no sense
+
+
+def test_controller_restart_is_reported_then_reconnected(grbl):
+    emu, path = grbl
+    with make_arm(path) as arm:
+        arm.move_to(50, 50, 50)
+        emu.inject("restart")
+        with pytest.raises(ConnectionLost, match="restarted unexpectedly"):
+            arm.wait_until_idle()
+        arm.move_to(10, 10, 10)  # a fresh handshake: banner, G21, G90
+        assert_at(emu, 10, 10, 10)
 
 
 def test_silent_device_at_connect_is_no_banner(grbl):
@@ -234,3 +246,11 @@ def test_reconnect_gives_up_after_its_timeout(grbl):
             arm.move_to(10, 10, 10)
         with pytest.raises(ConnectionLost, match="cannot open serial port"):
             arm.move_to(10, 10, 10)
+
+
+def test_firmware_without_status_reports_or_reset_by_configuration(grbl):
+    emu, path = grbl
+    with make_arm(path, status_query=False, soft_reset_on_connect=False) as arm:
+        arm.move_to(40, 30, 20)  # the end of motion is known from the G4 P0 barrier alone
+        assert_at(emu, 40, 30, 20)
+    assert "?" not in "".join(emu.lines_received)

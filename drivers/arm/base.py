@@ -80,6 +80,6 @@ class Arm(abc.ABC):
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is not None:
-            log.warning("stopping arm on %s after %s", getattr(self, "port", "?"), exc_type.__name__)
+            log.info("stopping arm on %s after %s", getattr(self, "port", "?"), exc_type.__name__)
             self.stop()
         self.disconnect()

@@ -62,8 +62,11 @@ class SerialCommands(_Strict):
     gripper_close: str = "M3 S1000"
     wait: str = Field("G4 P0", description="answered only once all motion is done ('M400' on Marlin)")
     home: str = Field("$H", description="homing cycle; empty: move to home_position_mm instead")
+    stop: str = Field(
+        "!", description="stops motion at once: GRBL's real-time feed hold '!' (no newline), or a line ('M410')"
+    )
 
-    @field_validator("rapid", "feed", "rotate", "gripper_open", "gripper_close", "wait", "home")
+    @field_validator("rapid", "feed", "rotate", "gripper_open", "gripper_close", "wait", "home", "stop")
     @classmethod
     def _template_ok(cls, v: str) -> str:
         _check_template(v)
@@ -116,9 +119,11 @@ class SerialArmConfig(_Strict):
     commands: SerialCommands = SerialCommands()
 
     @model_validator(mode="after")
-    def _home_inside(self) -> "SerialArmConfig":
+    def _consistent(self) -> "SerialArmConfig":
         if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
             raise ValueError(f"home_position_mm: {why}")
+        if not self.commands.wait and not self.status_query:
+            raise ValueError("commands.wait is empty and status_query is false: the end of a move could not be known")
         return self
 
 

@@ -158,7 +158,7 @@ class DynamixelArm(Arm):
             self._torque_off = True
             if self._state != "fault":
                 self._state = "hold"
-            log.warning("arm on %s: torque released", self.port)
+            log.info("arm on %s: torque released", self.port)
         except ArmError as e:
             log.error("arm on %s: could not release the torque: %s", self.port, e)
 
@@ -357,5 +357,5 @@ class _Guard:
         elif not isinstance(exc, (OutOfReach, NotConnected)):
             arm._state = "fault"
             arm.stop()
-        log.error("arm on %s, %s: %s", arm.port, self.what, exc)
+        log.info("arm on %s, %s: %s", arm.port, self.what, exc)
         return False

@@ -145,13 +145,18 @@ class SerialGcodeArm(Arm):
             self._wait_idle(timeout_s or self.cfg.motion_timeout_s)
 
     def stop(self) -> None:
-        """Feed hold: motion decelerates to a stop, the gripper keeps its grip, queued moves stay
-        queued (the next command flushes them). A reset would open a spindle-driven gripper."""
+        """Stop motion now, keeping the grip. With GRBL's feed hold '!' the machine decelerates
+        and queued moves stay queued until the next command flushes them: a soft reset at
+        once would also stop the spindle, i.e. open a spindle-driven gripper mid-air."""
         if not self.is_connected:
             return
+        cmd = self.cfg.commands.stop
         try:
-            self.line.write(FEED_HOLD, "!")
-            self._held = True
+            if cmd == FEED_HOLD.decode():
+                self.line.write(FEED_HOLD, cmd)
+                self._held = True
+            elif cmd:
+                self._command(cmd, self.cfg.command_timeout_s)
             if self.cfg.status_query:
                 deadline = time.monotonic() + self.cfg.command_timeout_s
                 while time.monotonic() < deadline:
@@ -159,7 +164,7 @@ class SerialGcodeArm(Arm):
                     if state in ("Hold:0", "Idle", "Alarm") or state.startswith("Door"):
                         break
                     time.sleep(self.cfg.poll_interval_s)
-            log.warning("arm on %s stopped (feed hold)", self.port)
+            log.info("arm on %s stopped (%s)", self.port, cmd or "no stop command configured")
         except ArmError as e:
             log.error("could not confirm the stop of the arm on %s: %s", self.port, e)
 
@@ -322,7 +327,8 @@ class SerialGcodeArm(Arm):
         wait_cmd = self.cfg.commands.wait
         if wait_cmd:
             self.line.write(wait_cmd.encode("ascii") + b"\n", wait_cmd)
-            next_poll = time.monotonic() + self.cfg.poll_interval_s
+            # Without status queries there is nothing to poll: just wait for the barrier's ok.
+            next_poll = time.monotonic() + self.cfg.poll_interval_s if self.cfg.status_query else deadline
             while True:
                 reply = self.line.read_line(min(deadline, next_poll), wait_cmd)
                 if reply == "ok":
@@ -380,5 +386,5 @@ class _Guard:
             arm.line.close()
         elif not isinstance(exc, (OutOfReach, NotConnected, AlarmResponse)):
             arm.stop()  # an alarm has already halted the machine
-        log.error("arm on %s: %s", arm.port, exc)
+        log.info("arm on %s: %s", arm.port, exc)
         return False

@@ -99,8 +99,9 @@ class GrblEmulator:
         error (code=N): the next G-code line is refused with error:N.
         alarm (code=N, after_s=T): ALARM:N during the next motion, T seconds into it.
         unplug (after_s=T): the cable is pulled T seconds into the next motion.
+        restart: the controller reboots at once (power dip): banner, position lost.
         """
-        if fault not in ("no_answer", "garbage", "error", "alarm", "unplug"):
+        if fault not in ("no_answer", "garbage", "error", "alarm", "unplug", "restart"):
             raise ValueError(f"unknown fault {fault!r}")
         with self.lock:
             self._faults[fault] = params
@@ -151,6 +152,8 @@ class GrblEmulator:
         if "no_answer" in self._faults:
             self._last_s = now_s
             return b""
+        if self._faults.pop("restart", None) is not None:
+            return self.power_on(now_s)
         out = self._advance(now_s)
         out += self._process_lines()
         return self._maybe_garble(out)
