@@ -9,16 +9,15 @@ import signal
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
-
 from cell.audit import AuditLog
 from cell.config import CellConfig, load_config
 from cell.errors import CellError, ConfigError, InputError
 from cell.oplog import log_to_file
-from cell.planning import Planner, TeachRejected, fit_table_to_robot, save_taught, table_to_robot
+from cell.planning import Planner, save_taught, table_to_robot
 from cell.run_config import RunConfig
 from cell.runner import Controls, Runner
 from cell.statemachine import markdown, mermaid
+from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +42,12 @@ def register(sub) -> None:
     t.add_argument("--config", type=Path, help="cell config (TOML); default: built-in")
     t.add_argument("--point", nargs=3, action="append", metavar=("CIRCLE", "X_MM", "Y_MM"), default=[],
                    help="plate circle number (1 = point 1, row by row) and the robot X Y the gripper was jogged to")
+    t.add_argument("--circles", nargs="+", type=int, metavar="CIRCLE",
+                   help="jog the configured arm onto each of these circles now and record its pose")
+    # SUPPRESS: the same options given before `teach` (run-cell's own --arm/--port) still count.
+    t.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS,
+                   help="override arm.kind (with --circles)")
+    t.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (with --circles)")
     t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
     t.set_defaults(func=cmd_teach)
 
@@ -56,47 +61,35 @@ def cmd_diagram(args: argparse.Namespace) -> int:
     return 0
 
 
-def circle_table_mm(number: int, config: CellConfig) -> tuple[float, float]:
-    plate = config.plate
-    if not 1 <= number <= plate.count:
-        raise InputError(f"circle {number} does not exist: the plate has circles 1 to {plate.count}")
-    row, col = divmod(number - 1, plate.columns)
-    return col * plate.pitch_x_mm, row * plate.pitch_y_mm
-
-
 def cmd_teach(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    cfg = config.planning
-    if len(args.point) < 3:
-        raise InputError(f"teach needs 3 or more --point CIRCLE X_MM Y_MM, got {len(args.point)}")
-    table, robot, points = [], [], []
-    for circle, x, y in args.point:
-        try:
-            n, rx, ry = int(circle), float(x), float(y)
-        except ValueError:
-            raise InputError(f"--point {circle} {x} {y}: expected a circle number and two numbers") from None
-        tx, ty = circle_table_mm(n, config)
-        table.append((tx, ty))
-        robot.append((rx, ry))
-        points.append({"circle": n, "table_mm": [tx, ty], "robot_mm": [rx, ry]})
-    fit, residuals = fit_table_to_robot(np.array(table), np.array(robot), cfg.table_z_mm, cfg.teach_fit_scale)
+    if args.point and args.circles:
+        raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
+    if args.circles:
+        from drivers.arm.factory import make_arm, with_overrides
+
+        with make_arm(with_overrides(config.arm, args.arm, args.port)) as arm:
+            points = jog_session(arm, args.circles, config, input, print)
+    else:
+        points = []
+        for circle, x, y in args.point:
+            try:
+                n, rx, ry = int(circle), float(x), float(y)
+            except ValueError:
+                raise InputError(f"--point {circle} {x} {y}: expected a circle number and two numbers") from None
+            points.append(TaughtPoint(n, circle_table_mm(n, config), (rx, ry)))
+    fit, residuals = fit_points(points, config)
     for p, r in zip(points, residuals):
-        print(f"circle {p['circle']:3d}: table ({p['table_mm'][0]:7.2f}, {p['table_mm'][1]:7.2f}) mm -> "
-              f"robot ({p['robot_mm'][0]:7.2f}, {p['robot_mm'][1]:7.2f}) mm, residual {r:.3f} mm")
+        print(f"circle {p.circle:3d}: table ({p.table_mm[0]:7.2f}, {p.table_mm[1]:7.2f}) mm -> "
+              f"robot ({p.robot_mm[0]:7.2f}, {p.robot_mm[1]:7.2f}) mm, residual {r:.3f} mm")
     print(f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
           f"scale {fit.scale:.5f}; largest residual {residuals.max():.3f} mm")
-    if residuals.max() > cfg.teach_max_residual_mm:
-        worst = points[int(np.argmax(residuals))]["circle"]
-        raise TeachRejected(
-            f"largest residual {residuals.max():.3f} mm (circle {worst}) exceeds planning.teach_max_residual_mm "
-            f"{cfg.teach_max_residual_mm:g} mm; nothing written",
-            hint="re-jog that circle, or check the circle numbers",
-        )
+    check_fit(points, residuals, config)
     if args.dry_run:
         print("dry run: nothing written")
         return 0
-    save_taught(cfg.taught_path, fit, points, residuals)
-    print(f"wrote {cfg.taught_path}; set planning.frame = \"taught\" to use it")
+    save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
+    print(f"wrote {config.planning.taught_path}; set planning.frame = \"taught\" to use it")
     return 0
 
 

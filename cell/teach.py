@@ -1,0 +1,100 @@
+"""Teaching the table -> robot frame: the gripper is jogged onto known plate circles, each
+pair (circle's table mm, gripper's robot mm) recorded, and a rigid transform fitted.
+
+A fit is refused when its largest residual exceeds planning.teach_max_residual_mm: one
+badly jogged circle must not silently tilt every target.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from cell.config import CellConfig
+from cell.errors import InputError
+from cell.planning import TableToRobot, TeachRejected, fit_table_to_robot
+from drivers.arm.base import Arm
+
+JOG_HELP = ("commands: 'x 1.5', 'y -0.5', 'z -10' (relative mm), 'to X Y Z' (absolute), "
+            "'ok' to record this circle, 'skip', 'quit'")
+
+
+@dataclass(frozen=True)
+class TaughtPoint:
+    circle: int
+    table_mm: tuple[float, float]
+    robot_mm: tuple[float, float]
+
+    def to_dict(self) -> dict:
+        return {"circle": self.circle, "table_mm": list(self.table_mm), "robot_mm": list(self.robot_mm)}
+
+
+def circle_table_mm(number: int, config: CellConfig) -> tuple[float, float]:
+    """Table position of plate circle `number` (1 = point 1, numbered row by row)."""
+    plate = config.plate
+    if not 1 <= number <= plate.count:
+        raise InputError(f"circle {number} does not exist: the plate has circles 1 to {plate.count}")
+    row, col = divmod(number - 1, plate.columns)
+    return col * plate.pitch_x_mm, row * plate.pitch_y_mm
+
+
+def fit_points(points: list[TaughtPoint], config: CellConfig) -> tuple[TableToRobot, np.ndarray]:
+    """The fit and each point's residual, mm."""
+    if len(points) < 3:
+        raise InputError(f"teaching needs 3 or more circles, got {len(points)}",
+                         hint="--point CIRCLE X_MM Y_MM three times, or --circles 1 13 144 156")
+    cfg = config.planning
+    return fit_table_to_robot(np.array([p.table_mm for p in points]), np.array([p.robot_mm for p in points]),
+                              cfg.table_z_mm, cfg.teach_fit_scale)
+
+
+def check_fit(points: list[TaughtPoint], residuals: np.ndarray, config: CellConfig) -> None:
+    """TeachRejected when the largest residual exceeds planning.teach_max_residual_mm."""
+    limit = config.planning.teach_max_residual_mm
+    if residuals.max() > limit:
+        worst = points[int(np.argmax(residuals))].circle
+        raise TeachRejected(
+            f"largest residual {residuals.max():.3f} mm (circle {worst}) exceeds planning.teach_max_residual_mm "
+            f"{limit:g} mm; nothing written",
+            hint="re-jog that circle, or check the circle numbers",
+        )
+
+
+def jog_session(arm: Arm, circles: list[int], config: CellConfig,
+                ask: Callable[[str], str], tell: Callable[[str], None]) -> list[TaughtPoint]:
+    """Walk the operator through each circle on a connected arm; the pose at 'ok' is recorded."""
+    points = []
+    for circle in circles:
+        table = circle_table_mm(circle, config)
+        tell(f"circle {circle} at table ({table[0]:.1f}, {table[1]:.1f}) mm: jog the jaws' centre onto it. {JOG_HELP}")
+        while True:
+            pose = arm.status().pose
+            if pose is None:
+                raise InputError("the arm does not report its pose; give --point CIRCLE X Y instead")
+            words = ask(f"[{pose.x_mm:.2f} {pose.y_mm:.2f} {pose.z_mm:.2f}] > ").split()
+            if not words:
+                continue
+            cmd, values = words[0].lower(), words[1:]
+            if cmd == "ok":
+                points.append(TaughtPoint(circle, table, (pose.x_mm, pose.y_mm)))
+                break
+            if cmd == "skip":
+                break
+            if cmd == "quit":
+                return points
+            try:
+                numbers = [float(v) for v in values]
+            except ValueError:
+                tell(f"not a number in {' '.join(values)!r}; {JOG_HELP}")
+                continue
+            target = [pose.x_mm, pose.y_mm, pose.z_mm]
+            if cmd in ("x", "y", "z") and len(numbers) == 1:
+                target["xyz".index(cmd)] += numbers[0]
+            elif cmd == "to" and len(numbers) == 3:
+                target = numbers
+            else:
+                tell(JOG_HELP)
+                continue
+            arm.move_to(*target)
+    return points
