@@ -27,7 +27,7 @@ from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
 from cell.vision.types import LocatedPart, LocateResult
 from drivers.arm.base import Arm
-from drivers.arm.errors import ArmError
+from drivers.arm.errors import ArmError, OutOfReach
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
@@ -286,7 +286,7 @@ class Runner:
                 target = self.planner.target(part)
                 for point in target.waypoints():
                     self.arm.check_target(*point, target.jaw_angle_deg)
-            except (Unreachable, ArmError) as e:
+            except (Unreachable, OutOfReach) as e:
                 track.status = "unreachable"
                 self.summary.unreachable += 1
                 self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.world_mm, reason=str(e))
