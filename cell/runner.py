@@ -27,7 +27,7 @@ from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
 from cell.vision.types import LocatedPart, LocateResult
 from drivers.arm.base import Arm
-from drivers.arm.errors import ArmError, OutOfReach
+from drivers.arm.errors import OutOfReach
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
@@ -205,7 +205,7 @@ class Runner:
         for cls in ("bolt", "nut"):
             try:
                 self.arm.check_target(*self.planner.cfg.for_class(cls).bin_robot_mm)
-            except ArmError as e:
+            except OutOfReach as e:
                 problems.append(f"{cls} bin: {e}")
         if problems:
             raise ConfigError("bins out of reach: " + "; ".join(problems))
