@@ -23,10 +23,12 @@ log = logging.getLogger(__name__)
 
 
 class ByteDevice(Protocol):
-    """What an emulator offers the pty server. All calls come from the server's thread."""
+    """What an emulator offers the pty server, which calls it from its own thread under `lock`
+    and sets `server` to itself (so tests reach unplug/replug/settle through the device)."""
 
     lock: threading.RLock
-    unplug_requested: bool
+    unplug_requested: bool  # set by the device to have the cable pulled after this reply
+    server: "PtyServer | None"
 
     def power_on(self, now_s: float) -> bytes: ...
 
