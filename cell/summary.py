@@ -54,8 +54,9 @@ class Summary:
 
     def lines(self) -> list[str]:
         picked = ", ".join(f"{n} {cls}s" for cls, n in sorted(self.picked.items())) or "nothing"
+        headline = "DONE WITH FAILURES" if self.outcome == "done" and self.exit_code else self.outcome.upper()
         out = [
-            f"{self.outcome.upper()}: {self.reason}",
+            f"{headline}: {self.reason}",
             f"picked {picked}; {self.misses} misses, {self.retries} retries, {self.failed} failed, "
             f"{self.unreachable} unreachable, {self.unknown_left} unknown parts left",
         ]
