@@ -322,3 +322,21 @@ def test_ctrl_c_during_pick_opens_at_bin_homes_and_releases(tmp_path):
     assert [c[0] for c in arm.calls[-3:]] == ["home", "stop", "disconnect"]
     audit.close()
     assert read_events(audit.path)[-1]["state"] == "stopped"
+
+
+def test_fault_in_verify_ends_in_fault_with_the_arm_safe(tmp_path):
+    """Verify's own failure (here: the audit log cannot be written, disk full) is a Fault, not a crash."""
+    runner, table, arm, audit = make_runner(tmp_path)
+    write = audit.event
+
+    def event(kind, **fields):
+        if kind == "verify":
+            raise OSError(28, "No space left on device (injected)")
+        return write(kind, **fields)
+
+    audit.event = event
+    summary = runner.run()
+    assert runner.sm.state == State.FAULT and summary.exit_code == EXIT_FAULT
+    assert runner.sm.history[-1].source == State.VERIFY
+    assert "No space left on device" in summary.reason
+    assert ("stop",) in arm.calls and table.held is None
