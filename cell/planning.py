@@ -127,10 +127,18 @@ class Target:
     jaw_angle_deg: float | None
     bin_robot_mm: tuple[float, float, float]
 
-    def waypoints(self) -> list[tuple[float, float, float]]:
+    def pick_points(self) -> list[tuple[float, float, float]]:
+        """Above the part, then down to it: the moves that turn the jaws to jaw_angle_deg."""
         x, y, z = self.robot_mm
+        return [(x, y, self.approach_z_mm), (x, y, z)]
+
+    def place_points(self) -> list[tuple[float, float, float]]:
+        """Above the bin, then down to it: these moves leave the jaws as they are (no angle)."""
         bx, by, bz = self.bin_robot_mm
-        return [(x, y, self.approach_z_mm), (x, y, z), (bx, by, max(bz, self.approach_z_mm)), (bx, by, bz)]
+        return [(bx, by, max(bz, self.approach_z_mm)), (bx, by, bz)]
+
+    def waypoints(self) -> list[tuple[float, float, float]]:
+        return self.pick_points() + self.place_points()
 
 
 class Planner:

@@ -284,8 +284,10 @@ class Runner:
             track = by_id[id(part)]
             try:
                 target = self.planner.target(part)
-                for point in target.waypoints():
+                for point in target.pick_points():
                     self.arm.check_target(*point, target.jaw_angle_deg)
+                for point in target.place_points():  # as _place moves: a 4-axis arm's jaws turn with its base
+                    self.arm.check_target(*point)
             except (Unreachable, OutOfReach) as e:
                 track.status = "unreachable"
                 self.summary.unreachable += 1

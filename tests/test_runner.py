@@ -202,6 +202,24 @@ def test_rehearsal_without_motion_plans_each_part_once(tmp_path):
     assert summary.rehearsed == 3 and summary.attempts == 3 and summary.exit_code == EXIT_DONE
 
 
+def test_a_4_axis_arm_rehearses_a_bolt_square_to_its_base_and_its_bin_moves(tmp_path):
+    """The jaw angle is checked where the jaws turn (at the part), not over the bin: the
+    place moves send no angle, and a 4-axis arm's jaws point wherever its base does there."""
+    from drivers.arm.config import ArmConfig
+    from drivers.arm.mock import MockArm
+
+    robot_xy = (100.0, 150.0)
+    base_deg = math.degrees(math.atan2(robot_xy[1], robot_xy[0] - 12.0))  # yaw axis at x = 12 mm
+    (x, y), = TRUE_FRAME.to_table([robot_xy])
+    table = FakeTable([("bolt", float(x), float(y), base_deg - 90.0)])  # jaws close across the axis
+    audit = AuditLog(tmp_path / "a.jsonl")
+    planning = PLANNING.model_copy(update={"bolt": PLANNING.bolt.model_copy(update={"bin_robot_mm": (60.0, -200.0, 60.0)})})
+    runner = Runner(FakeCamera(), MockArm(ArmConfig(kind="mock", mock_of="dynamixel")), fake_locator(table),
+                    Planner(planning, TRUE_FRAME), RunConfig(), audit, expect_motion=False)
+    summary = runner.run()
+    assert summary.unreachable == 0 and summary.rehearsed == 1 and summary.exit_code == EXIT_DONE
+
+
 # ---- faults raised in each state ---------------------------------------------------------
 FAULTS = {
     State.IDLE: dict(arm_fail={"connect": 1}),
