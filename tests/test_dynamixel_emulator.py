@@ -1,4 +1,6 @@
 """The emulated Protocol 2.0 bus alone, byte for byte (examples from the ROBOTIS e-manual)."""
+import pytest
+
 from drivers.sim.dxl_emulator import (
     PING, READ, REBOOT, STATUS, SYNC_READ, SYNC_WRITE, WRITE, DxlBusEmulator, crc16, packet, stuff, unstuff,
 )
@@ -42,6 +44,18 @@ def test_sync_write_moves_at_profile_velocity_and_sync_read_answers_in_order():
                      + packet(2, STATUS, bytes([0]) + (2048).to_bytes(4, "little")))
     emu.tick(1.0)
     assert emu.receive(packet(1, READ, bytes([122, 0, 1, 0])), 1.0) == packet(1, STATUS, b"\x00\x00")  # arrived
+
+
+def test_motion_time_is_the_longest_servo_move_at_profile_velocity_whatever_the_speed_scale():
+    emu = DxlBusEmulator(ids=(1, 2), speed_scale=10)
+    emu.receive(packet(0xFE, SYNC_WRITE, bytes([64, 0, 1, 0, 1, 1, 2, 1])), 0.0)
+    emu.receive(packet(0xFE, SYNC_WRITE, bytes([112, 0, 4, 0, 1]) + (100).to_bytes(4, "little")
+                       + bytes([2]) + (100).to_bytes(4, "little")), 0.0)
+    goals = bytes([1]) + (2048 + 1000).to_bytes(4, "little") + bytes([2]) + (2048 - 500).to_bytes(4, "little")
+    emu.receive(packet(0xFE, SYNC_WRITE, bytes([116, 0, 4, 0]) + goals), 0.0)
+    for t in (0.02, 0.04, 0.06, 0.08):  # 1000 ticks at 1563.3 ticks/s: 0.64 s, 0.064 s of clock at 10x
+        emu.tick(t)
+    assert emu.motion_time_s == pytest.approx(1000 / (100 * 0.229 / 60 * 4096))
 
 
 def test_overload_sets_alert_bit_until_reboot():

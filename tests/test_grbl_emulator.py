@@ -21,6 +21,15 @@ def test_motion_runs_at_finite_speed_and_reports_run_then_idle():
     assert run(emu, b"?", 2.5) == b"<Idle|MPos:10.000,0.000,0.000|FS:0,0>\r\n"
 
 
+def test_motion_time_is_machine_time_whatever_the_speed_scale():
+    emu = GrblEmulator(speed_scale=10)
+    emu.power_on(0.0)
+    run(emu, b"G1 X10 F300\nG4 P0\n")  # 2 s of machine time: 0.2 s of clock at 10x
+    assert emu.tick(0.1) == b""
+    assert emu.tick(0.25) == b"ok\r\n"
+    assert emu.motion_time_s == 2.0
+
+
 def test_dwell_is_a_barrier_answered_after_motion():
     emu = GrblEmulator()
     emu.power_on(0.0)

@@ -116,14 +116,21 @@ class Servo:
         units = self.get(PROFILE_VELOCITY, 4) or self.get(VELOCITY_LIMIT, 4)
         return units * RPM_PER_UNIT / 60.0 * 4096.0
 
-    def advance(self, dt_s: float) -> None:
+    def advance(self, dt_s: float) -> float:
+        """Move toward the goal for dt_s; returns the seconds of it spent moving."""
         goal = self.get(GOAL_POSITION, 4)
+        moved_s = 0.0
         if self.torque and self.position != goal:
-            step = self.speed_ticks_s() * dt_s
+            speed = self.speed_ticks_s()
+            step = speed * dt_s
             delta = goal - self.position
-            self.position = float(goal) if abs(delta) <= step else self.position + step * (1 if delta > 0 else -1)
+            if abs(delta) <= step:
+                self.position, moved_s = float(goal), abs(delta) / speed
+            else:
+                self.position, moved_s = self.position + step * (1 if delta > 0 else -1), dt_s
         self.set(PRESENT_POSITION, 4, round(self.position))
         self.table[MOVING] = int(self.torque and round(self.position) != goal)
+        return moved_s
 
     def fault(self, bits: int) -> None:
         """A hardware error: the servo releases its torque, as an XM430 does at shutdown."""
@@ -162,6 +169,7 @@ class DxlBusEmulator:
         self._faults: dict[str, dict] = {}
         self._listeners: list[ToolListener] = []
         self._gripper_closed = False
+        self.motion_time_s = 0.0  # time some servo was moving, at the servos' own speed (not scaled)
 
     # ----- public API for tests and the simulated world -----
 
@@ -238,8 +246,8 @@ class DxlBusEmulator:
         dt = 0.0 if self._last_s is None else max(0.0, now_s - self._last_s)
         self._last_s = now_s
         moving_before = any(s.table[MOVING] or s.get(GOAL_POSITION, 4) != round(s.position) for s in self.servos.values() if s.torque)
-        for servo in self.servos.values():
-            servo.advance(dt * self.speed_scale)
+        # Servos move together: the bus was moving for as long as its longest-moving servo.
+        self.motion_time_s += max(s.advance(dt * self.speed_scale) for s in self.servos.values())
         if moving_before:
             self._motion_faults(dt)
         return b""

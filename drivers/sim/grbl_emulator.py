@@ -67,6 +67,7 @@ class GrblEmulator:
         self._listeners: list[ToolListener] = []
         self.lines_received: list[str] = []
         self._faults: dict[str, dict] = {}
+        self.motion_time_s = 0.0  # machine time spent moving, at the machine's own speed (not scaled)
         self._power_up(now_s=0.0)
 
     # ----- public API for tests and the simulated world -----
@@ -210,6 +211,7 @@ class GrblEmulator:
             seg = self._queue[0]
             step = min(dt, seg.duration_s - seg.elapsed_s)
             seg.elapsed_s += step
+            self.motion_time_s += step
             dt -= step
             for fault in ("alarm", "unplug"):
                 params = self._faults.get(fault)
