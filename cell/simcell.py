@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,7 @@ PAPER_TABLE4_MM = [
     ("bolt", 234.450, 164.004), ("bolt", 130.297, 167.991),
 ]
 _NUT_SIZES = ["M6", "M8", "M5", "M10"]
+MIN_GAP_MM = 3.0  # between part outlines in a layout: closer, the camera may see one blob
 _BOLTS = [("M6", 20.0), ("M5", 16.0), ("M8", 25.0), ("M5", 20.0)]
 
 
@@ -61,11 +63,13 @@ def _outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
     return float(np.sqrt(((pa[:, None, :] - pb[None, :, :]) ** 2).sum(-1)).min())
 
 
-def paper_layout(seed: int = 0) -> list[PartSpec]:
+def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None) -> list[PartSpec]:
     """Table IV's 17 parts at their published positions, plus an M8 washer in the widest gap.
 
     Sizes cycle through common M5-M10 parts; each bolt is turned to the angle (of 12 tried)
-    that leaves the most room to its neighbours, so no two outlines touch.
+    that leaves the most room to its neighbours, so no two outlines touch. Given the arm's
+    base (table frame), each bolt is instead laid square to the line from the base (see
+    _square_to_base): a 4-axis arm closes its jaws along that line, so it grips no other bolt.
     """
     rng = np.random.default_rng(seed)
     parts: list[PartSpec] = []
@@ -79,16 +83,40 @@ def paper_layout(seed: int = 0) -> list[PartSpec]:
         if p.kind != "bolt":
             continue
         others = [q for j, q in enumerate(parts) if j != i]
-        best = max(
-            (PartSpec("bolt", p.size, p.x_mm, p.y_mm, a + jitter, p.length_mm) for a in range(0, 360, 30)),
-            key=lambda c: min(_outline_gap_mm(c, q) for q in others),
-        )
-        parts[i] = best
+
+        def room(c: PartSpec) -> float:
+            return min(_outline_gap_mm(c, q) for q in others)
+
+        if base_table_mm is None:
+            parts[i] = max((PartSpec("bolt", p.size, p.x_mm, p.y_mm, a + jitter, p.length_mm)
+                            for a in range(0, 360, 30)), key=room)
+        else:
+            parts[i] = _square_to_base(p, base_table_mm, room)
     grid = itertools.product(np.arange(20.0, 250.0, 5.0), np.arange(15.0, 165.0, 5.0))
     centres = np.array([(p.x_mm, p.y_mm) for p in parts])
     wx, wy = max(grid, key=lambda g: np.hypot(*(centres - g).T).min())
     parts.append(PartSpec("washer", "M8", float(wx), float(wy)))
     return parts
+
+
+def _square_to_base(bolt: PartSpec, base_mm: tuple[float, float], room) -> PartSpec:
+    """The bolt with the middle of its shaft (where the cell grips) on the line from the base
+    through its position and its axis square to that line, pointing whichever way leaves more
+    room. Where that crowds a neighbour (Table IV's bolt 13 would touch nut 14), it is slid
+    along the line by the least 2 mm step that keeps MIN_GAP_MM between outlines."""
+    dx, dy = bolt.x_mm - base_mm[0], bolt.y_mm - base_mm[1]
+    rho = math.hypot(dx, dy)
+    ux, uy = dx / rho, dy / rho
+    bearing = math.degrees(math.atan2(uy, ux))
+    middle = bolt.shaft_middle_offset_mm
+    candidates = []
+    for shift_mm in range(-12, 13, 2):
+        for a in (bearing + 90.0, bearing - 90.0):
+            ar = math.radians(a)
+            centre = (bolt.x_mm + shift_mm * ux - middle * math.cos(ar), bolt.y_mm + shift_mm * uy - middle * math.sin(ar))
+            spec = PartSpec("bolt", bolt.size, *centre, a, bolt.length_mm)
+            candidates.append((room(spec), shift_mm, spec))
+    return max(candidates, key=lambda c: (c[0] >= MIN_GAP_MM, -abs(c[1]), c[0]))[2]
 
 
 def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
@@ -115,8 +143,13 @@ def build_sim_cell(config: CellConfig) -> SimCell:
     if any(sim.camera_bumped_mm):
         model = _bumped(model, sim.camera_bumped_mm)
         note += f"; camera since moved by {sim.camera_bumped_mm} mm"
-    parts = paper_layout(sim.seed) if sim.layout == "paper" else random_scene(sim.seed)
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
+    if sim.layout == "random":
+        parts = random_scene(sim.seed)
+    elif sim.layout == "paper-square-to-base":
+        parts = paper_layout(sim.seed, truth.robot_to_table(config.arm.dynamixel.geometry.yaw_axis_x_mm, 0.0))
+    else:
+        parts = paper_layout(sim.seed)
     plan = config.planning
     bins = [Bin("bolt", plan.bolt.bin_robot_mm[:2], sim.bin_half_size_mm),
             Bin("nut", plan.nut.bin_robot_mm[:2], sim.bin_half_size_mm)]

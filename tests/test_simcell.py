@@ -85,6 +85,19 @@ def test_paper_layout_has_the_papers_parts_and_a_washer_none_touching():
     assert min(gaps) > 3.0
 
 
+def test_square_to_base_layout_lays_every_bolt_across_the_line_from_the_base_none_touching():
+    base = (144.0, -40.0)  # an arm's base axis in the table frame
+    parts = paper_layout(base_table_mm=base)
+    bolts = [p for p in parts if p.kind == "bolt"]
+    assert len(bolts) == 9 and sum(p.kind == "nut" for p in parts) == 8
+    for b in bolts:  # the shaft's middle, where the jaws close, is where the base's line meets the axis square
+        d = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
+        middle = np.array([b.x_mm, b.y_mm]) + b.shaft_middle_offset_mm * d
+        assert abs(np.dot(middle - base, d)) < 1e-9
+    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1:]]
+    assert min(gaps) > 3.0
+
+
 def test_sim_camera_renders_only_what_is_on_the_table():
     cam_model = default_camera(640, 360)
     w = world(NUT)

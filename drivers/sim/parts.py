@@ -117,6 +117,12 @@ class PartSpec:
         u = u0 - self.dims["head_height"] / 2
         return tuple(self._to_table(np.array([[u, 0.0]]))[0])
 
+    @property
+    def shaft_middle_offset_mm(self) -> float | None:
+        """Bolts: how far the middle of the shaft (where the cell grips) lies from the footprint
+        centre, along the axis towards the tip; else None."""
+        return self._bolt_axis_offset_mm() + self.length_mm / 2 if self.kind == "bolt" else None
+
     def _dir(self) -> np.ndarray:
         a = math.radians(self.angle_deg)
         return np.array([math.cos(a), math.sin(a)])
