@@ -22,6 +22,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) scripts/bench_calibration.py
+	$(PY) scripts/bench_parts.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
