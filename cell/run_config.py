@@ -112,6 +112,14 @@ class SimConfig(Strict):
     )
     bolt_angle_tolerance_deg: float = Field(5.0, gt=0, le=90)
     bin_half_size_mm: float = Field(40.0, gt=0, le=500, description="a part released within this of a bin lands in it")
-    speed_mm_s: float = Field(150.0, gt=0, description="simulated tool speed")
-    gripper_s: float = Field(0.4, ge=0, description="simulated time to open or close the gripper")
-    realtime: bool = Field(False, description="sleep for the simulated motion time")
+    speed_mm_s: float = Field(150.0, gt=0, description="arm.kind mock (the simulated arm): tool speed")
+    gripper_s: float = Field(0.4, ge=0, description="arm.kind mock: time to open or close the gripper")
+    realtime: bool = Field(False, description="arm.kind mock: sleep for the simulated motion time")
+    emulator_speed_scale: float = Field(
+        50.0, gt=0, le=10000, description="arm.kind serial/dynamixel (the real driver against an emulated arm): "
+                                          "the emulator moves this many times faster than the arm would; 1 = real time"
+    )
+    arm_fault_after_grips: int = Field(
+        0, ge=0, description="arm.kind serial/dynamixel: rehearse a fault after this many grips (GRBL ALARM:1 on the "
+                             "next move; Dynamixel gripper servo overload); 0 = never"
+    )

@@ -69,6 +69,7 @@ class Runner:
         expect_motion: bool = True,
         progress: Callable[[str], None] | None = None,
         truth: Callable[[], dict] | None = None,
+        sim_motion_s: Callable[[], float] | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
         self.cfg = cfg
@@ -77,6 +78,7 @@ class Runner:
         self.expect_motion = expect_motion  # False: a mock arm over a real table, nothing can move
         self.progress = progress or (lambda line: None)
         self.truth = truth  # the simulated world's account, logged before the summary
+        self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
         self.sm = StateMachine([self._on_transition])
         self.summary = Summary()
         self.tracks: list[Track] = []
@@ -95,7 +97,7 @@ class Runner:
     def run(self) -> Summary:
         t0 = time.perf_counter()
         self.audit.event("run_start", expect_motion=self.expect_motion, camera=self.camera.source,
-                         arm=type(self.arm).__name__)
+                         arm=type(self.arm).__name__, arm_port=self.arm.port)
         try:
             while not self.sm.finished:
                 try:
@@ -112,7 +114,7 @@ class Runner:
             self.arm.disconnect()
             s = self.summary
             s.wall_s = time.perf_counter() - t0
-            s.motion_sim_s = float(getattr(self.arm, "motion_time_s", 0.0))
+            s.motion_sim_s = float(self.sim_motion_s()) if self.sim_motion_s else 0.0
             s.software_s = max(s.wall_s - s.capture_s - s.arm_s - s.paused_s, 0.0)
             if self.result is not None:
                 s.unknown_left = sum(1 for o in self.result.objects if not o.pick)

@@ -1,16 +1,19 @@
 """The built-in simulated cell: a webcam over the paper's plate, calibrated from its own
 rendered image, then a table laid out like the paper's Table IV (9 bolts, 8 nuts) plus a
-washer the cell must leave alone, a simulated arm and its two bins.
+washer the cell must leave alone, an arm and its two bins.
 
 The calibration is fitted, not copied from the camera model, so the dry run carries the
-same mapping error the line would.
+same mapping error the line would. The arm is the geometric SimArm (arm.kind mock), or
+the real serial or Dynamixel driver against its emulated firmware on a pseudo-terminal.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
@@ -18,7 +21,9 @@ from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
+from drivers.arm.base import Arm
 from drivers.arm.config import Workspace
+from drivers.sim.emulated_arm import EmulatedArm, emulated_arm
 from drivers.sim.parts import PartSpec, random_scene
 from drivers.sim.render import render_plate
 from drivers.sim.rig import default_camera
@@ -46,9 +51,14 @@ _BOLTS = [("M6", 20.0), ("M5", 16.0), ("M8", 25.0), ("M5", 20.0)]
 class SimCell:
     world: World
     camera: SimCamera
-    arm: SimArm
+    arm: Arm
     calibration: Calibration
     calibration_note: str
+    emulated: EmulatedArm | None  # None: the arm is the geometric SimArm
+
+    def motion_time_s(self) -> float:
+        """Motion time so far: the emulator's motion model, or SimArm's distance / speed estimate."""
+        return self.emulated.motion_time_s() if self.emulated else self.arm.motion_time_s
 
 
 def _outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
@@ -125,8 +135,10 @@ def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
     return CameraModel(model.width_px, model.height_px, model.camera_matrix, model.dist_coeffs, model.rvec, t)
 
 
-def build_sim_cell(config: CellConfig) -> SimCell:
-    """Camera, plate calibration, world, arm and camera of the simulated cell."""
+@contextlib.contextmanager
+def sim_cell(config: CellConfig) -> Iterator[SimCell]:
+    """Camera, plate calibration, world and arm of the simulated cell, for a `with` block: an
+    emulated arm's pty and emulator run until the block ends, however it ends."""
     sim = config.sim
     model = default_camera(config.camera.width_px, config.camera.height_px)
     if sim.perfect_calibration:
@@ -156,6 +168,12 @@ def build_sim_cell(config: CellConfig) -> SimCell:
     tolerance = JawTolerance(sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm,
                              sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg)
     world = World(parts, truth, bins, tolerance)
+    camera = SimCamera(world, model, seed=sim.seed)
+    log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
+    if config.arm.kind != "mock":
+        with emulated_arm(config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips) as emulated:
+            yield SimCell(world, camera, emulated.arm, calibration, note, emulated)
+        return
     ws = plan.workspace
     arm = SimArm(
         world,
@@ -163,6 +181,4 @@ def build_sim_cell(config: CellConfig) -> SimCell:
                   y_max_mm=ws.y_max_mm, z_min_mm=ws.z_min_mm, z_max_mm=ws.z_max_mm),
         speed_mm_s=sim.speed_mm_s, gripper_s=sim.gripper_s, realtime=sim.realtime,
     )
-    camera = SimCamera(world, model, seed=sim.seed)
-    log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
-    return SimCell(world, camera, arm, calibration, note)
+    yield SimCell(world, camera, arm, calibration, note, None)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import signal
@@ -21,6 +22,11 @@ from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_
 
 log = logging.getLogger(__name__)
 
+# `--dry-run --arm KIND` with no --config: the shipped simulated cell laid out for that arm
+# (the built-in one is out of a gantry's reach and lays bolts a 4-axis arm cannot grip).
+SIM_CONFIGS = {"serial": "sim-grbl.toml", "dynamixel": "sim-dynamixel.toml"}
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
@@ -29,7 +35,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--dry-run", action="store_true",
                    help="rehearse: a mock arm that records and checks every command and moves nothing; "
                         "with no --config, the built-in simulated cell")
-    g.add_argument("--arm", choices=["serial", "dynamixel", "mock"], help="override arm.kind")
+    g.add_argument("--arm", choices=["serial", "dynamixel", "mock"],
+                   help="override arm.kind; with the simulated camera, serial|dynamixel drives the real driver "
+                        "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
+                        "configs/sim-grbl.toml or configs/sim-dynamixel.toml)")
     g.add_argument("--port", help="override arm.port")
     g.add_argument("--offset-x-mm", type=float, default=0.0,
                    help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)")
@@ -108,14 +117,16 @@ def _apply_overrides(config: CellConfig, args: argparse.Namespace) -> CellConfig
     return config
 
 
-def _devices(config: CellConfig, dry_run: bool):
-    """(camera, arm, calibration, expect_motion, sim world or None)."""
+def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack):
+    """(camera, arm, calibration, expect_motion, sim cell or None); what must be shut down
+    after the run (an emulated arm) goes on `resources`."""
     if config.camera.source == "sim":
-        from cell.simcell import build_sim_cell
+        from cell.simcell import sim_cell
 
-        if getattr(config, "arm", None) is not None and config.arm.kind != "mock":
-            log.warning("camera.source is 'sim': the simulated arm is used, not the configured %s arm", config.arm.kind)
-        sim = build_sim_cell(config)
+        if config.arm.kind != "mock" and config.arm.port:
+            log.warning("camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
+                        config.arm.kind, config.arm.port)
+        sim = resources.enter_context(sim_cell(config))
         return sim.camera, sim.arm, sim.calibration, True, sim
     from cell.calibration.store import Calibration
     from drivers.arm import factory
@@ -131,6 +142,8 @@ def _devices(config: CellConfig, dry_run: bool):
 def run_cell(args: argparse.Namespace) -> int:
     if args.run_config is None and not args.dry_run:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
+    if args.run_config is None and args.arm in SIM_CONFIGS:
+        args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
     try:
         config = _apply_overrides(load_config(args.run_config), args)
@@ -147,17 +160,21 @@ def run_cell(args: argparse.Namespace) -> int:
     log_to_file(log_dir / f"run-{stamp}.log")
     from cell.vision.locate import locate
 
-    with AuditLog(audit_path) as audit:
+    with AuditLog(audit_path) as audit, contextlib.ExitStack() as resources:
         audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
                     config=config.model_dump(mode="json"))
         try:
-            camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run)
+            camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run, resources)
             planner = Planner(config.planning, table_to_robot(config.planning))
         except BaseException as e:
             _log_fault(audit, args, e)
             raise
         if sim is not None:
             print(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
+        if sim is not None and sim.emulated is not None:
+            emu = sim.emulated
+            print(f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
+                  f"(motion {emu.speed_scale:g}x faster than the arm's)")
         controls = Controls()
         previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),  # even if inherited ignored
                     signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: controls.stop.set()),
@@ -166,7 +183,8 @@ def run_cell(args: argparse.Namespace) -> int:
         try:
             runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
                             config.run, audit, controls, expect_motion, progress=print,
-                            truth=None if sim is None else lambda: sim_truth(sim.world))
+                            truth=None if sim is None else lambda: sim_truth(sim.world),
+                            sim_motion_s=None if sim is None else sim.motion_time_s)
             summary = runner.run()
         finally:
             for sig, handler in previous.items():

@@ -1,0 +1,102 @@
+"""The real arm driver against its emulated firmware on a pseudo-terminal, acting on the
+simulated world, so what the camera sees next is what the driver made the emulated arm do.
+
+The driver comes from the normal factory with arm.port set to the pty: every command goes
+through the real protocol code. The emulator's gripper events decide the world: closing
+grips at the emulated tool point and jaw angle, opening releases there. The emulated GRBL
+machine has an A axis turning the gripper (without arm.serial.commands.rotate the driver
+refuses the angle a bolt needs); the emulated bus knows the arm's config, so its tool pose
+comes from the servos' present positions through the arm's kinematics.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass
+from typing import Iterator
+
+from drivers.arm.base import Arm
+from drivers.arm.config import ArmConfig
+from drivers.arm.factory import make_arm
+from drivers.sim.dxl_emulator import DxlBusEmulator, ToolListener
+from drivers.sim.grbl_emulator import GrblEmulator
+from drivers.sim.pty_port import serve_pty
+from drivers.sim.world import World
+
+log = logging.getLogger(__name__)
+
+Emulator = GrblEmulator | DxlBusEmulator
+
+
+@dataclass(frozen=True)
+class EmulatedArm:
+    """The real driver (unconnected when handed out) and the emulator behind its port."""
+
+    arm: Arm
+    emulator: Emulator
+    port: str
+    speed_scale: float
+
+    @property
+    def firmware(self) -> str:
+        return "GRBL 1.1" if isinstance(self.emulator, GrblEmulator) else "Dynamixel XM430 bus"
+
+    def motion_time_s(self) -> float:
+        """Machine time the emulated arm has spent moving, at its own speed (not scaled)."""
+        with self.emulator.lock:
+            return self.emulator.motion_time_s
+
+
+@contextlib.contextmanager
+def emulated_arm(cfg: ArmConfig, world: World, speed_scale: float, fault_after_grips: int = 0) -> Iterator[EmulatedArm]:
+    """Serve the emulator for cfg.kind on a fresh pty and yield the real driver for it; on exit
+    (faults and Ctrl-C included) the driver's port is closed, the emulator stopped and the pty gone.
+
+    fault_after_grips > 0 rehearses a fault: after that many grips GRBL raises ALARM:1 (hard
+    limit) on its next move, or the Dynamixel gripper servo overloads as it closes.
+    """
+    if cfg.kind == "serial":
+        emulator, name = GrblEmulator(speed_scale=speed_scale, rotary_axis=True), "ttyGRBL"
+    elif cfg.kind == "dynamixel":
+        emulator, name = DxlBusEmulator(cfg.dynamixel, speed_scale=speed_scale), "ttyDXL"
+    else:
+        raise ValueError(f"no emulator for arm.kind {cfg.kind!r}")
+    emulator.add_tool_listener(_acting_on(world))
+    if fault_after_grips:
+        emulator.add_tool_listener(_fault_after(emulator, fault_after_grips, cfg.dynamixel.gripper_id))
+    with serve_pty(emulator, name) as path:
+        arm = make_arm(cfg.model_copy(update={"port": path}))
+        log.info("emulated %s arm on %s at %gx speed", cfg.kind, path, speed_scale)
+        try:
+            yield EmulatedArm(arm, emulator, path, speed_scale)
+        finally:
+            arm.disconnect()  # before the pty goes away under it
+
+
+def _acting_on(world: World) -> ToolListener:
+    """The jaws act on the world where the emulated arm really is, not where it was told to go."""
+
+    def on_gripper(closed: bool, x_mm: float, y_mm: float, z_mm: float, angle_deg: float) -> None:
+        xyz = (x_mm, y_mm, z_mm)
+        what = world.grip(xyz, angle_deg).reason if closed else world.release(xyz)
+        log.debug("emulated gripper %s at (%.2f, %.2f, %.2f) mm, %.2f deg: %s",
+                  "closed" if closed else "opened", x_mm, y_mm, z_mm, angle_deg, what)
+
+    return on_gripper
+
+
+def _fault_after(emulator: Emulator, grips: int, gripper_id: int) -> ToolListener:
+    """Arms the emulator's own fault injection at grip `grips`, so the driver meets it as it would on the line."""
+    closes = 0
+
+    def on_gripper(closed: bool, *pose: float) -> None:
+        nonlocal closes
+        closes += closed
+        if closed and closes == grips:
+            log.info("rehearsed fault: armed after grip %d", grips)
+            if isinstance(emulator, GrblEmulator):
+                emulator.inject("alarm", code=1)
+            else:
+                emulator.inject("overload", id=gripper_id)
+
+    return on_gripper
