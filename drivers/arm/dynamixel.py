@@ -303,6 +303,12 @@ class DynamixelArm(Arm):
             except (serial.SerialException, OSError, termios.error) as e:
                 self.ph.is_using = False
                 raise ConnectionLost(f"servo bus connection lost: {e}", port=self.port, command=what) from None
+            except BaseException:
+                # Ctrl-C mid-transfer: the SDK would keep the port marked in use and the late
+                # reply would land in the next read, so the safe stop could not talk to the bus.
+                self.ph.is_using = False
+                self.ph.clearPort()
+                raise
             result, error, value = _unpack(out)
             if result == COMM_SUCCESS:
                 if error & 0x80 and dxl_id is not None:
