@@ -8,15 +8,11 @@ call listeners on gripper open/close. Faults can be injected.
 """
 from __future__ import annotations
 
-import logging
 import math
-import threading
-from typing import Callable
 
 from drivers.arm.config import DynamixelArmConfig
 from drivers.arm.kinematics import FourAxisKinematics
-
-log = logging.getLogger(__name__)
+from drivers.sim.emulated_device import EmulatedDevice
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -43,7 +39,6 @@ TORQUE_ENABLE, HW_ERROR, GOAL_POSITION, MOVING, PRESENT_POSITION = 64, 70, 116, 
 PROFILE_VELOCITY, VELOCITY_LIMIT, MAX_POSITION, MIN_POSITION = 112, 44, 48, 52
 OVERLOAD = 0x20
 RPM_PER_UNIT = 0.229
-ToolListener = Callable[[bool, float, float, float, float], None]
 
 
 def crc16(data: bytes) -> int:
@@ -139,8 +134,10 @@ class Servo:
         self.table[MOVING] = 0
 
 
-class DxlBusEmulator:
+class DxlBusEmulator(EmulatedDevice):
     """Servos sharing one Protocol 2.0 bus; serve it with drivers.sim.pty_port.serve_pty."""
+
+    FAULTS = ("no_answer", "garbage", "bad_crc", "status_error", "overload", "unplug")
 
     def __init__(
         self,
@@ -150,9 +147,7 @@ class DxlBusEmulator:
         speed_scale: float = 1.0,
         start_joints_deg: tuple[float, float, float, float] | None = None,
     ):
-        self.lock = threading.RLock()
-        self.unplug_requested = False
-        self.server = None  # set by PtyServer
+        super().__init__()
         self.arm = arm or DynamixelArmConfig()
         self.kinematics = FourAxisKinematics(self.arm)
         self.speed_scale = speed_scale
@@ -166,17 +161,10 @@ class DxlBusEmulator:
         self.packets_received: list[bytes] = []
         self._rx = bytearray()
         self._last_s: float | None = None
-        self._faults: dict[str, dict] = {}
-        self._listeners: list[ToolListener] = []
         self._gripper_closed = False
         self.motion_time_s = 0.0  # time some servo was moving, at the servos' own speed (not scaled)
 
     # ----- public API for tests and the simulated world -----
-
-    def add_tool_listener(self, listener: ToolListener) -> None:
-        """Call listener(closed, x_mm, y_mm, z_mm, angle_deg) whenever the gripper is told to open/close."""
-        with self.lock:
-            self._listeners.append(listener)
 
     def tool_pose(self) -> tuple[float, float, float, float]:
         """Tool point (x, y, z mm, robot base frame) and angle_deg, from the joints' present positions."""
@@ -199,20 +187,7 @@ class DxlBusEmulator:
         overload (id, after_s=0): that servo trips Overload Error (bit 5) T seconds into its next move.
         unplug (after_s=0): the cable is pulled T seconds into the next move.
         """
-        if fault not in ("no_answer", "garbage", "bad_crc", "status_error", "overload", "unplug"):
-            raise ValueError(f"unknown fault {fault!r}")
-        with self.lock:
-            self._faults[fault] = {"count": 1, **params, "elapsed_s": 0.0}
-
-    def clear_faults(self) -> None:
-        with self.lock:
-            self._faults.clear()
-
-    def unplug(self) -> None:
-        self.server.unplug()
-
-    def replug(self) -> None:
-        self.server.replug()
+        self._arm_fault(fault, {"count": 1, **params, "elapsed_s": 0.0})
 
     # ----- ByteDevice interface -----
 
@@ -343,12 +318,7 @@ class DxlBusEmulator:
         if closed == self._gripper_closed:
             return
         self._gripper_closed = closed
-        pose = self.tool_pose()
-        for listener in list(self._listeners):
-            try:
-                listener(closed, *pose)
-            except Exception:  # a broken listener must not kill the bus thread
-                log.exception("tool listener failed")
+        self._notify_tool(closed, self.tool_pose())
 
     def _status(self, dxl_id: int, error: int, params: bytes = b"") -> bytes:
         no_answer = self._faults.get("no_answer")

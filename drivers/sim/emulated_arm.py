@@ -18,7 +18,8 @@ from typing import Iterator
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig
 from drivers.arm.factory import make_arm
-from drivers.sim.dxl_emulator import DxlBusEmulator, ToolListener
+from drivers.sim.dxl_emulator import DxlBusEmulator
+from drivers.sim.emulated_device import ToolListener
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 from drivers.sim.world import World

@@ -8,19 +8,15 @@ Faults can be injected to test the driver's error paths.
 """
 from __future__ import annotations
 
-import logging
 import math
 import re
-import threading
 from dataclasses import dataclass
-from typing import Callable
 
-log = logging.getLogger(__name__)
+from drivers.sim.emulated_device import EmulatedDevice
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 UNLOCK_MSG = b"[MSG:'$H'|'$X' to unlock]\r\n"
 RESET = 0x18
-ToolListener = Callable[[bool, float, float, float, float], None]
 
 _WORD = re.compile(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))")
 
@@ -45,8 +41,10 @@ class _Segment:
         return [a + (b - a) * f for a, b in zip(self.start, self.end)]
 
 
-class GrblEmulator:
+class GrblEmulator(EmulatedDevice):
     """Emulated GRBL firmware; serve it with drivers.sim.pty_port.serve_pty."""
+
+    FAULTS = ("no_answer", "garbage", "error", "alarm", "unplug", "restart")
 
     def __init__(
         self,
@@ -56,26 +54,17 @@ class GrblEmulator:
         rotary_axis: bool = False,
         start_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ):
-        self.lock = threading.RLock()
-        self.unplug_requested = False
-        self.server = None  # set by PtyServer
+        super().__init__()
         self.speed_scale = speed_scale
         self.axes = "XYZA" if rotary_axis else "XYZ"
         self.settings = dict(DEFAULT_SETTINGS)
         self.settings[22] = int(homing_enabled)
         self._start_mm = start_mm
-        self._listeners: list[ToolListener] = []
         self.lines_received: list[str] = []
-        self._faults: dict[str, dict] = {}
         self.motion_time_s = 0.0  # machine time spent moving, at the machine's own speed (not scaled)
         self._power_up(now_s=0.0)
 
     # ----- public API for tests and the simulated world -----
-
-    def add_tool_listener(self, listener: ToolListener) -> None:
-        """Call listener(closed, x_mm, y_mm, z_mm, angle_deg) on every gripper open/close."""
-        with self.lock:
-            self._listeners.append(listener)
 
     def tool_pose(self) -> tuple[float, float, float, float]:
         """Current tool point (x, y, z mm, robot base frame) and angle_deg."""
@@ -102,20 +91,7 @@ class GrblEmulator:
         unplug (after_s=T): the cable is pulled T seconds into the next motion.
         restart: the controller reboots at once (power dip): banner, position lost.
         """
-        if fault not in ("no_answer", "garbage", "error", "alarm", "unplug", "restart"):
-            raise ValueError(f"unknown fault {fault!r}")
-        with self.lock:
-            self._faults[fault] = params
-
-    def clear_faults(self) -> None:
-        with self.lock:
-            self._faults.clear()
-
-    def unplug(self) -> None:
-        self.server.unplug()
-
-    def replug(self) -> None:
-        self.server.replug()
+        self._arm_fault(fault, params)
 
     # ----- ByteDevice interface (called by the pty server) -----
 
@@ -380,12 +356,7 @@ class GrblEmulator:
         self._spindle_on = on
         self._spindle_speed = speed if on else 0.0
         if changed:
-            x, y, z, a = self._position()
-            for listener in list(self._listeners):
-                try:
-                    listener(on, x, y, z, a)
-                except Exception:  # a broken listener must not kill the firmware thread
-                    log.exception("tool listener failed")
+            self._notify_tool(on, tuple(self._position()[:4]))
 
     def _status_report(self) -> bytes:
         pos = self._position()[: max(3, len(self.axes))]
