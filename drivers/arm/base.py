@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
 from dataclasses import dataclass
 from typing import Literal
 
+from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach
 from drivers.arm.kinematics import Pose
 
 log = logging.getLogger(__name__)
@@ -77,6 +79,30 @@ class Arm(abc.ABC):
     def __enter__(self) -> "Arm":
         self.connect()
         return self
+
+    @contextlib.contextmanager
+    def _guard(self, command: str):
+        """Leave the arm safe when `command` fails with an ArmError, then let the error through.
+
+        A lost link is only noted (nothing can be sent); a refused target or an unconnected
+        arm needs nothing; anything else makes the driver leave the device safe.
+        """
+        try:
+            yield
+        except ArmError as e:
+            if isinstance(e, ConnectionLost):
+                self._link_lost()
+            elif not isinstance(e, (OutOfReach, NotConnected)):
+                self._leave_safe(e)
+            log.info("arm on %s, %s: %s", self.port, command, e)
+            raise
+
+    def _link_lost(self) -> None:
+        """The port is gone: forget it so the next command reconnects (drivers that reconnect)."""
+
+    def _leave_safe(self, error: ArmError) -> None:
+        """After a failed command: stop the device the way this driver knows is safe."""
+        self.stop()
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is not None:

@@ -327,8 +327,14 @@ class DynamixelArm(Arm):
         raise NoResponse(f"{who}: {reason}", port=self.port, command=what,
                          reply=self.packet.getTxRxResult(result), hint=BUS_HINT)
 
-    def _guard(self, what: str) -> "_Guard":
-        return _Guard(self, what)
+    def _link_lost(self) -> None:
+        self._close()
+        self._lost = True
+
+    def _leave_safe(self, error: ArmError) -> None:
+        """Torque off on every servo (the arm sags, but nothing drives on)."""
+        self._state = "fault"
+        self.stop()
 
 
 def _unpack(out) -> tuple[int, int, object]:
@@ -342,26 +348,3 @@ def _unpack(out) -> tuple[int, int, object]:
 
 def _le(value: int) -> list[int]:
     return list(int(value).to_bytes(4, "little", signed=value < 0))
-
-
-class _Guard:
-    """Releases the torque when a command fails, unless the bus itself is gone."""
-
-    def __init__(self, arm: DynamixelArm, what: str):
-        self.arm, self.what = arm, what
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc is None or not isinstance(exc, ArmError):
-            return False
-        arm = self.arm
-        if isinstance(exc, ConnectionLost):
-            arm._close()
-            arm._lost = True
-        elif not isinstance(exc, (OutOfReach, NotConnected)):
-            arm._state = "fault"
-            arm.stop()
-        log.info("arm on %s, %s: %s", arm.port, self.what, exc)
-        return False

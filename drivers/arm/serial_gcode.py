@@ -362,29 +362,13 @@ class SerialGcodeArm(Arm):
                                  command="?", reply=state, hint="raise arm.serial.motion_timeout_s if the move is long")
             time.sleep(self.cfg.poll_interval_s)
 
-    def _guard(self, cmd: str) -> "_Guard":
-        return _Guard(self, cmd)
+    def _link_lost(self) -> None:
+        self._connected = False
+        self._lost = True
+        self._state = "disconnected"
+        self.line.close()
 
-
-class _Guard:
-    """Leaves the arm safe when a command fails: feed hold unless the link itself is gone."""
-
-    def __init__(self, arm: SerialGcodeArm, cmd: str):
-        self.arm, self.cmd = arm, cmd
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc is None or not isinstance(exc, ArmError):
-            return False
-        arm = self.arm
-        if isinstance(exc, ConnectionLost):
-            arm._connected = False
-            arm._lost = True
-            arm._state = "disconnected"
-            arm.line.close()
-        elif not isinstance(exc, (OutOfReach, NotConnected, AlarmResponse)):
-            arm.stop()  # an alarm has already halted the machine
-        log.info("arm on %s: %s", arm.port, exc)
-        return False
+    def _leave_safe(self, error: ArmError) -> None:
+        """Feed hold; after an alarm the machine has already halted itself."""
+        if not isinstance(error, AlarmResponse):
+            self.stop()
