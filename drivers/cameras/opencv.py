@@ -17,7 +17,22 @@ from drivers.cameras.errors import CameraError
 log = logging.getLogger(__name__)
 
 
-class OpenCVCamera(Camera):
+class CaptureCamera(Camera):
+    """A source read through one cv2.VideoCapture (a device, a stream or a video file)."""
+
+    _cap: cv2.VideoCapture | None = None
+
+    def disconnect(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    @property
+    def is_connected(self) -> bool:
+        return self._cap is not None
+
+
+class OpenCVCamera(CaptureCamera):
     def __init__(
         self,
         source: int | str,
@@ -36,7 +51,6 @@ class OpenCVCamera(Camera):
         self.focus = focus
         self.exposure = exposure
         self.warmup_frames = warmup_frames
-        self._cap: cv2.VideoCapture | None = None
 
     def connect(self) -> None:
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.timeout_s * 1000),
@@ -62,15 +76,6 @@ class OpenCVCamera(Camera):
     def _set(self, prop: int, value: float, what: str) -> None:
         if not self._cap.set(prop, value):
             log.warning("camera %s: could not set %s to %s", self.source, what, value)
-
-    def disconnect(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-    @property
-    def is_connected(self) -> bool:
-        return self._cap is not None
 
     def _grab(self) -> np.ndarray | None:
         self._cap.grab()  # the buffered frame may be old: drop it, keep the next

@@ -6,18 +6,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.cameras.base import Camera
 from drivers.cameras.errors import CameraError
+from drivers.cameras.opencv import CaptureCamera
 
 
-class VideoFileCamera(Camera):
+class VideoFileCamera(CaptureCamera):
     def __init__(self, path: str | Path, width_px: int, height_px: int, loop: bool = False):
         self.path = Path(path)
         self.source = str(path)
         self.width_px = width_px
         self.height_px = height_px
         self.loop = loop
-        self._cap: cv2.VideoCapture | None = None
 
     def connect(self) -> None:
         if not self.path.is_file():
@@ -27,15 +26,6 @@ class VideoFileCamera(Camera):
             cap.release()
             raise CameraError("cannot decode the video file", source=self.source)
         self._cap = cap
-
-    def disconnect(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-    @property
-    def is_connected(self) -> bool:
-        return self._cap is not None
 
     def _grab(self) -> np.ndarray | None:
         ok, frame = self._cap.read()
