@@ -17,14 +17,13 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.calibration.pipeline import calibrate  # noqa: E402
 from cell.camera_model import CameraModel  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from drivers.sim.render import render_plate  # noqa: E402
+from drivers.sim.render import plate_field_error_mm, render_plate  # noqa: E402
 
 # (label, width, height, mm/px, k1, k2, tilt_deg, tilt_azimuth_deg, roll_deg)
 CAMERAS = [
@@ -40,17 +39,6 @@ CAMERAS = [
 def camera_for(spec) -> CameraModel:
     _, w, h, mmpx, k1, k2, tilt, az, roll = spec
     return CameraModel.looking_down(w, h, mmpx, (132.0, 88.0), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2)
-
-
-def dense_error_mm(camera: CameraModel, calibration, plate) -> tuple[float, float]:
-    """RMS and max error over the plate field at points every 2 mm (truth from the renderer)."""
-    X, Y = np.meshgrid(
-        np.arange(0.0, (plate.columns - 1) * plate.pitch_x_mm + 1e-9, 2.0),
-        np.arange(0.0, (plate.rows - 1) * plate.pitch_y_mm + 1e-9, 2.0),
-    )
-    table = np.column_stack([X.ravel(), Y.ravel()])
-    err = np.hypot(*(calibration.pixel_to_table_mm(camera.project(table)) - table).T)
-    return float(np.sqrt(np.mean(err**2))), float(err.max())
 
 
 def timed(fn, repeat: int):
@@ -82,8 +70,8 @@ def main() -> int:
             lambda: cv2.findCirclesGrid(gray, (config.plate.columns, config.plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID),
             args.repeat,
         )
-        d_rms, d_max = dense_error_mm(cam, d_res.calibration, config.plate)
-        p_rms, p_max = dense_error_mm(cam, p_res.calibration, config.plate)
+        d_rms, d_max = plate_field_error_mm(cam, d_res.calibration, config.plate)
+        p_rms, p_max = plate_field_error_mm(cam, p_res.calibration, config.plate)
         worst["d_rms"] = max(worst["d_rms"], d_rms)
         worst["d_max"] = max(worst["d_max"], d_max)
         worst["p_rms"].append(p_rms)

@@ -10,8 +10,7 @@ import pytest
 from cell.calibration.pipeline import calibrate
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
-from drivers.sim.render import render_plate
-from tests.helpers import dense_error_mm
+from drivers.sim.render import plate_field_error_mm, render_plate
 
 CONFIG = CellConfig()
 PAPER = CONFIG.model_copy(deep=True)
@@ -31,9 +30,9 @@ def test_default_pipeline_over_the_plate_field(name):
     cam = CameraModel.looking_down(w, h, mmpx, (132, 88), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2)
     image = render_plate(cam, CONFIG.plate, seed=11)
     default = calibrate(image, CONFIG)
-    rms, worst = dense_error_mm(cam, default.calibration, CONFIG.plate)
+    rms, worst = plate_field_error_mm(cam, default.calibration, CONFIG.plate)
     assert rms <= 0.015 and worst <= 0.05, f"{name}: RMS {rms:.4f} mm, max {worst:.4f} mm"
-    paper_rms, _ = dense_error_mm(cam, calibrate(image, PAPER, "quadratic").calibration, CONFIG.plate)
+    paper_rms, _ = plate_field_error_mm(cam, calibrate(image, PAPER, "quadratic").calibration, CONFIG.plate)
     assert paper_rms >= 20 * rms, f"{name}: paper {paper_rms:.4f} mm vs default {rms:.4f} mm"
     # The cross-validated figure users are told to trust is an honest estimate, not a flattering one.
     assert default.chosen.cv["rms_mm"] < 0.015
@@ -47,7 +46,7 @@ def test_every_model_can_be_forced_and_the_report_says_why():
         result = calibrate(image, CONFIG, model)
         assert result.calibration.model_name == model
         assert result.calibration.camera is not None, "every calibration file carries the camera pose"
-        rms[model] = dense_error_mm(cam, result.calibration, CONFIG.plate)[0]
+        rms[model] = plate_field_error_mm(cam, result.calibration, CONFIG.plate)[0]
     auto = calibrate(image, CONFIG)
     assert "lowest cross-validated RMS" in auto.why
     # Distortion is cubic in pixels: the models that can bend that way win.
