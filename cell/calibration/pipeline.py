@@ -11,7 +11,7 @@ import numpy as np
 
 from cell.calibration.detect import Blob, detect_blobs, detect_paper
 from cell.calibration.lattice import number_lattice
-from cell.calibration.models import PolynomialMap, fit_camera, fit_model
+from cell.calibration.models import PolynomialMap, fit_camera, fit_model, monomial_exponents
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
@@ -160,6 +160,13 @@ def cross_validate(name: str, degree: int, pts: PlatePoints, image_size, folds: 
     return error_stats(pred, pts.table_mm)
 
 
+def _parameters(name: str, degree: int) -> int:
+    """Unknowns per axis (camera: intrinsics, distortion and pose over both axes)."""
+    if name in ("quadratic", "polynomial"):
+        return len(monomial_exponents(2 if name == "quadratic" else degree))
+    return {"homography": 4, "camera": 8}[name]
+
+
 def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -> CalibrationResult:
     """Detect, number, fit every candidate model, cross-validate, choose, and package."""
     t0 = time.perf_counter()
@@ -171,12 +178,10 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
     t1 = time.perf_counter()
     want = model or config.calibration.model
     candidates = [c for c in CANDIDATES if want in ("auto", c[0])]
-    min_points = {"quadratic": 6, "homography": 4, "polynomial": 15, "camera": 8}
     scores = []
     for name, degree in candidates:
-        needed = {"polynomial": len([1 for i in range(degree + 1) for _ in range(i + 1)])}.get(name, min_points[name])
-        if len(pts.pixel) < 2 * needed:
-            continue
+        if len(pts.pixel) < 2 * _parameters(name, degree):
+            continue  # too few points to fit and cross-validate this model
         fitted = fit_model(name, pts.pixel, pts.table_mm, (w, h), degree)
         fit_stats = error_stats(fitted(pts.pixel), pts.table_mm)
         cv = cross_validate(name, degree, pts, (w, h), config.calibration.cv_folds)

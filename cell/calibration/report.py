@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from cell.calibration.pipeline import CalibrationResult
+from cell.imageio import write_image_atomic
 
 
 def table3_rows(result: CalibrationResult) -> list[dict]:
@@ -151,9 +152,7 @@ def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path)
     report_dir.mkdir(parents=True, exist_ok=True)
     paths = [report_dir / "table3.csv", report_dir / "plate_numbered.png", report_dir / "deviation.png", report_dir / "report.txt"]
     write_csv(result, paths[0])
-    tmp = report_dir / ".plate_numbered.tmp.png"
-    cv2.imwrite(str(tmp), annotate_plate(image, result))
-    tmp.replace(paths[1])
+    write_image_atomic(paths[1], annotate_plate(image, result))
     deviation_plot(result, paths[2])
     _write_text_atomic(paths[3], summary_text(result) + "\n")
     return paths
