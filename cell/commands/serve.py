@@ -35,6 +35,21 @@ def register(sub) -> None:
     p.add_argument("--http-port", type=int, help="override service.http_port (the operator screen)")
     p.set_defaults(func=cmd_serve)
 
+    h = sub.add_parser("hash-password", help="read a password (twice, not echoed) and print its hash for service.password_hash")
+    h.set_defaults(func=cmd_hash_password)
+
+
+def cmd_hash_password(args: argparse.Namespace) -> int:
+    import getpass
+
+    from cell.service.security import hash_password
+
+    first = getpass.getpass("password: ")
+    if len(first) < 8 or first != getpass.getpass("again: "):
+        raise ConfigError("the two passwords differ or are shorter than 8 characters: nothing printed")
+    print(hash_password(first))
+    return 0
+
 
 def serve_config(args: argparse.Namespace) -> CellConfig:
     """The config `serve` runs, with the command line's overrides."""

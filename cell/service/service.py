@@ -104,6 +104,7 @@ class LineService:
         self._listeners: list[Callable[[ServiceEvent], None]] = []
         self._jobs: queue.Queue = queue.Queue()
         self._t0 = time.monotonic()
+        self._closed = False
         self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
         interval = config.service.capture_interval_s
         self.capture_interval_s = interval / config.sim.speed_factor if devices.sim is not None else interval
@@ -120,6 +121,9 @@ class LineService:
     def close(self, timeout_s: float | None = None) -> None:
         """Halt any job (the safe stop), end the worker and write the last line; idempotent."""
         with self._lock:
+            if self._closed:
+                return
+            self._closed = True
             if self._controls is not None:
                 self._halt_requested = True
                 self._controls.request(self._controls.stop)
