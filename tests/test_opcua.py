@@ -277,3 +277,43 @@ def test_emulated_arms_pick_through_the_service(tmp_path, arm):
     finally:
         assert serve.stop() == 0
     assert "Traceback" not in serve.output
+
+
+def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_path):
+    """host 0.0.0.0 with a user and a password from the environment: Basic256Sha256 SignAndEncrypt only,
+    a certificate made on first start, the right password in, a wrong one and an unencrypted client out."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    certs = tmp_path / "certs"
+    (tmp_path / "exposed.toml").write_text(
+        f'[service]\nhost = "0.0.0.0"\nuser = "plc"\npassword_env = "CELL_TEST_PW"\ncertificate_dir = "{certs}"\n'
+        '[camera]\nwidth_px = 960\nheight_px = 540\n')
+    key, cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
+    asyncio.run(setup_self_signed_certificate(key, cert, "urn:test-plc", "localhost",
+                                              [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test-plc"}))
+    serve = Serve(tmp_path, "--dry-run", "--config", str(tmp_path / "exposed.toml"),
+                  env={"CELL_TEST_PW": "correct horse"})
+    try:
+        assert serve.wait_ready().startswith(f"ready: OPC UA opc.tcp://0.0.0.0:{serve.port}/cell")
+        assert (certs / "server-cert.der").is_file() and (certs / "server-key.pem").stat().st_mode & 0o077 == 0
+
+        async def attempt(password: str | None, secure: bool = True):
+            client = Client(serve.url, timeout=10)
+            if secure:
+                await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
+            if password is not None:
+                client.set_user("plc")
+                client.set_password(password)
+            async with client:
+                return await (await Cell(client).open()).read("VisionState")
+
+        assert asyncio.run(asyncio.wait_for(attempt("correct horse"), 30)) == "Ready"
+        with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+            asyncio.run(asyncio.wait_for(attempt("wrong"), 30))
+        with pytest.raises(ua.UaStatusCodeError, match="BadIdentityTokenRejected"):  # anonymous
+            asyncio.run(asyncio.wait_for(attempt(None), 30))
+        with pytest.raises(ua.UaError, match="No matching endpoints"):  # no unencrypted endpoint at all
+            asyncio.run(asyncio.wait_for(attempt("correct horse", secure=False), 30))
+    finally:
+        assert serve.stop() == 0
