@@ -4,8 +4,10 @@ carried over a restart, and nothing left running after close."""
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -133,11 +135,23 @@ def test_single_job_counters_survive_a_restart_and_match_the_log(tmp_path):
     assert counts["picked"] == {"bolt": before.picked_bolts, "nut": before.picked_nuts}
 
 
-def test_close_leaves_no_thread_behind(tmp_path):
-    before = {t.ident for t in threading.enumerate()}
-    with running(small_config(tmp_path)) as service:
+def open_fds() -> set[str]:
+    return set(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else set()
+
+
+@pytest.mark.parametrize("arm", ["mock", "serial"])
+def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
+    cfg = small_config(tmp_path)
+    if arm == "serial":  # the real driver on a pty against the emulated GRBL: threads and fds to leak
+        from cell.config import load_config
+
+        cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "sim-grbl.toml")
+        cfg.run.log_dir = tmp_path / "logs"
+    before_threads, before_fds = {t.ident for t in threading.enumerate()}, open_fds()
+    with running(cfg) as service:
         service.command(Command.START_CONTINUOUS)
-        wait_for(lambda: picked(service) >= 1, what="a pick")
-    assert {t.ident for t in threading.enumerate()} - before == set()
+        wait_for(lambda: picked(service) >= 1, what="a pick", timeout_s=60)
+    assert {t.ident for t in threading.enumerate()} - before_threads == set()
+    assert open_fds() - before_fds == set()
     files = shift_files(tmp_path / "logs", read_shift.__defaults__[0] or time.strftime("%Y%m%d", time.gmtime()))
     assert read_events(files[-1])[-1]["kind"] == "service_stop"
