@@ -17,9 +17,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from asyncua import Server, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.permission_rules import User, UserRole
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from cell.config import CellConfig
+from cell.errors import ConfigError
 from cell.service.api import Command, InvalidState, LineServiceAPI, ServiceEvent, Snapshot
 from cell.service.security import credentials_configured, password_ok
 
@@ -128,8 +131,6 @@ class OpcUaServer:
         try:
             await s.start()
         except OSError as e:
-            from cell.errors import ConfigError
-
             raise ConfigError(f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
                               hint="another program holds the port: choose another with --opcua-port") from None
         self._task = asyncio.create_task(self._publish())
@@ -137,9 +138,6 @@ class OpcUaServer:
                  else "loopback, no security")
 
     async def _secure(self) -> None:
-        from asyncua.crypto.cert_gen import setup_self_signed_certificate
-        from cryptography.x509.oid import ExtendedKeyUsageOID
-
         self.cert_dir.mkdir(parents=True, exist_ok=True)
         key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
         await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(),
