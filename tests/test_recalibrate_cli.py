@@ -10,7 +10,7 @@ import pytest
 
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
-from drivers.sim.render import render_plate
+from cell.sim.render import render_plate
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "recalibrate.py"
