@@ -117,6 +117,17 @@ def test_bad_config_value(work, tmp_path):
     assert "plate.pitch_x_mm" in _untouched_after(work, tmp_path, "--config", cfg)
 
 
+def test_a_missing_camera_is_one_line_and_the_active_file_stays(work, tmp_path):
+    cfg = tmp_path / "camera.toml"
+    cfg.write_text(f'[camera]\nsource = "{tmp_path / "no-camera"}"\n')
+    out = tmp_path / "active.json"
+    out.write_text('{"keep": "me"}')
+    r = run(SCRIPT, "--out", out, "--config", cfg, "--log", work / "cell.log")
+    assert r.returncode == 2 and out.read_text() == '{"keep": "me"}', r.stdout + r.stderr
+    assert r.stderr.startswith("recalibrate: error: camera ") and "no such device" in r.stderr
+    assert r.stderr.count("\n") == 1 and "(hint: camera.source is 'sim'" in r.stderr
+
+
 def test_fit_over_the_limit_is_refused(work, tmp_path):
     cfg = tmp_path / "strict.toml"
     cfg.write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n[calibration]\nmax_cv_rms_mm = 0.05\n")

@@ -15,7 +15,7 @@ from pathlib import Path
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
 from cell.config import load_config
-from cell.errors import CalibrationRejected, CellError, InputError
+from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError
 from cell.imageio import read_image
 from cell.oplog import log_to_file
 from cell.sim.render import render_plate
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("recalibration refused: %s", e)
         print(f"recalibrate: refused: {e}", file=sys.stderr)
         return 3
-    except CellError as e:
+    except REPORTED_ERRORS as e:
         log.error("recalibration failed: %s", e)
         print(f"recalibrate: error: {e}", file=sys.stderr)
         return 2

@@ -13,7 +13,7 @@ from pathlib import Path
 from cell.audit import AuditLog
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
-from cell.errors import CellError, ConfigError, InputError
+from cell.errors import REPORTED_ERRORS, ConfigError, InputError
 from cell.oplog import log_to_file
 from cell.planning import Planner, save_taught, table_to_robot
 from cell.run_config import RunConfig
@@ -142,7 +142,7 @@ def run_cell(args: argparse.Namespace) -> int:
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
     try:
         config = _apply_overrides(load_config(args.run_config), args)
-    except CellError as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
+    except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
         with AuditLog((args.log_dir or RunConfig().log_dir) / f"run-{stamp}.jsonl") as audit:
             _log_fault(audit, args, e)
         raise
