@@ -15,13 +15,13 @@ from pathlib import Path
 from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices
 from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
-from cell.feeder import FedCamera, Feeder, SimClock
 from cell.oplog import log_to_file
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import Devices, LineService
 from cell.service.shiftlog import ShiftLog
+from cell.sim.feeder import FedCamera, Feeder, SimClock
+from cell.sim.render import render_plate
 from cell.vision.locate import locate
-from drivers.sim.render import render_plate
 
 log = logging.getLogger(__name__)
 
