@@ -147,8 +147,8 @@ class SimConfig(Strict):
                                           "the emulator moves this many times faster than the arm would; 1 = real time"
     )
     speed_factor: float = Field(
-        1.0, gt=0, le=10000, description="simulated time runs this many times faster than the wall clock (the feeder, "
-                                         "the capture interval, the mock arm's realtime motion): rehearse a shift in minutes"
+        1.0, gt=0, le=10000, description="run-cell serve: simulated time runs this many times faster than the wall "
+                                         "clock (the feeder, the capture interval): rehearse a shift in minutes"
     )
     feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(
