@@ -13,6 +13,7 @@ import asyncio
 import logging
 import math
 import socket
+from collections import deque
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from cell.config import CellConfig
 from cell.errors import ConfigError
-from cell.service.api import Command, InvalidState, LineServiceAPI, ServiceEvent, Snapshot
+from cell.service.api import Command, InvalidState, LineServiceAPI, PickRecord, ServiceEvent, Snapshot
 from cell.service.security import credentials_configured, password_ok
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,12 @@ def _values(s: Snapshot) -> dict:
     }
 
 
+# The PickEventType's own fields (besides BaseEventType's Message, Severity, Time ...).
+PICK_EVENT_FIELDS = [("TrackId", _T.UInt32), ("PartClass", _T.String), ("TableMm", _T.Double),
+                     ("RobotMm", _T.Double), ("AngleDeg", _T.Double), ("Outcome", _T.String)]
+_PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
+
+
 def _finite(v: float) -> float:
     return float(v) if math.isfinite(v) else 0.0
 
@@ -99,6 +106,8 @@ class OpcUaServer:
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
+        self._picks: deque[PickRecord] = deque(maxlen=_PICKS_QUEUED)
+        self._pick_events = None
         self._task: asyncio.Task | None = None
         self._unsubscribe = None
 
@@ -126,6 +135,8 @@ class OpcUaServer:
         for command in Command:
             await cell.add_method(ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns),
                                   self._method(command), [], [])
+        etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
+        self._pick_events = await s.get_event_generator(etype, cell)
         loop = asyncio.get_running_loop()
         self._unsubscribe = self.service.subscribe(lambda e: self._on_event(loop, e))
         try:
@@ -165,6 +176,8 @@ class OpcUaServer:
 
     def _on_event(self, loop: asyncio.AbstractEventLoop, event: ServiceEvent) -> None:
         """From the cell's thread: only wake the publisher (frames carry nothing OPC UA shows)."""
+        if event.kind == "pick":
+            self._picks.append(event.pick)  # deque.append is atomic; the loop drains it
         if event.kind != "frame" and not loop.is_closed():
             loop.call_soon_threadsafe(self._dirty.set)
 
@@ -176,12 +189,25 @@ class OpcUaServer:
             except asyncio.TimeoutError:
                 pass
             self._dirty.clear()
+            while self._picks:
+                await self._fire(self._picks.popleft())
             for name, value in _values(self.service.snapshot()).items():
                 if self._written.get(name) != value:
                     vtype, array = VARIABLES[name]
                     await self.server.write_attribute_value(
                         self.nodes[name], ua.DataValue(ua.Variant(value, vtype, is_array=array or None)))
                     self._written[name] = value
+
+    async def _fire(self, p: PickRecord) -> None:
+        """One pick as a PickEventType event from Cell."""
+        ev = self._pick_events.event
+        ev.Message = ua.LocalizedText(f"part {p.track_id} {p.cls} {p.outcome} at table "
+                                      f"({p.table_mm[0]:.1f}, {p.table_mm[1]:.1f}) mm")
+        ev.Severity = 100 if p.outcome in ("picked", "rehearsed") else 500
+        ev.TrackId, ev.PartClass, ev.Outcome = ua.Variant(p.track_id, _T.UInt32), p.cls, p.outcome
+        ev.TableMm, ev.RobotMm = [float(v) for v in p.table_mm], [float(v) for v in p.robot_mm]
+        ev.AngleDeg = float(p.angle_deg) if p.angle_deg is not None else 0.0
+        await self._pick_events.trigger(p.time_utc)
 
     async def stop(self) -> None:
         if self._unsubscribe is not None:
