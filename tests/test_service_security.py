@@ -1,6 +1,7 @@
 """Who may connect: loopback by default, beyond it only with a user and a hashed or env password."""
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -51,3 +52,14 @@ def test_serve_refuses_a_bad_port_in_one_line():
     r = subprocess.run([sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--opcua-port", "70000"],
                        capture_output=True, text=True, timeout=60, cwd=REPO)
     assert r.returncode == 2 and "--opcua-port 70000: a port is 1-65535" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_serve_refuses_a_taken_port_before_building_anything(tmp_path):
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--log-dir", str(tmp_path),
+                            "--opcua-port", str(port)], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr
+    assert not list(tmp_path.glob("cell-*.jsonl"))  # refused before the service opened its log

@@ -9,6 +9,7 @@ import getpass
 import logging
 import os
 import signal
+import socket
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -85,6 +86,7 @@ def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitSt
 def cmd_serve(args: argparse.Namespace) -> int:
     config = serve_config(args)
     check_exposure(config.service)
+    _check_port_free(config.service.host, config.service.opcua_port, "--opcua-port")
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d")
     if not args.verbose:
         for h in logging.getLogger().handlers:
@@ -97,8 +99,22 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return asyncio.run(_serve(config, service))
 
 
+def _check_port_free(host: str, port: int, option: str) -> None:
+    """Fail in a second, not after the devices and the calibration are up, when the port is taken."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server will
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            raise ConfigError(f"cannot listen on {host}:{port}: {e.strerror or e}",
+                              hint=f"another program holds the port, or the address is not this machine's: "
+                                   f"choose another with {option} or service.host") from None
+
+
 async def _serve(config: CellConfig, service: LineService) -> int:
-    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down."""
+    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down.
+
+    An interface is anything with `start()`, `stop()` (coroutines) and `ready_text`."""
     # imported here, not at the top: asyncua would cost every run-cell command 1.6-1.8 s (measured on 2 busy cores)
     from cell.service.opcua import OpcUaServer
 
@@ -106,16 +122,20 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
-    opcua = OpcUaServer(service, config)
-    await opcua.start()
+    interfaces, started = [OpcUaServer(service, config)], []
     try:
-        print(f"ready: OPC UA {opcua.endpoint} (pid {os.getpid()}; SIGTERM or Ctrl-C stops safely)", flush=True)
+        for interface in interfaces:
+            await interface.start()
+            started.append(interface)
+        ready = "; ".join(i.ready_text for i in interfaces)
+        print(f"ready: {ready} (pid {os.getpid()}; SIGTERM or Ctrl-C stops safely)", flush=True)
         await stop.wait()
         log.info("stop signal: halting the cell")
         await asyncio.to_thread(service.close)
         await asyncio.sleep(0.2)  # let subscribers see the final state
     finally:
-        await opcua.stop()
+        for interface in reversed(started):
+            await interface.stop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(sig)
     print("stopped: cell halted safely", flush=True)

@@ -111,6 +111,10 @@ class OpcUaServer:
         self._task: asyncio.Task | None = None
         self._unsubscribe = None
 
+    @property
+    def ready_text(self) -> str:
+        return f"OPC UA {self.endpoint}"
+
     async def start(self) -> None:
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
             logging.getLogger(name).setLevel(logging.WARNING)
@@ -139,11 +143,15 @@ class OpcUaServer:
         self._pick_events = await s.get_event_generator(etype, cell)
         loop = asyncio.get_running_loop()
         self._unsubscribe = self.service.subscribe(lambda e: self._on_event(loop, e))
+        quiet = logging.getLogger("asyncua.server.server")
+        quiet.setLevel(logging.CRITICAL)  # its traceback for a taken port; we say it in one line
         try:
             await s.start()
         except OSError as e:
             raise ConfigError(f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
                               hint="another program holds the port: choose another with --opcua-port") from None
+        finally:
+            quiet.setLevel(logging.WARNING)
         self._task = asyncio.create_task(self._publish())
         log.info("OPC UA server on %s (%s)", self.endpoint, "Basic256Sha256 SignAndEncrypt, user" if self.secure
                  else "loopback, no security")
