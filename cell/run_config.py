@@ -92,7 +92,8 @@ class FeederConfig(Strict):
     washer_share: float = Field(0.10, ge=0, le=1, description="fraction that are washers (the cell must leave them)")
     seed: int = Field(1, ge=0)
     area_mm: tuple[float, float, float, float] = Field(
-        (15.0, 10.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm)"
+        (15.0, 25.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm); "
+                                                "the default keeps clear of the arm's base (reach_min_mm)"
     )
     max_on_table: int = Field(40, ge=1, le=500, description="a part due when this many lie on the table is not dropped")
     clear_after_s: float = Field(

@@ -34,7 +34,7 @@ from cell.runner import Controls, Runner
 from cell.service.api import (Alarm, CalibrationInfo, Command, FrameView, InvalidState, PickRecord, ServiceEvent,
                               Snapshot, VisionState, allowed)
 from cell.service.counters import ShiftCounts
-from cell.service.shiftlog import ShiftLog, read_shift
+from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.statemachine import State
 from drivers.arm.base import Arm
 from drivers.cameras.base import Camera
@@ -95,7 +95,7 @@ class LineService:
         self._halt_requested = False
         self._controls: Controls | None = None
         self._runner: Runner | None = None
-        self._counts = ShiftCounts.from_events(read_shift(config.run.log_dir))
+        self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_KEPT)
         self._pick_times: deque[float] = deque(maxlen=_RATE_WINDOW)
         self._last_target: dict | None = None

@@ -53,7 +53,8 @@ class Feeder:
     def tick(self) -> None:
         """Before a frame: tidy the world, then drop every part that has arrived since the last tick."""
         now = self.sim_time_s()
-        vacated = [xy for pid, xy in self._last_seen.items() if pid not in self._positions()]
+        here = self._positions()
+        vacated = [xy for pid, xy in self._last_seen.items() if pid not in here]
         self._tidy(now)
         arrived = int(self.cfg.parts_per_minute * (now - self.t_start) / 60.0)
         for _ in range(arrived - self.due):
