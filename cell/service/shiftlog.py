@@ -51,7 +51,10 @@ def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
 def _end_torn_line(path: Path) -> None:
     """A writer killed mid-line left no newline: end that line, so the next event starts its own."""
     with open(path, "rb+") as f:
-        if f.seek(0, 2) and (f.seek(-1, 2), f.read(1))[1] != b"\n":
+        if f.seek(0, 2) == 0:
+            return
+        f.seek(-1, 2)
+        if f.read(1) != b"\n":
             f.write(b"\n")
 
 
