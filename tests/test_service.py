@@ -148,6 +148,7 @@ def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
         from cell.config import load_config
 
         cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "sim-grbl.toml")
+        cfg.camera.width_px, cfg.camera.height_px = 960, 540
         cfg.run.log_dir = tmp_path / "logs"
     before_threads, before_fds = {t.ident for t in threading.enumerate()}, open_fds()
     with running(cfg) as service:
