@@ -319,9 +319,13 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
                 client.set_user("plc")
                 client.set_password(password)
             async with client:
-                return await (await Cell(client).open()).read("VisionState")
+                cell = await Cell(client).open()
+                await cell.call("Halt")  # the user may command the cell, not only read it
+                halted = await cell.read("VisionState")
+                await cell.call("Reset")
+                return halted, await cell.read("VisionState")
 
-        assert asyncio.run(asyncio.wait_for(attempt("correct horse"), 30)) == "Ready"
+        assert asyncio.run(asyncio.wait_for(attempt("correct horse"), 30)) == ("Halted", "Ready")
         with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
             asyncio.run(asyncio.wait_for(attempt("wrong"), 30))
         with pytest.raises(ua.UaStatusCodeError, match="BadIdentityTokenRejected"):  # anonymous
