@@ -152,7 +152,7 @@ class Planner:
         if part.cls not in ("bolt", "nut"):
             raise Unreachable(f"class {part.cls!r} is not picked")
         plan = self.cfg.for_class(part.cls)
-        table_xy = part.grasp_mm or part.world_mm
+        table_xy = part.grasp_mm or part.table_mm
         rx, ry = self.frame.to_robot(table_xy)[0]
         z = self.frame.table_z_mm
         angle = None
@@ -195,8 +195,8 @@ class Planner:
         if self.cfg.pick_order == "as-found" or not parts:
             return list(parts)
         if self.cfg.pick_order == "rows":
-            return sorted(parts, key=lambda p: (round(p.world_mm[1], 1), p.world_mm[0]))
+            return sorted(parts, key=lambda p: (round(p.table_mm[1], 1), p.table_mm[0]))
         here = np.asarray(gripper_robot_xy if gripper_robot_xy is not None else (0.0, 0.0))
-        robot = self.frame.to_robot([p.world_mm for p in parts])
+        robot = self.frame.to_robot([p.table_mm for p in parts])
         dist = np.hypot(*(robot - here).T)
         return [parts[i] for i in np.argsort(dist, kind="stable")]

@@ -35,7 +35,7 @@ def test_default_pipeline_over_the_plate_field(name):
     paper_rms, _ = plate_field_error_mm(cam, calibrate(image, PAPER, "quadratic").calibration, CONFIG.plate)
     assert paper_rms >= 20 * rms, f"{name}: paper {paper_rms:.4f} mm vs default {rms:.4f} mm"
     # The cross-validated figure users are told to trust is an honest estimate, not a flattering one.
-    assert default.chosen.cv["rms_mm"] < 0.015
+    assert default.chosen.cv.rms_mm < 0.015
 
 
 def test_every_model_can_be_forced_and_the_report_says_why():

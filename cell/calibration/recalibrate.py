@@ -71,9 +71,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {p}")
     cv = result.chosen.cv
     limits = config.calibration
-    if cv["rms_mm"] > limits.max_cv_rms_mm or cv["max_mm"] > limits.max_cv_error_mm:
+    if cv.rms_mm > limits.max_cv_rms_mm or cv.max_mm > limits.max_cv_error_mm:
         raise CalibrationRejected(
-            f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
+            f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
             f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
             f"{limits.max_cv_error_mm} mm; {out} left unchanged"
         )
@@ -89,8 +89,8 @@ def run(args: argparse.Namespace) -> int:
         "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
         out,
         result.chosen.label,
-        cv["rms_mm"],
-        cv["max_mm"],
+        cv.rms_mm,
+        cv.max_mm,
         f"; previous kept as {backup}" if backup else "",
     )
     print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))

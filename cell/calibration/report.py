@@ -67,18 +67,18 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     for s in result.scores:
         mark = "*" if s is result.chosen else " "
         lines.append(
-            f"{mark}{s.label:<23}{s.fit['rms_x_mm']:>11.4f}{s.fit['rms_y_mm']:>11.4f}"
-            f"{s.fit['max_mm']:>9.4f}{s.cv['rms_mm']:>9.4f}{s.cv['max_mm']:>9.4f}"
+            f"{mark}{s.label:<23}{s.fit.rms_x_mm:>11.4f}{s.fit.rms_y_mm:>11.4f}"
+            f"{s.fit.max_mm:>9.4f}{s.cv.rms_mm:>9.4f}{s.cv.max_mm:>9.4f}"
         )
     lines += [
         "",
         "deviation (original - calibrated), chosen model:",
-        f"  fitted points:     max +dX {fit['max_pos_x_mm']:+.4f}  max -dX {fit['max_neg_x_mm']:+.4f}  "
-        f"max +dY {fit['max_pos_y_mm']:+.4f}  max -dY {fit['max_neg_y_mm']:+.4f}  "
-        f"RMS X {fit['rms_x_mm']:.4f}  RMS Y {fit['rms_y_mm']:.4f}",
-        f"  cross-validated:   max +dX {cv['max_pos_x_mm']:+.4f}  max -dX {cv['max_neg_x_mm']:+.4f}  "
-        f"max +dY {cv['max_pos_y_mm']:+.4f}  max -dY {cv['max_neg_y_mm']:+.4f}  "
-        f"RMS X {cv['rms_x_mm']:.4f}  RMS Y {cv['rms_y_mm']:.4f}",
+        f"  fitted points:     max +dX {fit.max_pos_x_mm:+.4f}  max -dX {fit.max_neg_x_mm:+.4f}  "
+        f"max +dY {fit.max_pos_y_mm:+.4f}  max -dY {fit.max_neg_y_mm:+.4f}  "
+        f"RMS X {fit.rms_x_mm:.4f}  RMS Y {fit.rms_y_mm:.4f}",
+        f"  cross-validated:   max +dX {cv.max_pos_x_mm:+.4f}  max -dX {cv.max_neg_x_mm:+.4f}  "
+        f"max +dY {cv.max_pos_y_mm:+.4f}  max -dY {cv.max_neg_y_mm:+.4f}  "
+        f"RMS X {cv.rms_x_mm:.4f}  RMS Y {cv.rms_y_mm:.4f}",
         "  (trust the cross-validated line: each point there was predicted by a fit made without it)",
     ]
     if cal.camera is not None:

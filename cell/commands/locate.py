@@ -78,7 +78,7 @@ def to_json(result: LocateResult) -> dict:
                 "class": p.cls,
                 "reason": p.reason,
                 "pixel": _round(p.pixel),
-                "world_mm": _round(p.world_mm),
+                "world_mm": _round(p.table_mm),  # the documented key tools read (table mm)
                 "angle_deg": None if p.angle_deg is None else round(p.angle_deg, 2),
                 "pick": p.pick,
                 "grasp_mm": _round(p.grasp_mm),
@@ -103,7 +103,7 @@ def format_table(result: LocateResult) -> str:
         angle = "" if p.angle_deg is None else f"{p.angle_deg:.1f}"
         lines.append(
             f"{p.id:>4}  {p.cls.capitalize():<8}{p.pixel[0]:>9.1f}{p.pixel[1]:>9.1f}"
-            f"{p.world_mm[0]:>10.3f}{p.world_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
+            f"{p.table_mm[0]:>10.3f}{p.table_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
         )
     return "\n".join(lines)
 

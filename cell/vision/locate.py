@@ -172,7 +172,7 @@ def _place(feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsCon
         cls=verdict.cls,
         reason=verdict.reason,
         pixel=(float(centre[0]), float(centre[1])),
-        world_mm=(float(world[0]), float(world[1])),
+        table_mm=(float(world[0]), float(world[1])),
         angle_deg=angle,
         pick=verdict.cls in (BOLT, NUT),
         grasp_mm=None if grasp is None else (float(grasp[0]), float(grasp[1])),
