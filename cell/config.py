@@ -9,19 +9,17 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.vision.config import PartsConfig
 from drivers.arm.config import ArmConfig
+from drivers.cameras.config import CameraConfig
+from drivers.config import Strict
 
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
 class PlateConfig(Strict):
@@ -99,19 +97,6 @@ class CalibrationConfig(Strict):
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
-
-
-class CameraConfig(Strict):
-    """Where frames come from."""
-
-    source: str = Field("sim", description="'sim', a device index, a URL, a video file or an image folder")
-    width_px: int = Field(1920, ge=16, le=20000)
-    height_px: int = Field(1080, ge=16, le=20000)
-    timeout_s: float = Field(5.0, gt=0, le=120)
-    focus: float | None = Field(None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)")
-    exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
-    warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
-    loop: bool = Field(False, description="video file or image folder: start again at the end")
 
 
 class CellConfig(Strict):

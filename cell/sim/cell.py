@@ -3,7 +3,7 @@ rendered image, then a table laid out like the paper's Table IV (9 bolts, 8 nuts
 washer the cell must leave alone, an arm and its two bins.
 
 The calibration is fitted, not copied from the camera model, so the dry run carries the
-same mapping error the line would. The arm is the geometric SimArm (arm.kind mock), or
+same mapping error the line would. The arm is the geometric SimArm (arm.kind sim), or
 the real serial or Dynamixel driver against its emulated firmware on a pseudo-terminal.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ from cell.sim.sim_arm import SimArm
 from cell.sim.sim_camera import SimCamera
 from cell.sim.world import Bin, JawTolerance, Truth, World
 from drivers.arm.base import Arm
-from drivers.arm.config import Workspace
+from drivers.arm.config import ArmConfig
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +136,15 @@ def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
     return CameraModel(model.width_px, model.height_px, model.camera_matrix, model.dist_coeffs, model.rvec, t)
 
 
+
+def sim_arm_kind(arm: ArmConfig) -> str:
+    """The simulated cell's arm: 'sim' (SimArm), or 'serial'/'dynamixel' against an emulator.
+
+    'mock' is the documented old spelling of 'sim' here (docs/running-the-cell.md, `make
+    demo`): a recording mock arm has no table to act on, so in the simulated cell it means SimArm.
+    """
+    return "sim" if arm.kind in ("sim", "mock") else arm.kind
+
 @contextlib.contextmanager
 def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     """Camera, plate calibration, world and arm of the simulated cell, for a `with` block: an
@@ -169,15 +178,13 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     world = World(parts, truth, bins, tolerance)
     camera = SimCamera(world, model, seed=sim.seed)
     log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
-    if config.arm.kind != "mock":
+    if sim_arm_kind(config.arm) != "sim":
         with emulated_arm(config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips) as emulated:
             yield SimCell(world, camera, emulated.arm, calibration, note, emulated)
         return
-    ws = plan.workspace
     arm = SimArm(
         world,
-        Workspace(x_min_mm=ws.x_min_mm, x_max_mm=ws.x_max_mm, y_min_mm=ws.y_min_mm,
-                  y_max_mm=ws.y_max_mm, z_min_mm=ws.z_min_mm, z_max_mm=ws.z_max_mm),
+        plan.workspace,
         speed_mm_s=sim.speed_mm_s, gripper_s=sim.gripper_s, realtime=sim.realtime,
     )
     yield SimCell(world, camera, arm, calibration, note, None)

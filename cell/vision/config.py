@@ -4,13 +4,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-
-class Strict(BaseModel):
-    """As cell.config.Strict (which imports this module, so it cannot be imported here)."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+from drivers.config import Strict
 
 
 def _ordered(name: str, pair: tuple[float, float]) -> None:
