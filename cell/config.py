@@ -13,7 +13,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
-from cell.vision.config import PartsConfig
+from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
 from drivers.cameras.config import CameraConfig
 from drivers.config import Strict
@@ -69,7 +69,7 @@ class PaperDetectionConfig(Strict):
 class DetectionConfig(Strict):
     """How circle centres are found on the plate image."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: Preset = "default"
     paper: PaperDetectionConfig = PaperDetectionConfig()
     min_diameter_ratio: float = Field(
         0.6, gt=0, lt=1, description="smallest blob accepted, as a fraction of the lattice's circle diameter"

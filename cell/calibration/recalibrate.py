@@ -11,15 +11,17 @@ import shutil
 import sys
 from datetime import datetime
 from pathlib import Path
+from typing import get_args
 
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
-from cell.config import load_config
+from cell.config import ModelName, load_config
 from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError
 from cell.imageio import read_image
 from cell.oplog import log_to_file
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
+from cell.vision.config import Preset
 from drivers.cameras.factory import make_camera
 
 log = logging.getLogger(__name__)
@@ -33,8 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image", type=Path, help="plate image (default: capture from the configured camera)")
     p.add_argument("--out", type=Path, help="calibration file to replace (default: calibration.active_path)")
     p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
-    p.add_argument("--model", choices=["auto", "quadratic", "homography", "polynomial", "camera"])
-    p.add_argument("--preset", choices=["default", "paper"], help="detector preset (overrides the config)")
+    p.add_argument("--model", choices=get_args(ModelName))
+    p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
     p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import get_args
 
 import cv2
 import numpy as np
@@ -11,6 +12,7 @@ import numpy as np
 from cell.calibration.store import Calibration
 from cell.config import load_config
 from cell.errors import InputError
+from cell.vision.config import Preset
 from cell.vision.locate import PixelScale, locate
 from cell.vision.types import LocateResult
 
@@ -26,7 +28,7 @@ def register(sub) -> None:
         "--mm-per-px", type=float, help="a plain scale for an uncalibrated image (no height correction)"
     )
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
-    p.add_argument("--preset", choices=["default", "paper"], help="override parts.preset")
+    p.add_argument("--preset", choices=get_args(Preset), help="override parts.preset")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled")
     p.set_defaults(func=cmd_locate)

@@ -8,6 +8,8 @@ from pydantic import Field, model_validator
 
 from drivers.config import Strict
 
+Preset = Literal["default", "paper"]  # "paper": the published thresholds (section III-D)
+
 
 def _ordered(name: str, pair: tuple[float, float]) -> None:
     if pair[0] >= pair[1]:
@@ -89,7 +91,7 @@ class BoltConfig(Strict):
 class PartsConfig(Strict):
     """How parts are found, told apart and located."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: Preset = "default"
     height_correction: bool | None = Field(
         None, description="map centroids at the part's reference height; None: on, except in the paper preset"
     )
