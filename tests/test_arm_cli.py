@@ -6,15 +6,9 @@ import pytest
 
 from cell.cli import main
 from drivers.sim.dxl_emulator import DxlBusEmulator
-from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
-
-@pytest.fixture
-def grbl():
-    emu = GrblEmulator(speed_scale=20)
-    with serve_pty(emu) as path:
-        yield emu, path
+pytestmark = pytest.mark.timeout(60)  # opens a pty with emulated firmware
 
 
 def test_jog_serial_at_grbl_defaults_ends_at_the_commanded_position(grbl, capsys):
