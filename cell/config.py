@@ -35,7 +35,7 @@ class PlateConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _circles_do_not_touch(self) -> "PlateConfig":
+    def _circles_do_not_touch(self) -> PlateConfig:
         if self.diameter_mm >= min(self.pitch_x_mm, self.pitch_y_mm):
             raise ValueError(
                 f"plate.diameter_mm ({self.diameter_mm} mm) must be smaller than both pitches "
@@ -57,7 +57,7 @@ class PaperDetectionConfig(Strict):
     max_area_px: float = Field(2000, gt=0)
 
     @model_validator(mode="after")
-    def _area_order(self) -> "PaperDetectionConfig":
+    def _area_order(self) -> PaperDetectionConfig:
         if self.min_area_px >= self.max_area_px:
             raise ValueError(
                 f"detection.paper.min_area_px ({self.min_area_px} px) must be below "

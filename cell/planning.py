@@ -36,7 +36,7 @@ class TableToRobot:
     scale: float = 1.0
 
     @classmethod
-    def from_offset(cls, cfg: PlanningConfig) -> "TableToRobot":
+    def from_offset(cls, cfg: PlanningConfig) -> TableToRobot:
         return cls(0.0, cfg.offset_x_mm, cfg.offset_y_mm, cfg.table_z_mm)
 
     def _matrix(self) -> np.ndarray:
@@ -181,7 +181,7 @@ class Planner:
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point lies outside the configured workspace or reach, or None."""
         ws = self.cfg.workspace
-        for axis, v in zip("xyz", (x_mm, y_mm, z_mm)):
+        for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
             lo, hi = getattr(ws, f"{axis}_min_mm"), getattr(ws, f"{axis}_max_mm")
             if not (math.isfinite(v) and lo <= v <= hi):
                 return f"robot {axis} = {v:.1f} mm is outside the workspace [{lo:g}, {hi:g}] mm"

@@ -38,7 +38,7 @@ class RobotWorkspace(Workspace):
     reach_max_mm: float = Field(380.0, gt=0, description="farthest the tool may reach from the base axis (XY)")
 
     @model_validator(mode="after")
-    def _reach_ordered(self) -> "RobotWorkspace":
+    def _reach_ordered(self) -> RobotWorkspace:
         if self.reach_min_mm >= self.reach_max_mm:
             raise ValueError(f"reach_min_mm ({self.reach_min_mm:g} mm) must be below reach_max_mm ({self.reach_max_mm:g} mm)")
         return self

@@ -5,7 +5,7 @@ import hashlib
 import logging
 import time
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -232,7 +232,7 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
             "points_missing": pts.missing,
         },
         image_sha256=hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest(),
-        created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
         statistics={"fit": chosen.fit.to_dict(), "cross_validated": chosen.cv.to_dict(), "why": why},
     )
     timings = {"detect_number_ms": 1e3 * (t1 - t0), "fit_cv_ms": 1e3 * (t2 - t1), "total_ms": 1e3 * (t2 - t0)}

@@ -18,7 +18,7 @@ def table3_rows(result: CalibrationResult) -> list[dict]:
     """Calibrated X/Y, original X/Y, deviation = original - calibrated, per point."""
     rows = []
     for num, px, cal, orig in zip(
-        result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm
+        result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm, strict=True
     ):
         rows.append(
             {
@@ -104,7 +104,7 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
     """Every centre marked and numbered (the paper's Fig. 4)."""
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     scale = max(0.35, out.shape[1] / 3000)
-    for num, (x, y) in zip(result.points.number, result.points.pixel):
+    for num, (x, y) in zip(result.points.number, result.points.pixel, strict=True):
         c = (int(round(x)), int(round(y)))
         cv2.drawMarker(out, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1, cv2.LINE_AA)
         cv2.putText(out, str(num), (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 160, 0), 1, cv2.LINE_AA)

@@ -7,7 +7,7 @@ import contextlib
 import logging
 import os
 import signal
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
@@ -93,7 +93,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
                 raise InputError(f"--point {circle} {x} {y}: expected a circle number and two numbers") from None
             points.append(TaughtPoint(n, circle_table_mm(n, config), (rx, ry)))
     fit, residuals = fit_points(points, config)
-    for p, r in zip(points, residuals):
+    for p, r in zip(points, residuals, strict=True):
         print(f"circle {p.circle:3d}: table ({p.table_mm[0]:7.2f}, {p.table_mm[1]:7.2f}) mm -> "
               f"robot ({p.robot_mm[0]:7.2f}, {p.robot_mm[1]:7.2f}) mm, residual {r:.3f} mm")
     print(f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
@@ -141,7 +141,7 @@ def run_cell(args: argparse.Namespace) -> int:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
     if args.run_config is None and args.arm in SIM_CONFIGS:
         args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     try:
         config = _apply_overrides(load_config(args.run_config), args)
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault

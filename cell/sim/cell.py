@@ -12,8 +12,8 @@ import contextlib
 import itertools
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 

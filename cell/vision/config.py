@@ -56,7 +56,7 @@ class NutConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _pairs(self) -> "NutConfig":
+    def _pairs(self) -> NutConfig:
         _ordered("parts.nut.across_flats_mm", self.across_flats_mm)
         _ordered("parts.nut.hole_ratio", self.hole_ratio)
         return self
@@ -82,7 +82,7 @@ class BoltConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _pairs(self) -> "BoltConfig":
+    def _pairs(self) -> BoltConfig:
         for name in ("shaft_mm", "head_width_mm", "length_mm"):
             _ordered(f"parts.bolt.{name}", getattr(self, name))
         return self

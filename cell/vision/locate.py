@@ -84,7 +84,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes):
+    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct)
         part.outline_px = blob.outer

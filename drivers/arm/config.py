@@ -28,7 +28,7 @@ class Workspace(Strict):
     z_max_mm: float = 200.0
 
     @model_validator(mode="after")
-    def _ordered(self) -> "Workspace":
+    def _ordered(self) -> Workspace:
         for axis in "xyz":
             lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
             if lo >= hi:
@@ -37,7 +37,7 @@ class Workspace(Strict):
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point is outside the box, or None if inside."""
-        for axis, v in zip("xyz", (x_mm, y_mm, z_mm)):
+        for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
             lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
             if not math.isfinite(v) or not lo <= v <= hi:
                 return f"{axis} = {v:g} mm is outside the workspace [{lo:g}, {hi:g}] mm"
@@ -116,7 +116,7 @@ class SerialArmConfig(Strict):
     commands: SerialCommands = SerialCommands()
 
     @model_validator(mode="after")
-    def _consistent(self) -> "SerialArmConfig":
+    def _consistent(self) -> SerialArmConfig:
         if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
             raise ValueError(f"home_position_mm: {why}")
         if not self.commands.wait and not self.status_query:
@@ -168,19 +168,19 @@ class DynamixelArmConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _consistent(self) -> "DynamixelArmConfig":
+    def _consistent(self) -> DynamixelArmConfig:
         ids = [*self.joint_ids, self.gripper_id]
         if len(set(ids)) != len(ids):
             raise ValueError(f"joint_ids {list(self.joint_ids)} and gripper_id {self.gripper_id} must be distinct")
         for i in self.joint_ids:
             if not 0 <= i <= 252:
                 raise ValueError(f"joint_ids: {i} is not a servo id (0-252)")
-        for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg), start=1):
+        for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg, strict=True), start=1):
             if lo >= hi:
                 raise ValueError(f"joint {j}: joint_min_deg ({lo:g} deg) must be below joint_max_deg ({hi:g} deg)")
             if lo < -180 or hi > 180:
                 raise ValueError(f"joint {j}: joint_min_deg/joint_max_deg must lie within -180..180 deg (one servo turn)")
-        for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg), start=1):
+        for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg, strict=True), start=1):
             if d not in (1, -1):
                 raise ValueError(f"joint_directions: joint {j} is {d}, must be 1 or -1")
             if not self.joint_min_deg[j - 1] <= h <= self.joint_max_deg[j - 1]:
