@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import logging
 import math
 from collections.abc import Iterator
@@ -145,6 +146,29 @@ def sim_arm_kind(arm: ArmConfig) -> str:
     """
     return "sim" if arm.kind in ("sim", "mock") else arm.kind
 
+
+# A few fits of the simulated plate, each a few kB: see plate_calibration.
+_PLATE_FITS: dict[str, tuple[Calibration, str]] = {}
+
+
+def plate_calibration(config: CellConfig, model: CameraModel) -> tuple[Calibration, str]:
+    """The simulated plate rendered and calibrated as the line's would be: (calibration, why).
+
+    The fit depends only on the camera, the seed and the plate, detection and calibration
+    settings, so a process that builds the cell again (a line service starting job after
+    job, the test suite) renders and fits it once.
+    """
+    key = json.dumps([model.to_dict(), config.sim.seed, config.plate.model_dump(mode="json"),
+                      config.detection.model_dump(mode="json"), config.calibration.model_dump(mode="json")])
+    if key not in _PLATE_FITS:
+        result = calibrate(render_plate(model, config.plate, seed=config.sim.seed), config)
+        model.cache.clear()  # the plate's ray maps are not needed again
+        if len(_PLATE_FITS) >= 4:
+            _PLATE_FITS.pop(next(iter(_PLATE_FITS)))
+        _PLATE_FITS[key] = (result.calibration, result.why)
+    return _PLATE_FITS[key]
+
+
 @contextlib.contextmanager
 def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     """Camera, plate calibration, world and arm of the simulated cell, for a `with` block: an
@@ -155,11 +179,7 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         calibration = Calibration("camera", CameraMap(model), (model.width_px, model.height_px), model)
         note = "perfect (the camera model itself)"
     else:
-        plate_image = render_plate(model, config.plate, seed=sim.seed)
-        result = calibrate(plate_image, config)
-        calibration = result.calibration
-        note = result.why
-        model.cache.clear()  # the plate's ray maps are not needed again
+        calibration, note = plate_calibration(config, model)
     if any(sim.camera_bumped_mm):
         model = _bumped(model, sim.camera_bumped_mm)
         note += f"; camera since moved by {sim.camera_bumped_mm} mm"
