@@ -9,6 +9,7 @@ calibration is worse than none.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -28,30 +29,27 @@ class Numbering:
     missing: list[tuple[int, int]]  # lattice nodes with no blob
 
 
-def _nearest(points: np.ndarray, candidates: np.ndarray, q: np.ndarray) -> tuple[int, float]:
-    d = np.hypot(points[candidates, 0] - q[0], points[candidates, 1] - q[1])
-    i = int(d.argmin())
-    return int(candidates[i]), float(d[i])
-
-
-def _seed_basis(points: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _seed_basis(points: np.ndarray, near: list[int], i: int) -> tuple[tuple, tuple] | None:
     """Two shortest non-parallel steps from point i to its neighbours."""
-    d = points - points[i]
-    dist = np.hypot(d[:, 0], d[:, 1])
-    order = np.argsort(dist)[1:9]
+    order = near[1:9]
     if len(order) < 4:
         return None
-    u = d[order[0]]
+    u = points[order[0]] - points[i]
     for j in order[1:]:
-        v = d[j]
+        v = points[j] - points[i]
         cos = abs(u @ v) / (np.linalg.norm(u) * np.linalg.norm(v))
         if cos < 0.5 and np.linalg.norm(v) < 2.0 * np.linalg.norm(u):
-            return u, v
+            return (float(u[0]), float(u[1])), (float(v[0]), float(v[1]))
     return None
 
 
-def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
-    basis = _seed_basis(points, seed)
+def _grow(points: np.ndarray, pts: list, neighbours: list, sizes, seed: int, tol: float):
+    """Lattice nodes reached from `seed`, stepping by the local lattice vectors (pure Python: small, hot loop).
+
+    A blob is taken for a node only if it is near the predicted position and, when sizes are
+    given, of a similar size to the blob it was reached from (clutter rarely is both).
+    """
+    basis = _seed_basis(points, neighbours[seed], seed)
     if basis is None:
         return {}, 1
     node_of = {seed: (0, 0)}
@@ -62,13 +60,15 @@ def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
     while queue:
         p = queue.popleft()
         a, b = node_of[p]
-        u, v = local[p]
-        for step, (da, db) in ((u, (1, 0)), (-u, (-1, 0)), (v, (0, 1)), (-v, (0, -1))):
+        (ux, uy), (vx, vy) = local[p]
+        px, py = pts[p]
+        reach = tol * min(math.hypot(ux, uy), math.hypot(vx, vy))
+        for sx, sy, da, db in ((ux, uy, 1, 0), (-ux, -uy, -1, 0), (vx, vy, 0, 1), (-vx, -vy, 0, -1)):
             for k in (1, 2):
                 node = (a + k * da, b + k * db)
-                q = points[p] + k * step
-                j, dist = _nearest(points, neighbours[p], q)
-                if dist > tol * min(np.linalg.norm(u), np.linalg.norm(v)):
+                qx, qy = px + k * sx, py + k * sy
+                j, dist = min(((c, math.hypot(pts[c][0] - qx, pts[c][1] - qy)) for c in neighbours[p]), key=_second)
+                if dist > reach or (sizes is not None and not 0.67 < sizes[j] / sizes[p] < 1.5):
                     continue
                 if j in node_of:
                     if node_of[j] != node:
@@ -79,15 +79,34 @@ def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
                     break
                 node_of[j] = node
                 blob_at[node] = j
-                observed = (points[j] - points[p]) / (k * (da + db))
-                local[j] = (observed, v) if db == 0 else (u, observed)
+                step = k * (da + db)
+                observed = ((pts[j][0] - px) / step, (pts[j][1] - py) / step)
+                local[j] = (observed, (vx, vy)) if db == 0 else ((ux, uy), observed)
                 queue.append(j)
                 break
     return node_of, conflicts
 
 
-def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missing: int = 10) -> Numbering:
-    """Give each blob centre its (column, row) on the plate, or fail saying what was seen."""
+def _second(pair):
+    return pair[1]
+
+
+def _neighbours(points: np.ndarray, k: int) -> list[list[int]]:
+    """Each point's k nearest (itself first)."""
+    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    k = min(len(points), k)
+    near = np.argpartition(dist, k - 1, axis=1)[:, :k]
+    order = np.take_along_axis(dist, near, axis=1).argsort(axis=1)
+    return np.take_along_axis(near, order, axis=1).tolist()
+
+
+def number_lattice(
+    points: np.ndarray, plate: PlateConfig, tol: float, max_missing: int = 10, sizes: np.ndarray | None = None
+) -> Numbering:
+    """Give each blob centre its (column, row) on the plate, or fail saying what was seen.
+
+    `sizes` (blob diameters), when given, keep blobs of very different sizes off one lattice.
+    """
     n = len(points)
     if n < 4:
         raise PlateNotFound(f"found {n} blobs, too few for a {plate.columns} x {plate.rows} plate")
@@ -96,11 +115,12 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
     order = np.argsort(np.hypot(*(points - centre).T))
     seeds = list(order[:12]) + list(order[12 :: max(1, n // 12)])
     # Steps of one or two pitches stay within a point's 24 nearest neighbours.
-    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
-    neighbours = np.argsort(dist, axis=1)[:, : min(n, 25)]
+    neighbours = _neighbours(points, 25)
+    pts = points.tolist()
+    size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64).tolist()
     best = {}
     for s in seeds:
-        grown, conflicts = _grow(points, neighbours, int(s), tol)
+        grown, conflicts = _grow(points, pts, neighbours, size_list, int(s), tol)
         if conflicts == 0 and len(grown) > len(best):
             best = grown
             ab = np.array(list(grown.values()))
@@ -111,6 +131,8 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
     idx = np.array(list(best.keys()))
     ab = np.array([best[i] for i in idx])
     ab -= ab.min(axis=0)
+    keep = _plate_window(ab, plate)
+    idx, ab = idx[keep], ab[keep] - ab[keep].min(axis=0)
     extent = ab.max(axis=0) + 1
     col_row = _orient(points[idx], ab, extent, plate)
     ext = col_row.max(axis=0) + 1
@@ -127,6 +149,28 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
         raise PlateNotFound(f"{fit} with {len(missing)} circles missing (at most {max_missing} allowed)")
     strays = np.setdiff1d(np.arange(n), idx)
     return Numbering(idx, col_row, strays, missing)
+
+
+def _plate_window(ab: np.ndarray, plate: PlateConfig) -> np.ndarray:
+    """Which grown nodes to keep: all of them, or, when the lattice ran past the plate onto
+    blobs that happen to line up with it (print, letters), the plate-sized window holding the
+    most nodes, if exactly one does."""
+    extent = ab.max(axis=0) + 1
+    sizes = {(plate.columns, plate.rows), (plate.rows, plate.columns)}
+    if not any(extent[0] > w or extent[1] > h for w, h in sizes) or not any(
+        extent[0] >= w and extent[1] >= h for w, h in sizes
+    ):
+        return np.ones(len(ab), bool)
+    counts = {}
+    for w, h in sizes:
+        for a in range(extent[0] - w + 1):
+            for b in range(extent[1] - h + 1):
+                inside = (ab[:, 0] >= a) & (ab[:, 0] < a + w) & (ab[:, 1] >= b) & (ab[:, 1] < b + h)
+                counts[(a, b, w, h)] = inside
+    ranked = sorted(counts.values(), key=np.count_nonzero, reverse=True)
+    if len(ranked) > 1 and np.count_nonzero(ranked[0]) == np.count_nonzero(ranked[1]):
+        return np.ones(len(ab), bool)  # no single best place: report the whole lattice
+    return ranked[0]
 
 
 def _missing_lines(col_row: np.ndarray, plate: PlateConfig) -> str:

@@ -1,0 +1,102 @@
+"""Dark round blobs at any size, found on an image pyramid.
+
+At every pyramid level a pixel is dark where it is below a fraction of the brightest
+pixel in the fixed window around it. A dot narrower than the window is erased by that
+max filter, so the max is the paper beside the dot: a local-contrast threshold that
+follows uneven light, glare and exposure without knowing the dot size. Each level finds
+dots up to `_D_MAX` px across at that level (and from `_D_MIN` px, smaller ones being
+better seen one level finer), so the levels together cover dots from a few pixels to
+the whole frame; a dot found at two levels is kept at the finer one. Connected
+components give every blob's size and centre in one vectorised call, so clutter costs
+almost nothing.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+_WINDOW = 13  # max-filter window at every level, px of that level
+_D_MAX = 11.0  # widest dot a level sees whole: the window still reaches the paper around it
+_D_MIN = 5.0  # narrower dots are left to the finer level
+_D_MIN_FULL = 3.0  # at full resolution
+_MIN_FILL = 0.45  # blob area / its bounding box (a disc: 0.79; a thin diagonal line: near 0)
+_MAX_ASPECT = 3.0  # bounding-box sides (a circle seen at up to ~70 deg)
+_MIN_SIDE = 24  # stop the pyramid when the image gets this small
+_KERNEL = cv2.getStructuringElement(cv2.MORPH_RECT, (_WINDOW, _WINDOW))
+
+
+@dataclass
+class Candidates:
+    """Blob centres and sizes in full-resolution pixels (coarse: within about a pixel of the level)."""
+
+    centre_px: np.ndarray  # (N, 2)
+    diameter_px: np.ndarray  # (N,) equivalent-area diameter of the dark part
+    level: np.ndarray  # (N,) pyramid level it was found at (0 = full resolution)
+    pyramid: list[np.ndarray]  # level k is the image reduced 2**k times (pyrDown: pixel i at 2**k * i)
+
+    def __len__(self) -> int:
+        return len(self.diameter_px)
+
+    def subset(self, keep) -> "Candidates":
+        return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.pyramid)
+
+
+def find_candidates(gray: np.ndarray, dark_fraction: float = 0.8, min_contrast: float = 12.0) -> Candidates:
+    """Every dark round blob, from 3 px across to most of the frame.
+
+    `dark_fraction`: a pixel is dark below this fraction of its window's brightest pixel
+    (faded dots reach about 0.75); `min_contrast`: and at least this many grey levels below it
+    (sensor noise in dark corners is not a dot).
+    """
+    levels = [gray]
+    while min(levels[-1].shape) >= 2 * _MIN_SIDE:
+        levels.append(cv2.pyrDown(levels[-1]))
+    found, previous = [], None
+    for k, img in enumerate(levels):
+        labels, stats, centroids, keep = _level_blobs(img, dark_fraction, min_contrast, _D_MIN_FULL if k == 0 else _D_MIN)
+        scale = float(2**k)
+        centre = centroids[keep] * scale
+        d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
+        if previous is not None and len(centre):
+            centre, d = _drop_seen(centre, d, previous)
+        found.append((centre, d, np.full(len(d), k)))
+        previous = (labels, np.flatnonzero(keep), scale)
+    centre = np.concatenate([f[0] for f in found]).reshape(-1, 2)
+    return Candidates(centre, np.concatenate([f[1] for f in found]), np.concatenate([f[2] for f in found]), levels)
+
+
+def _level_blobs(img: np.ndarray, fraction: float, contrast: float, d_min: float):
+    """Labels, stats, centroids of the dark blobs at one level, and which of them are dots."""
+    bright = cv2.dilate(img, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+    below = cv2.subtract(bright, img)
+    mask = (img < cv2.convertScaleAbs(bright, alpha=fraction)) & (below > contrast)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(
+        mask.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_BBDT
+    )
+    x, y, w, h, area = (stats[:, i] for i in range(5))
+    d = np.sqrt(4 * area / np.pi)
+    fill = area / np.maximum(w * h, 1)
+    aspect = np.maximum(w, h) / np.maximum(np.minimum(w, h), 1)
+    H, W = img.shape
+    ok = (d >= d_min) & (d <= _D_MAX) & (fill >= _MIN_FILL) & (aspect <= _MAX_ASPECT)
+    ok &= (x > 0) & (y > 0) & (x + w < W) & (y + h < H)
+    ok[0] = False  # the background
+    # A dot wider than the window leaves a ring of dark pixels: its centre is not in the blob.
+    idx = np.flatnonzero(ok)
+    cx = np.clip(np.round(centroids[idx, 0]).astype(int), 0, W - 1)
+    cy = np.clip(np.round(centroids[idx, 1]).astype(int), 0, H - 1)
+    ok[idx[labels[cy, cx] != idx]] = False
+    return labels, stats, centroids, ok
+
+
+def _drop_seen(centre: np.ndarray, d: np.ndarray, previous) -> tuple[np.ndarray, np.ndarray]:
+    """Blobs whose centre lies on a dot already kept at the finer level (`scale`: its size factor)."""
+    labels, kept, scale = previous
+    H, W = labels.shape
+    fine = centre / scale
+    ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)
+    iy = np.clip(np.round(fine[:, 1]).astype(int), 0, H - 1)
+    seen = np.isin(labels[iy, ix], kept)
+    return centre[~seen], d[~seen]
