@@ -40,20 +40,27 @@ def refine_centres(
     rho = np.sqrt(xx * xx + yy * yy) / r_in[:, None, None]
     w, _ = _darkness(patch, rho <= 1.0, (rho > 1.0) & (rho <= 1.0 + ring[:, None, None] / r_in[:, None, None]))
     mx, my, cov, _ = _moments(w, xx, yy)
-    # Pass 2: the moment ellipse (a uniform ellipse: boundary at rho = 1), grown by the rim.
-    inv = np.linalg.inv(4.0 * cov + 1e-6 * np.eye(2))
-    r_min = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 0], 1e-6, None))
-    dx, dy = xx - mx[:, None, None], yy - my[:, None, None]
-    rho = np.sqrt(np.maximum(inv[:, 0, 0, None, None] * dx * dx + 2 * inv[:, 0, 1, None, None] * dx * dy
-                             + inv[:, 1, 1, None, None] * dy * dy, 0.0))
-    grow_in = (1.0 + rim / r_min)[:, None, None]
-    grow_out = (1.0 + (rim + ring) / r_min)[:, None, None]
-    w, good = _darkness(patch, rho <= grow_in, (rho > grow_in) & (rho <= grow_out))
-    mx, my, cov, total = _moments(w, xx, yy)
+    # Then the moment ellipse (a uniform ellipse: boundary at rho = 1), grown by the rim, twice:
+    # the second ellipse comes from weights that no longer include the disc's background noise.
+    for _ in range(2):
+        mx, my, cov, total, good = _ellipse_pass(patch, xx, yy, mx, my, cov, rim, ring)
     det = np.clip(np.linalg.det(cov), 0.0, None)
     centres = np.column_stack([centre_px[:, 0] + mx, centre_px[:, 1] + my])
     ok &= good & (total > 0) & np.isfinite(centres).all(axis=1) & (np.hypot(mx, my) <= r_in)
     return centres, 4.0 * det**0.25, ok
+
+
+def _ellipse_pass(patch, xx, yy, mx, my, cov, rim, ring):
+    """Darkness-weighted moments over the ellipse of `cov` at (mx, my) grown by the rim."""
+    inv = np.linalg.inv(4.0 * cov + 1e-6 * np.eye(2)).astype(np.float32)
+    r_min = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 0], 1e-6, None))
+    dx, dy = xx - mx[:, None, None].astype(np.float32), yy - my[:, None, None].astype(np.float32)
+    q = inv[:, 0, 0, None, None] * dx * dx + 2 * inv[:, 0, 1, None, None] * dx * dy + inv[:, 1, 1, None, None] * dy * dy
+    rho = np.sqrt(np.maximum(q, 0.0))
+    grow_in = (1.0 + rim / r_min)[:, None, None]
+    grow_out = (1.0 + (rim + ring) / r_min)[:, None, None]
+    w, good = _darkness(patch, rho <= grow_in, (rho > grow_in) & (rho <= grow_out))
+    return (*_moments(w, xx, yy), good)
 
 
 def _darkness(patch, inner, ring):
