@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-_WINDOW = 13  # max-filter window at every level, px of that level
+_WINDOW = 17  # closing window at every level, px of that level: wider than any dot the level keeps
 _D_MAX = 11.0  # widest dot a level sees whole: the window still reaches the paper around it
-_D_MIN = 5.0  # narrower dots are left to the finer level
+_D_MIN = 4.5  # narrower dots are left to the finer level
 _D_MIN_FULL = 3.0  # at full resolution
 _MIN_FILL = 0.45  # blob area / its bounding box (a disc: 0.79; a thin diagonal line: near 0)
 _MAX_ASPECT = 3.0  # bounding-box sides (a circle seen at up to ~70 deg)
@@ -69,7 +69,7 @@ def find_candidates(gray: np.ndarray, dark_fraction: float = 0.8, min_contrast: 
 
 def _level_blobs(img: np.ndarray, fraction: float, contrast: float, d_min: float):
     """Labels, stats, centroids of the dark blobs at one level, and which of them are dots."""
-    bright = cv2.dilate(img, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+    bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
     below = cv2.subtract(bright, img)
     mask = (img < cv2.convertScaleAbs(bright, alpha=fraction)) & (below > contrast)
     n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(

@@ -141,7 +141,7 @@ def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return centres * s, diam * s, ok
 
 
-def _size_groups(diameter_px: np.ndarray, tries: int = 3, spread: float = 1.6) -> list[np.ndarray]:
+def _size_groups(diameter_px: np.ndarray, tries: int = 3, spread: float = 1.8) -> list[np.ndarray]:
     """Blob index sets of similar size, the most crowded first: the plate's circles are one of them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
@@ -150,9 +150,9 @@ def _size_groups(diameter_px: np.ndarray, tries: int = 3, spread: float = 1.6) -
     for i in np.argsort(-counts, kind="stable"):
         if used[i] or len(groups) == tries:
             continue
-        members = np.abs(logd - logd[i]) <= width
-        groups.append(np.flatnonzero(members))
-        used |= np.abs(logd - logd[i]) <= 2 * width
+        centre = np.median(logd[np.abs(logd - logd[i]) <= width])  # one mean-shift step onto the crowd
+        groups.append(np.flatnonzero(np.abs(logd - centre) <= width))
+        used |= np.abs(logd - centre) <= 2 * width
     return groups
 
 

@@ -1,15 +1,19 @@
 """Sub-pixel circle centres, measured at full resolution in a small window around each one.
 
 The centre is the darkness-weighted centroid over the circle and its blurred rim, where
-darkness is 1 - grey / paper and the paper level is measured in a ring just outside the
-rim: background pixels inside the window weigh zero on average, so they do not pull the
-centre towards the window's middle, and the centre does not depend on any threshold. Two passes: a disc from the coarse size gives the circle's moment ellipse
+darkness is 1 - grey / paper, the paper a plane fitted to a ring just outside the rim:
+background pixels inside the window weigh zero on average (they do not pull the centre
+towards the window's middle), and glare or a light gradient across the window does not
+tilt it. Darkness is saturated at 70 % of the circle's depth, so the rim decides the
+position and uneven ink inside a faded dot does not; nothing depends on a threshold. Two passes: a disc from the coarse size gives the circle's moment ellipse
 (perspective, distortion), the second pass weighs over that ellipse grown by the rim.
 All circles are measured at once on a stack of equal windows (no per-circle Python work).
 """
 from __future__ import annotations
 
 import numpy as np
+
+_SATURATION = 0.7
 
 
 def refine_centres(
@@ -39,7 +43,10 @@ def refine_centres(
     # Pass 1: a disc around the coarse centre, large enough for its error.
     rho = np.sqrt(xx * xx + yy * yy) / r_in[:, None, None]
     w, _ = _darkness(patch, rho <= 1.0, (rho > 1.0) & (rho <= 1.0 + ring[:, None, None] / r_in[:, None, None]))
-    mx, my, cov, _ = _moments(w, xx, yy)
+    # Its shape from the pixels darker than half its depth: glare or a gradient across the
+    # window cannot stretch that ellipse the way they skew plain weights.
+    half_depth = 0.5 * w.reshape(n, -1).max(axis=1)[:, None, None]
+    mx, my, cov, _ = _moments((w > half_depth).astype(np.float32), xx, yy)
     # Then the moment ellipse (a uniform ellipse: boundary at rho = 1), grown by the rim, twice:
     # the second ellipse comes from weights that no longer include the disc's background noise.
     for _ in range(2):
@@ -59,18 +66,34 @@ def _ellipse_pass(patch, xx, yy, mx, my, cov, rim, ring):
     rho = np.sqrt(np.maximum(q, 0.0))
     grow_in = (1.0 + rim / r_min)[:, None, None]
     grow_out = (1.0 + (rim + ring) / r_min)[:, None, None]
-    w, good = _darkness(patch, rho <= grow_in, (rho > grow_in) & (rho <= grow_out))
-    return (*_moments(w, xx, yy), good)
+    w, good = _darkness(patch, rho <= grow_in, (rho > grow_in) & (rho <= grow_out), xx, yy)
+    # Saturate at 70 % of the circle's depth: the rim (partly covered pixels) carries the
+    # sub-pixel position; uneven ink inside a faded print must not pull the centre.
+    depth = np.percentile(w.reshape(len(w), -1), 95, axis=1)[:, None, None]
+    return (*_moments(np.minimum(w, _SATURATION * depth), xx, yy), good)
 
 
-def _darkness(patch, inner, ring):
-    """1 - grey / paper inside `inner` (0 elsewhere), the paper level the median of the `ring` pixels
-    (robust to a neighbour's edge or a speck in the ring)."""
+def _darkness(patch, inner, ring, xx=None, yy=None):
+    """1 - grey / paper inside `inner` (0 elsewhere). The paper is the median of the `ring` pixels
+    or, given coordinates, the plane fitted to them (glare or a light gradient across the window)."""
     n = ring.sum(axis=(1, 2))
-    paper = np.nanmedian(np.where(ring, patch, np.nan).reshape(len(patch), -1), axis=1) if len(patch) else n
-    good = (n >= 8) & (paper > 1.0)
-    paper = np.where(good, paper, 1.0).astype(np.float32)[:, None, None]
-    return (1.0 - patch / paper) * inner, good
+    if xx is None:
+        level = np.nanmedian(np.where(ring, patch, np.nan).reshape(len(patch), -1), axis=1) if len(patch) else n
+        good = (n >= 8) & (level > 1.0)
+        paper = np.where(good, level, 1.0).astype(np.float32)[:, None, None]
+        return (1.0 - patch / paper) * inner, good
+    m = ring.astype(np.float32)
+    mx, my = m * xx, m * yy
+    s = lambda a: a.sum(axis=(1, 2), dtype=np.float64)  # noqa: E731
+    n, sx, sy, sxx, sxy, syy = s(m), s(mx), s(my), s(mx * xx), s(mx * yy), s(my * yy)
+    normal = np.stack([np.stack([n, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], -2)
+    rhs = np.stack([s(m * patch), s(mx * patch), s(my * patch)], -1)
+    good = n >= 8
+    normal[~good] = np.eye(3)
+    coef = np.linalg.solve(normal, rhs[..., None])[..., 0].astype(np.float32)
+    paper = coef[:, 0, None, None] + coef[:, 1, None, None] * xx + coef[:, 2, None, None] * yy
+    good &= coef[:, 0] > 1.0
+    return (1.0 - patch / np.maximum(paper, 1.0)) * inner, good
 
 
 def _moments(w, xx, yy):
