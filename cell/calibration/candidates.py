@@ -21,7 +21,7 @@ _WINDOW = 17  # closing window at every level, px of that level: wider than any 
 _D_MAX = 11.0  # widest dot a level sees whole: the window still reaches the paper around it
 _D_MIN = 4.5  # narrower dots are left to the finer level
 _D_MIN_FULL = 3.0  # at full resolution
-_MIN_FILL = 0.45  # blob area / its bounding box (a disc: 0.79; a thin diagonal line: near 0)
+_MIN_FILL = 0.55  # blob area / its bounding box (a disc: 0.79, a 2:1 ellipse at 45 deg 0.63; a ring's broken piece less)
 _MAX_ASPECT = 3.0  # bounding-box sides (a circle seen at up to ~70 deg)
 _MIN_SIDE = 24  # stop the pyramid when the image gets this small
 _KERNEL = cv2.getStructuringElement(cv2.MORPH_RECT, (_WINDOW, _WINDOW))
@@ -43,33 +43,40 @@ class Candidates:
         return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.pyramid)
 
 
-def find_candidates(gray: np.ndarray, dark_fraction: float = 0.8, min_contrast: float = 12.0) -> Candidates:
+def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: float = 10.0) -> Candidates:
     """Every dark round blob, from 3 px across to most of the frame.
 
-    `dark_fraction`: a pixel is dark below this fraction of its window's brightest pixel
-    (faded dots reach about 0.75); `min_contrast`: and at least this many grey levels below it
-    (sensor noise in dark corners is not a dot).
+    `dark_fractions`: a pixel is dark below this fraction of the paper level around it (the
+    closing); the first finds dots beside glare, whose bright surround would merge them at a
+    laxer level, the second faded or low-contrast dots; a dot both find counts once.
+    `min_contrast`: and at least this many grey levels below it (noise is not a dot).
     """
     levels = [gray]
     while min(levels[-1].shape) >= 2 * _MIN_SIDE:
         levels.append(cv2.pyrDown(levels[-1]))
-    found, previous = [], None
+    found, seen = [], []
     for k, img in enumerate(levels):
-        labels, stats, centroids, keep = _level_blobs(img, dark_fraction, min_contrast, _D_MIN_FULL if k == 0 else _D_MIN)
         scale = float(2**k)
-        centre = centroids[keep] * scale
-        d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
-        if previous is not None and len(centre):
-            centre, d = _drop_seen(centre, d, previous)
-        found.append((centre, d, np.full(len(d), k)))
-        previous = (labels, np.flatnonzero(keep), scale)
+        bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+        here = []
+        for fraction in dark_fractions:
+            labels, stats, centroids, keep = _level_blobs(img, bright, fraction, min_contrast, _D_MIN_FULL if k == 0 else _D_MIN)
+            centre = centroids[keep] * scale
+            d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
+            for maps in (seen, here):  # the finer level's dots, then this level's first threshold
+                for labels_seen, kept, s in maps:
+                    centre, d = _drop_seen(centre, d, labels_seen, kept, s)
+            found.append((centre, d, np.full(len(d), k)))
+            here.append((labels, np.flatnonzero(keep), scale))
+        seen = here
     centre = np.concatenate([f[0] for f in found]).reshape(-1, 2)
     return Candidates(centre, np.concatenate([f[1] for f in found]), np.concatenate([f[2] for f in found]), levels)
 
 
-def _level_blobs(img: np.ndarray, fraction: float, contrast: float, d_min: float):
-    """Labels, stats, centroids of the dark blobs at one level, and which of them are dots."""
-    bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast: float, d_min: float):
+    """Labels, stats, centroids of the dark blobs at one level, and which of them are dots.
+
+    `bright`: the paper level around each pixel (a closing wider than the level's dots)."""
     below = cv2.subtract(bright, img)
     mask = (img < cv2.convertScaleAbs(bright, alpha=fraction)) & (below > contrast)
     n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(
@@ -91,9 +98,10 @@ def _level_blobs(img: np.ndarray, fraction: float, contrast: float, d_min: float
     return labels, stats, centroids, ok
 
 
-def _drop_seen(centre: np.ndarray, d: np.ndarray, previous) -> tuple[np.ndarray, np.ndarray]:
-    """Blobs whose centre lies on a dot already kept at the finer level (`scale`: its size factor)."""
-    labels, kept, scale = previous
+def _drop_seen(centre, d, labels, kept, scale) -> tuple[np.ndarray, np.ndarray]:
+    """Blobs whose centre lies on a dot already kept in `labels` (an image reduced `scale` times)."""
+    if not len(centre):
+        return centre, d
     H, W = labels.shape
     fine = centre / scale
     ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)

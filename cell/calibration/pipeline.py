@@ -137,28 +137,38 @@ def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     k = int(np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 16.0)), 0, len(group.pyramid) - 1))
     s = 2.0**k
     coarse_error = np.maximum(2.0 ** group.level[idx] / s, 1.0)
-    centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error)
+    image = group.pyramid[k]
+    centres, diam, ok = refine_centres(image, group.centre_px[idx] / s, d / s, coarse_error)
+    # A candidate can be part of its circle (a faded half): measure those again in a window
+    # sized by what the first measurement saw.
+    again = ok & (diam > 1.2 * d / s)
+    if again.any():
+        c2, d2, ok2 = refine_centres(image, centres[again], diam[again], np.ones(int(again.sum())))
+        centres[again], diam[again], ok[again] = c2, d2, ok2
     return centres * s, diam * s, ok
 
 
-def _size_groups(diameter_px: np.ndarray, tries: int = 3, spread: float = 1.8) -> list[np.ndarray]:
+def _size_groups(diameter_px: np.ndarray, tries: int = 4, spread: float = 1.8) -> list[np.ndarray]:
     """Blob index sets of similar size, the most crowded first: the plate's circles are one of them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
     counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
-    groups, used = [], np.zeros(len(logd), bool)
+    groups, centres, used = [], [], np.zeros(len(logd), bool)
     for i in np.argsort(-counts, kind="stable"):
         if used[i] or len(groups) == tries:
             continue
         centre = np.median(logd[np.abs(logd - logd[i]) <= width])  # one mean-shift step onto the crowd
-        groups.append(np.flatnonzero(np.abs(logd - centre) <= width))
-        used |= np.abs(logd - centre) <= 2 * width
+        members = np.abs(logd - centre) <= width
+        used |= members
+        if all(abs(centre - c) > width / 2 for c in centres):
+            groups.append(np.flatnonzero(members))
+            centres.append(centre)
     return groups
 
 
 def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candidates, Numbering]:
     """Number the first size group that forms the whole plate; else fail with what the largest group showed."""
-    first_error = None
+    errors = []
     for members in _size_groups(cands.diameter_px):
         group = cands.subset(members)
         try:
@@ -166,8 +176,8 @@ def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candida
                 group.centre_px, plate, det.lattice_tolerance, det.max_missing, group.diameter_px
             )
         except PlateNotFound as e:
-            first_error = first_error or e
-    raise first_error
+            errors.append(e)
+    raise errors[0]
 
 
 def _local_pitch_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
