@@ -20,7 +20,8 @@ import numpy as np
 _WINDOW = 17  # closing window at every level, px of that level: wider than any dot the level keeps
 _D_MAX = 11.0  # widest dot a level sees whole: the window still reaches the paper around it
 _D_MIN = 4.5  # narrower dots are left to the finer level
-_D_MIN_FULL = 3.0  # at full resolution
+_D_MIN_FIRST = 2.5  # at the first level searched (half resolution: dots from 5 px across)
+_FIRST_LEVEL = 1  # circles of 5 px and more need no full-resolution search; refinement is at full resolution
 _MIN_FILL = 0.55  # blob area / its bounding box (a disc: 0.79, a 2:1 ellipse at 45 deg 0.63; a ring's broken piece less)
 _MAX_ASPECT = 3.0  # bounding-box sides (a circle seen at up to ~70 deg)
 _MIN_SIDE = 24  # stop the pyramid when the image gets this small
@@ -34,13 +35,14 @@ class Candidates:
     centre_px: np.ndarray  # (N, 2)
     diameter_px: np.ndarray  # (N,) equivalent-area diameter of the dark part
     level: np.ndarray  # (N,) pyramid level it was found at (0 = full resolution)
+    depth: np.ndarray  # (N,) 1 - grey / paper at its centre: printed dots are deep, specks shallow
     pyramid: list[np.ndarray]  # level k is the image reduced 2**k times (pyrDown: pixel i at 2**k * i)
 
     def __len__(self) -> int:
         return len(self.diameter_px)
 
     def subset(self, keep) -> "Candidates":
-        return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.pyramid)
+        return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.depth[keep], self.pyramid)
 
 
 def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: float = 10.0) -> Candidates:
@@ -56,21 +58,27 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
         levels.append(cv2.pyrDown(levels[-1]))
     found, seen = [], []
     for k, img in enumerate(levels):
+        if k < _FIRST_LEVEL and min(gray.shape) >= 4 * _MIN_SIDE:
+            continue
         scale = float(2**k)
         bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
         here = []
         for fraction in dark_fractions:
-            labels, stats, centroids, keep = _level_blobs(img, bright, fraction, min_contrast, _D_MIN_FULL if k == 0 else _D_MIN)
+            labels, stats, centroids, keep = _level_blobs(img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN)
             centre = centroids[keep] * scale
             d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
+            ix, iy = np.round(centroids[keep]).astype(int).T
+            depth = 1.0 - img[iy, ix] / np.maximum(bright[iy, ix], 1.0)
             for maps in (seen, here):  # the finer level's dots, then this level's first threshold
                 for labels_seen, kept, s in maps:
-                    centre, d = _drop_seen(centre, d, labels_seen, kept, s)
-            found.append((centre, d, np.full(len(d), k)))
+                    unseen = _unseen(centre, labels_seen, kept, s)
+                    centre, d, depth = centre[unseen], d[unseen], depth[unseen]
+            found.append((centre, d, np.full(len(d), k), depth))
             here.append((labels, np.flatnonzero(keep), scale))
         seen = here
     centre = np.concatenate([f[0] for f in found]).reshape(-1, 2)
-    return Candidates(centre, np.concatenate([f[1] for f in found]), np.concatenate([f[2] for f in found]), levels)
+    d, level, depth = (np.concatenate([f[i] for f in found]) for i in (1, 2, 3))
+    return Candidates(centre, d, level, depth, levels)
 
 
 def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast: float, d_min: float):
@@ -98,13 +106,12 @@ def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast:
     return labels, stats, centroids, ok
 
 
-def _drop_seen(centre, d, labels, kept, scale) -> tuple[np.ndarray, np.ndarray]:
-    """Blobs whose centre lies on a dot already kept in `labels` (an image reduced `scale` times)."""
+def _unseen(centre, labels, kept, scale) -> np.ndarray:
+    """Which blobs do not lie on a dot already kept in `labels` (an image reduced `scale` times)."""
     if not len(centre):
-        return centre, d
+        return np.zeros(0, bool)
     H, W = labels.shape
     fine = centre / scale
     ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)
     iy = np.clip(np.round(fine[:, 1]).astype(int), 0, H - 1)
-    seen = np.isin(labels[iy, ix], kept)
-    return centre[~seen], d[~seen]
+    return ~np.isin(labels[iy, ix], kept)

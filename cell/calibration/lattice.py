@@ -29,7 +29,7 @@ class Numbering:
     missing: list[tuple[int, int]]  # lattice nodes with no blob
 
 
-def _seed_basis(points: np.ndarray, near: list[int], i: int) -> tuple[tuple, tuple] | None:
+def _seed_basis(points: np.ndarray, near: np.ndarray, i: int) -> tuple[tuple, tuple] | None:
     """Two shortest non-parallel steps from point i to its neighbours."""
     order = near[1:9]
     if len(order) < 4:
@@ -43,8 +43,8 @@ def _seed_basis(points: np.ndarray, near: list[int], i: int) -> tuple[tuple, tup
     return None
 
 
-def _grow(points: np.ndarray, pts: list, neighbours: list, sizes, seed: int, tol: float):
-    """Lattice nodes reached from `seed`, stepping by the local lattice vectors (pure Python: small, hot loop).
+def _grow(points: np.ndarray, neighbours: np.ndarray, sizes, seed: int, tol: float):
+    """Lattice nodes reached from `seed`, stepping by the local lattice vectors.
 
     A blob is taken for a node only if it is near the predicted position and, when sizes are
     given, of a similar size to the blob it was reached from (clutter rarely is both).
@@ -57,19 +57,30 @@ def _grow(points: np.ndarray, pts: list, neighbours: list, sizes, seed: int, tol
     local = {seed: basis}
     conflicts = 0
     queue = deque([seed])
+    dirs = ((1, 0, 1), (1, 0, 2), (-1, 0, 1), (-1, 0, 2), (0, 1, 1), (0, 1, 2), (0, -1, 1), (0, -1, 2))
     while queue:
         p = queue.popleft()
         a, b = node_of[p]
         (ux, uy), (vx, vy) = local[p]
-        px, py = pts[p]
+        px, py = points[p]
         reach = tol * min(math.hypot(ux, uy), math.hypot(vx, vy))
-        for sx, sy, da, db in ((ux, uy, 1, 0), (-ux, -uy, -1, 0), (vx, vy, 0, 1), (-vx, -vy, 0, -1)):
-            for k in (1, 2):
-                node = (a + k * da, b + k * db)
-                qx, qy = px + k * sx, py + k * sy
-                j, dist = min(((c, math.hypot(pts[c][0] - qx, pts[c][1] - qy)) for c in neighbours[p]), key=_second)
-                if dist > reach or (sizes is not None and not 0.67 < sizes[j] / sizes[p] < 1.5):
+        # All eight predictions (four directions, one or two steps) against the neighbours at once.
+        steps = np.array([(da * ux + db * vx, da * uy + db * vy) for da, db, _ in dirs]) * np.array(
+            [k for *_, k in dirs], dtype=np.float64
+        )[:, None]
+        cand = neighbours[p]
+        diff = points[cand][None, :, :] - (points[p] + steps)[:, None, :]
+        dist = np.hypot(diff[..., 0], diff[..., 1])
+        best = dist.argmin(axis=1)
+        nearest = cand[best].tolist()
+        far = (dist[np.arange(8), best] > reach).tolist()
+        for i in range(0, 8, 2):  # per direction: one step, else two steps (bridging a gap)
+            for k in (i, i + 1):
+                da, db, n = dirs[k]
+                j = nearest[k]
+                if far[k] or (sizes is not None and not 0.67 < sizes[j] / sizes[p] < 1.5):
                     continue
+                node = (a + n * da, b + n * db)
                 if j in node_of:
                     if node_of[j] != node:
                         conflicts += 1
@@ -79,25 +90,21 @@ def _grow(points: np.ndarray, pts: list, neighbours: list, sizes, seed: int, tol
                     break
                 node_of[j] = node
                 blob_at[node] = j
-                step = k * (da + db)
-                observed = ((pts[j][0] - px) / step, (pts[j][1] - py) / step)
+                step = n * (da + db)
+                observed = ((points[j][0] - px) / step, (points[j][1] - py) / step)
                 local[j] = (observed, (vx, vy)) if db == 0 else ((ux, uy), observed)
                 queue.append(j)
                 break
     return node_of, conflicts
 
 
-def _second(pair):
-    return pair[1]
-
-
-def _neighbours(points: np.ndarray, k: int) -> list[list[int]]:
+def _neighbours(points: np.ndarray, k: int) -> np.ndarray:
     """Each point's k nearest (itself first)."""
     dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
     k = min(len(points), k)
     near = np.argpartition(dist, k - 1, axis=1)[:, :k]
     order = np.take_along_axis(dist, near, axis=1).argsort(axis=1)
-    return np.take_along_axis(near, order, axis=1).tolist()
+    return np.take_along_axis(near, order, axis=1)
 
 
 def number_lattice(
@@ -116,12 +123,16 @@ def number_lattice(
     seeds = list(order[:12]) + list(order[12 :: max(1, n // 12)])
     # Steps of one or two pitches stay within a point's 24 nearest neighbours.
     neighbours = _neighbours(points, 25)
-    pts = points.tolist()
     size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64).tolist()
-    best = {}
+    best, covered = {}, set()
     for s in seeds:
-        grown, conflicts = _grow(points, pts, neighbours, size_list, int(s), tol)
-        if conflicts == 0 and len(grown) > len(best):
+        if int(s) in covered:
+            continue  # a seed on a lattice already grown would grow the same one again
+        grown, conflicts = _grow(points, neighbours, size_list, int(s), tol)
+        if conflicts:
+            continue
+        covered.update(grown)
+        if len(grown) > len(best):
             best = grown
             ab = np.array(list(grown.values()))
             if sorted(ab.max(axis=0) - ab.min(axis=0) + 1) == sorted((plate.columns, plate.rows)):

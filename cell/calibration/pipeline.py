@@ -136,20 +136,16 @@ def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     d = group.diameter_px[idx]
     k = int(np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 16.0)), 0, len(group.pyramid) - 1))
     s = 2.0**k
-    coarse_error = np.maximum(2.0 ** group.level[idx] / s, 1.0)
-    image = group.pyramid[k]
-    centres, diam, ok = refine_centres(image, group.centre_px[idx] / s, d / s, coarse_error)
-    # A candidate can be part of its circle (a faded half): measure those again in a window
-    # sized by what the first measurement saw.
-    again = ok & (diam > 1.2 * d / s)
-    if again.any():
-        c2, d2, ok2 = refine_centres(image, centres[again], diam[again], np.ones(int(again.sum())))
-        centres[again], diam[again], ok[again] = c2, d2, ok2
+    half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
+    coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)
+    centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error, half_res)
     return centres * s, diam * s, ok
 
 
-def _size_groups(diameter_px: np.ndarray, tries: int = 4, spread: float = 1.8) -> list[np.ndarray]:
-    """Blob index sets of similar size, the most crowded first: the plate's circles are one of them."""
+def _size_groups(diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: int = 6, spread: float = 1.8) -> list[np.ndarray]:
+    """Blob index sets of similar size: the plate's circles are one of them. Those with at least
+    `need` blobs come first (fewer cannot be the plate), the deepest (printed dots, not specks
+    of texture) first among them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
     counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
@@ -163,13 +159,13 @@ def _size_groups(diameter_px: np.ndarray, tries: int = 4, spread: float = 1.8) -
         if all(abs(centre - c) > width / 2 for c in centres):
             groups.append(np.flatnonzero(members))
             centres.append(centre)
-    return groups
+    return sorted(groups, key=lambda g: (len(g) < need, -float(np.median(depth[g]))))
 
 
 def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candidates, Numbering]:
     """Number the first size group that forms the whole plate; else fail with what the largest group showed."""
     errors = []
-    for members in _size_groups(cands.diameter_px):
+    for members in _size_groups(cands.diameter_px, cands.depth, plate.count - det.max_missing):
         group = cands.subset(members)
         try:
             return group, number_lattice(
@@ -181,11 +177,19 @@ def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candida
 
 
 def _local_pitch_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
-    """Geometric-mean lattice pitch in pixels at each point, from a quadratic fit of the lattice."""
-    fit = PolynomialMap.fit(cr.astype(np.float64), pixel, 2)
-    c = cr.astype(np.float64)
-    J = np.stack([(fit(c + (0.5, 0)) - fit(c - (0.5, 0))), (fit(c + (0, 0.5)) - fit(c - (0, 0.5)))], axis=2)
-    return np.sqrt(np.abs(np.linalg.det(J)))
+    """Geometric-mean lattice pitch in pixels at each point: the area of the cell its lattice
+    neighbours span (central differences, one-sided at edges and gaps; the median where none)."""
+    grid = np.full((plate.rows + 2, plate.columns + 2, 2), np.nan)
+    c, r = cr[:, 0] + 1, cr[:, 1] + 1
+    grid[r, c] = pixel
+
+    def step(dc: int, dr: int) -> np.ndarray:
+        fwd, back = grid[r + dr, c + dc] - pixel, pixel - grid[r - dr, c - dc]
+        return np.where(np.isnan(fwd), back, np.where(np.isnan(back), fwd, (fwd + back) / 2))
+
+    u, v = step(1, 0), step(0, 1)
+    pitch = np.sqrt(np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]))
+    return np.where(np.isnan(pitch), np.nanmedian(pitch), pitch)
 
 
 def error_stats(predicted: np.ndarray, truth: np.ndarray) -> dict:
