@@ -21,6 +21,7 @@ test: $(STAMP)
 	$(PY) -m pytest
 
 bench: $(STAMP)
+	$(PY) scripts/bench_detection.py
 	$(PY) scripts/bench_calibration.py
 	$(PY) scripts/bench_parts.py
 

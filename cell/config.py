@@ -99,6 +99,9 @@ class CalibrationConfig(Strict):
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
+    check_max_mm: float = Field(
+        0.3, gt=0, description="check-calibration fails when a plate point maps further than this from where it lies"
+    )
 
 
 class CameraConfig(Strict):
