@@ -10,7 +10,7 @@ from cell.calibration.drift import DriftWatch
 from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.cli import main
-from cell.config import CellConfig, DriftConfig
+from cell.config import DriftConfig
 from cell.errors import CameraMoved, InputError
 from cell.sim.cell import _bumped
 from cell.sim.rig import default_camera

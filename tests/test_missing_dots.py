@@ -14,7 +14,7 @@ from cell.calibration.pipeline import calibrate
 from cell.calibration.report import annotate_plate
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
-from cell.config import CellConfig, PlateConfig
+from cell.config import CellConfig
 from cell.sim.render import render_plate
 from tests.helpers import DATA
 

@@ -1,14 +1,16 @@
 """Dark round blobs at any size, found on an image pyramid.
 
-At every pyramid level a pixel is dark where it is below a fraction of the brightest
-pixel in the fixed window around it. A dot narrower than the window is erased by that
-max filter, so the max is the paper beside the dot: a local-contrast threshold that
-follows uneven light, glare and exposure without knowing the dot size. Each level finds
-dots up to `_D_MAX` px across at that level (and from `_D_MIN` px, smaller ones being
-better seen one level finer), so the levels together cover dots from a few pixels to
-the whole frame; a dot found at two levels is kept at the finer one. Connected
-components give every blob's size and centre in one vectorised call, so clutter costs
-almost nothing.
+At every pyramid level a pixel is dark where it is below a fraction of the paper level
+around it, the paper level being the image's morphological closing with a fixed window: a
+dot narrower than the window is erased by it, and a bright patch (glare) is not spread
+beyond itself, as a plain max filter would. That is a local-contrast threshold that follows
+uneven light, glare and exposure without knowing the dot size. Each level finds dots up
+to `_D_MAX` px across at that level (and from `_D_MIN` px, smaller ones being better seen
+one level finer), so the levels together cover dots from 5 px to the whole frame; a dot
+found at two levels is kept at the finer one. Two thresholds: a strict one (dots beside
+glare stay apart) and a lax one (faded dots). Connected components give every blob's size
+and centre in one vectorised call, so clutter costs almost nothing. Only the coarse
+position comes from here: refine.py measures each numbered circle at full resolution.
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
 from cell.calibration.lattice import Numbering, number_lattice
-from cell.calibration.models import PolynomialMap, fit_camera, fit_model, monomial_exponents
+from cell.calibration.models import fit_camera, fit_model, monomial_exponents
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
