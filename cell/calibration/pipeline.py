@@ -163,7 +163,7 @@ def _size_groups(diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: i
 
 
 def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candidates, Numbering]:
-    """Number the first size group that forms the whole plate; else fail with what the largest group showed."""
+    """Number the first size group that forms the whole plate; else fail with what the first one tried showed."""
     errors = []
     for members in _size_groups(cands.diameter_px, cands.depth, plate.count - det.max_missing):
         group = cands.subset(members)
