@@ -39,6 +39,6 @@ def agreement(number: np.ndarray, pixel: np.ndarray, reference: np.ndarray, colu
     ours = [((int(n) - 1) % columns, (int(n) - 1) // columns) for n in number]
     theirs = [(int(j) % columns, int(j) // columns) for j in nearest]
     same = len(set(nearest)) == len(nearest) and any(
-        all(sym(*o) == t for o, t in zip(ours, theirs)) for sym in _symmetries(columns, rows)
+        all(sym(*o) == t for o, t in zip(ours, theirs, strict=True)) for sym in _symmetries(columns, rows)
     )
     return Agreement(len(set(nearest)), float(d.max(initial=0.0)), float(d.mean()) if len(d) else 0.0, same)

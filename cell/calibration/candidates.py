@@ -43,7 +43,7 @@ class Candidates:
     def __len__(self) -> int:
         return len(self.diameter_px)
 
-    def subset(self, keep) -> "Candidates":
+    def subset(self, keep) -> Candidates:
         return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.depth[keep], self.pyramid)
 
 

@@ -89,7 +89,7 @@ def check_text(result: CheckResult, source: str) -> str:
         + (f", missing: {pts.missing}" if pts.missing else ""),
         f"{'point':>5}{'X mm':>9}{'Y mm':>9}{'X mapped':>11}{'Y mapped':>11}{'dX':>9}{'dY':>9}{'error':>9}",
     ]
-    for num, t, m, e, d in zip(pts.number, pts.table_mm, result.mapped_mm, result.error_mm, result.distance_mm):
+    for num, t, m, e, d in zip(pts.number, pts.table_mm, result.mapped_mm, result.error_mm, result.distance_mm, strict=True):
         lines.append(
             f"{int(num):>5}{t[0]:>9.1f}{t[1]:>9.1f}{m[0]:>11.4f}{m[1]:>11.4f}{e[0]:>9.4f}{e[1]:>9.4f}{d:>9.4f}"
         )

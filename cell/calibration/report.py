@@ -131,7 +131,7 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
     missing = missing_rows(result)
     if camera is not None and missing:
         where = camera.project(np.array([[r["X_mm"], r["Y_mm"]] for r in missing]))
-        for r, (x, y) in zip(missing, where):
+        for r, (x, y) in zip(missing, where, strict=True):
             if not (np.isfinite(x) and np.isfinite(y)):
                 continue
             c = (int(round(x)), int(round(y)))

@@ -5,7 +5,7 @@ detectors on the same hard image without storing it.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
