@@ -13,6 +13,8 @@ from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.sim.render import render_plate
 
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]  # run-cell runs as a subprocess
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = CellConfig(camera={"width_px": 1280, "height_px": 720})
 

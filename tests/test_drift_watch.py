@@ -62,6 +62,8 @@ def test_a_calibration_without_camera_pose_cannot_watch(setup):
         DriftWatch(bare, DriftConfig(marks_mm=MARKS))
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(240)  # a whole run of the simulated cell
 def test_the_simulated_cell_stops_before_the_first_pick_from_a_moved_camera(tmp_path):
     cfg = tmp_path / "bump.toml"
     cfg.write_text("[sim]\ncamera_bumped_mm = [0.3, 0.0]\ncamera_bumped_at_pick = 4\n")

@@ -18,6 +18,8 @@ from cell.config import CellConfig
 from cell.sim.render import render_plate
 from tests.helpers import DATA
 
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]  # recalibrate.py runs as a subprocess, end to end
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "recalibrate.py"
 CAMERA = CameraModel.looking_down(1280, 720, 0.30, (132, 88), tilt_deg=3, k1=-0.06)

@@ -67,6 +67,7 @@ def test_shared_photo_agrees_with_opencv(name):
     check_against_opencv(photo(name))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", PHOTOMETRIC)
 @pytest.mark.parametrize("name", IMAGES)
 def test_photometric_variant(name, kind):
@@ -74,6 +75,7 @@ def test_photometric_variant(name, kind):
     check_against_opencv(variant(kind, gray, seed=IMAGES.index(name)), gray)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", [k for k in VARIANTS if k not in PHOTOMETRIC])
 @pytest.mark.parametrize("name", IMAGES)
 def test_geometric_variant(name, kind):
