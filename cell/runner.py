@@ -80,6 +80,7 @@ class Runner:
         progress: Callable[[str], None] | None = None,
         truth: Callable[[], dict] | None = None,
         sim_motion_s: Callable[[], float] | None = None,
+        drift_watch: Callable[[np.ndarray], object] | None = None,
         continuous_interval_s: float | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
@@ -90,6 +91,7 @@ class Runner:
         self.progress = progress or (lambda line: None)
         self.truth = truth  # the simulated world's account, logged before the summary
         self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
+        self.drift_watch = drift_watch  # raises CameraMoved on a frame whose reference marks have moved
         self.continuous_interval_s = continuous_interval_s  # None: clear the table once and finish
         self._attempt_mark = 0  # continuous mode: the limit counts attempts since the last pick or wait
         self.sm = StateMachine([self._on_transition])
@@ -290,6 +292,8 @@ class Runner:
         return S.PLAN, reason
 
     def _plan(self) -> Step:
+        if self.drift_watch is not None:  # the camera must still be where it was calibrated
+            self.drift_watch(self.frame)
         if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
             since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
             return S.FAULT, f"safety stop: {n} pick attempts{since} (run.max_attempts_total)"

@@ -38,6 +38,7 @@ height_px = 540
 capture_interval_s = 60.0   # simulated: 1 s of wall time at speed_factor 60
 [sim]
 speed_factor = 60.0
+reference_marks_mm = []     # the drift watch does not find its marks at 960 x 540 (run-cell neither)
 [sim.feeder]
 parts_per_minute = 6.0
 max_on_table = 25

@@ -27,6 +27,7 @@ V = VisionState
 def small_config(tmp_path, **sim) -> CellConfig:
     cfg = CellConfig()
     cfg.camera.width_px, cfg.camera.height_px = 960, 540
+    cfg.sim.reference_marks_mm = []  # the drift watch does not find its marks at 960 x 540 (run-cell neither)
     cfg.run.log_dir = tmp_path / "logs"
     cfg.service.capture_interval_s = 0.2
     for k, v in sim.items():
@@ -151,6 +152,7 @@ def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
 
         cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "sim-grbl.toml")
         cfg.camera.width_px, cfg.camera.height_px = 960, 540
+        cfg.sim.reference_marks_mm = []
         cfg.run.log_dir = tmp_path / "logs"
     before_threads, before_fds = {t.ident for t in threading.enumerate()}, open_fds()
     with running(cfg) as service:

@@ -126,6 +126,15 @@ class Calibration:
         return cls.from_dict(data, str(path))
 
 
+def _plain(value):
+    """numpy scalars and arrays as the JSON numbers and lists they hold (json cannot write them)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
 def write_json_atomic(path: str | Path, data: dict) -> None:
     """Write to a temporary file beside `path`, fsync, then rename: never a half-written file."""
     path = Path(path)
@@ -133,7 +142,7 @@ def write_json_atomic(path: str | Path, data: dict) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, allow_nan=False)
+            json.dump(data, f, indent=2, allow_nan=False, default=_plain)
             f.write("\n")
             f.flush()
             os.fsync(f.fileno())

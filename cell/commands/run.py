@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import get_args
 
 from cell.audit import AuditLog
+from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
@@ -179,7 +180,8 @@ def run_cell(args: argparse.Namespace) -> int:
             runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
                             config.run, audit, controls, expect_motion, progress=print,
                             truth=None if sim is None else lambda: sim_truth(sim.world),
-                            sim_motion_s=None if sim is None else sim.motion_time_s)
+                            sim_motion_s=None if sim is None else sim.motion_time_s,
+                            drift_watch=_drift_watch(config, calibration, sim))
             summary = runner.run()
         finally:
             for sig, handler in previous.items():
@@ -192,6 +194,14 @@ def run_cell(args: argparse.Namespace) -> int:
             for where, kinds in sim_truth(sim.world).items()))
     print(f"audit log: {audit_path}")
     return summary.exit_code
+
+
+def _drift_watch(config: CellConfig, calibration, sim) -> DriftWatch | None:
+    """The reference-mark watch: the configured marks, else those printed on the simulated table."""
+    marks = config.drift.marks_mm or (sim.marks_mm if sim is not None else [])
+    if not marks:
+        return None
+    return DriftWatch(calibration, config.drift.model_copy(update={"marks_mm": list(marks)}))
 
 
 def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> None:

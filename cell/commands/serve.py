@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
-from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices
+from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices, _drift_watch
 from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
 from cell.oplog import log_to_file
@@ -80,7 +80,8 @@ def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitSt
         camera = FedCamera(sim.camera, feeder)
         devices.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
     audit = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
-    service = LineService(config, devices, audit, lambda frame, cal: locate(frame, cal, config), camera)
+    service = LineService(config, devices, audit, lambda frame, cal: locate(frame, cal, config), camera,
+                          drift_watch=lambda cal: _drift_watch(config, cal, sim))
     resources.callback(service.close)
     return service
 

@@ -89,9 +89,11 @@ class LineService:
     """Implements cell.service.api.LineServiceAPI."""
 
     def __init__(self, config: CellConfig, devices: Devices, audit: ShiftLog,
-                 locate: Callable[[np.ndarray, Calibration], object], camera: Camera | None = None):
+                 locate: Callable[[np.ndarray, Calibration], object], camera: Camera | None = None,
+                 drift_watch: Callable[[Calibration], Callable | None] | None = None):
         self.config, self.devices, self.audit = config, devices, audit
         self._locate = locate
+        self._drift_watch = drift_watch or (lambda calibration: None)  # per job, for the calibration in use
         self._camera = camera or devices.camera  # the simulated cell's is wrapped by its feeder
         self._planner = Planner(config.planning, table_to_robot(config.planning))
         self._calibration = devices.calibration
@@ -249,6 +251,7 @@ class LineService:
                 lambda frame: self._locate(frame, self._calibration), self._planner, self.config.run, self.audit,
                 controls, self.devices.expect_motion, progress=lambda line: log.info("%s", line),
                 sim_motion_s=None if sim is None else sim.motion_time_s,
+                drift_watch=self._drift_watch(self._calibration),
                 continuous_interval_s=self.capture_interval_s if state == V.CONTINUOUS_EXECUTION else None,
             )
             summary = self._runner.run()
