@@ -1,7 +1,8 @@
 """`run-cell`: the operator's command. Each sub-command lives in its own module.
 
 Every failure the operator can cause or meet (bad file, bad config, device trouble) is a
-CellError: one line on stderr saying what and where, and a non-zero exit.
+CellError: one line on stderr saying what and where, and a non-zero exit. Stop signals
+are handled from the start (cell.signals), before any command opens a device.
 """
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import logging
 import sys
 
 from cell.commands import run
-from cell.errors import CellError
+from cell.errors import CellError, describe_os_error
+from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
 
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
@@ -38,25 +40,46 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    if not getattr(args, "func", None):
-        if not (args.dry_run or args.run_config):
-            parser.print_help()
-            return 2
-        args.func, args.command = run.run_cell, "run"
+    with handling_signals() as controls:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        args.controls = controls
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.WARNING,
+            format="%(levelname)s %(name)s: %(message)s",
+        )
+        if not getattr(args, "func", None):
+            if not (args.dry_run or args.run_config):
+                parser.print_help()
+                return 2
+            args.func, args.command = run.run_cell, "run"
+        return _dispatch(args)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the command; whatever ends it, the last line on stderr names what failed and where."""
+    name = f"run-cell {args.command}"
     try:
         return int(args.func(args) or 0)
     except CellError as e:
-        print(f"run-cell {args.command}: error: {e}", file=sys.stderr)
-        return e.exit_code
+        return _last_line(f"{name}: error: {e}", e.exit_code)
+    except StopRequested as e:
+        return _last_line(f"{name}: stopped: {e.reason}", EXIT_STOPPED)
     except KeyboardInterrupt:
-        print(f"run-cell {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return _last_line(f"{name}: stopped: Ctrl-C", EXIT_STOPPED)
+    except OSError as e:
+        return _last_line(f"{name}: error: {describe_os_error(e)}", 3)
+    except Exception as e:  # a bug: one line for the operator, the traceback in the log
+        log.exception("internal error in %s", name)
+        return _last_line(f"{name}: internal error: {type(e).__name__}: {e} (details in the log)", 3)
+
+
+def _last_line(text: str, code: int) -> int:
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+    return code
 
 
 if __name__ == "__main__":

@@ -34,7 +34,8 @@ class State(Enum):
     PLACE = "place"
     """Carry to the class's bin, open the gripper, lift."""
     PAUSED = "paused"
-    """Operator pause at a safe point (no part in the gripper); resumes with a fresh frame."""
+    """Operator pause at a safe point (no part in the gripper, or before the first motion);
+    resumes with a fresh frame (or by homing, if the pause came before it)."""
     DONE = "done"
     """No pickable part left that has not been picked, failed or found unreachable."""
     FAULT = "fault"
@@ -50,14 +51,14 @@ TERMINAL = frozenset({S.DONE, S.FAULT, S.STOPPED})
 # those two are added below so the table lists only the working transitions.
 _WORK: dict[State, frozenset[State]] = {
     S.IDLE: frozenset({S.HOME}),
-    S.HOME: frozenset({S.CAPTURE}),
+    S.HOME: frozenset({S.CAPTURE, S.PAUSED}),
     S.CAPTURE: frozenset({S.LOCATE, S.PAUSED}),
     S.LOCATE: frozenset({S.PLAN, S.VERIFY, S.PAUSED}),
     S.VERIFY: frozenset({S.PLAN, S.PAUSED}),
     S.PLAN: frozenset({S.PICK, S.DONE, S.PAUSED}),
     S.PICK: frozenset({S.PLACE}),
     S.PLACE: frozenset({S.CAPTURE}),
-    S.PAUSED: frozenset({S.CAPTURE}),
+    S.PAUSED: frozenset({S.CAPTURE, S.HOME}),
 }
 TRANSITIONS: dict[State, frozenset[State]] = {
     **{s: targets | {S.FAULT, S.STOPPED} for s, targets in _WORK.items()},

@@ -31,7 +31,7 @@ def test_a_killed_writer_leaves_a_readable_log(tmp_path):
         "import os\nfrom cell.audit import AuditLog\n"
         f"log = AuditLog({str(path)!r})\n"
         "log.state = 'pick'\nlog.event('target', robot_mm=[1, 2, 3])\n"
-        "log._file.write('{\"seq\": 2, \"kind\": \"ver')\nlog._file.flush()\nos._exit(9)\n"
+        "os.write(log._file._fd, b'{\"seq\": 2, \"kind\": \"ver')\nos._exit(9)\n"
     )
     subprocess.run([sys.executable, "-c", code], check=False)
     events = read_events(path)
