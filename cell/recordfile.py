@@ -57,7 +57,7 @@ class RecordFile:
         data = (text + "\n").encode("utf-8")
         try:
             while data:
-                n = os.write(self._fd, data)
+                n = self._write(data)
                 if n == 0:
                     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
                 data = data[n:]
@@ -67,6 +67,10 @@ class RecordFile:
                         "its further lines are dropped")
             return False
         return True
+
+    def _write(self, data: bytes) -> int:
+        """The one system call that writes (tests inject a full disk here)."""
+        return os.write(self._fd, data)
 
     def close(self) -> None:
         if self._fd is not None:
