@@ -81,3 +81,20 @@ def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
                 raise Busy(f"{what} {resource} in use by {holder}",
                            hint=f"wait for it to finish or stop it; lock file {lock_path(resource)}") from None
             time.sleep(0.05)
+
+
+def device_locks(arm_cfg, camera_source: str | None = None) -> contextlib.ExitStack:
+    """The locks of the configured arm's serial port and of a camera device (an index is
+    /dev/videoN), for a `with` block; a mock arm and a file or URL camera need none."""
+    stack = contextlib.ExitStack()
+    try:
+        if arm_cfg.kind != "mock" and arm_cfg.port:
+            stack.enter_context(holding(arm_cfg.port, "port"))
+        source = (camera_source or "").strip()
+        device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None
+        if device:
+            stack.enter_context(holding(device, "camera"))
+    except BaseException:
+        stack.close()
+        raise
+    return stack

@@ -11,6 +11,7 @@ from pathlib import Path
 from cell.audit import AuditLog
 from cell.config import CellConfig, load_config
 from cell.errors import CellError, ConfigError, InputError
+from cell.locks import device_locks
 from cell.oplog import log_to_file, stop_logging_to
 from cell.planning import Planner, save_taught, table_to_robot
 from cell.run_config import RunConfig
@@ -77,7 +78,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.circles:
         from drivers.arm.factory import make_arm, with_overrides
 
-        with make_arm(with_overrides(config.arm, args.arm, args.port)) as arm:
+        arm_cfg = with_overrides(config.arm, args.arm, args.port)
+        with device_locks(arm_cfg), make_arm(arm_cfg) as arm:
             points = jog_session(arm, args.circles, config, input, print)
     else:
         points = []
@@ -136,6 +138,7 @@ def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack)
     arm_cfg = config.arm
     if dry_run and arm_cfg.kind != "mock":  # the mock checks every command as the real driver would
         arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
+    resources.enter_context(device_locks(arm_cfg, config.camera.source))  # this job's alone until it ends
     return make_camera(config.camera), factory.make_arm(arm_cfg), calibration, not dry_run, None
 
 
