@@ -1,8 +1,9 @@
 """`run-cell`: the operator's command. Each sub-command lives in its own module.
 
 Every failure the operator can cause or meet (bad file, bad config, device trouble) is a
-CellError: one line on stderr saying what and where, and a non-zero exit. Stop signals
-are handled from the start (cell.signals), before any command opens a device.
+CellError or a driver's DeviceError: one line on stderr saying what and where, and a
+non-zero exit. Stop signals are handled from the start (cell.signals), before any command
+opens a device.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import logging
 import sys
 
 from cell.commands import run
-from cell.errors import CellError, describe_os_error
+from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
 from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
 
 # Modules that each add sub-commands through register(subparsers).
@@ -61,8 +62,8 @@ def _dispatch(args: argparse.Namespace) -> int:
     name = f"run-cell {args.command}"
     try:
         return int(args.func(args) or 0)
-    except CellError as e:
-        return _last_line(f"{name}: error: {e}", e.exit_code)
+    except REPORTED_ERRORS as e:
+        return _last_line(f"{name}: error: {e}", exit_code(e))
     except StopRequested as e:
         return _last_line(f"{name}: stopped: {e.reason}", EXIT_STOPPED)
     except KeyboardInterrupt:

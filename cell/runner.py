@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from cell.audit import AuditLog
-from cell.errors import CellError, ConfigError
+from cell.errors import REPORTED_ERRORS, CellError, ConfigError
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.signals import Controls, StopRequested
@@ -116,7 +116,7 @@ class Runner:
             self._finish(S.STOPPED, e.reason)
         except KeyboardInterrupt:
             self._finish(S.STOPPED, "Ctrl-C")
-        except (CellError, OSError) as e:
+        except (*REPORTED_ERRORS, OSError) as e:
             self._finish(S.FAULT, f"{type(e).__name__}: {e}")
         except Exception as e:  # a bug must still leave the arm safe
             log.exception("internal error in %s", self.sm.state.name)
@@ -205,7 +205,7 @@ class Runner:
                 return "arm not connected"
             step()
             return None
-        except (CellError, OSError, KeyboardInterrupt) as e:
+        except (*REPORTED_ERRORS, OSError, KeyboardInterrupt) as e:
             log.warning("making safe after %s: %s failed: %s", reason, name, e)
             return f"{type(e).__name__}: {e}"
         except Exception as e:  # a driver bug must not skip the remaining steps

@@ -13,7 +13,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import cell.simcell
+import cell.commands.run
 from cell.audit import read_events
 from cell.recordfile import RecordFile
 from drivers.sim.dxl_emulator import DxlBusEmulator
@@ -70,7 +70,7 @@ class Captured:
 def capture_sim(monkeypatch) -> Captured:
     """Keep the simulated cell (world and emulator) of the run, to inspect after it ended."""
     got = Captured()
-    real = cell.simcell.sim_cell
+    real = cell.commands.run.sim_cell
 
     @contextlib.contextmanager
     def keeping(config):
@@ -78,7 +78,7 @@ def capture_sim(monkeypatch) -> Captured:
             got.cell = sim
             yield sim
 
-    monkeypatch.setattr(cell.simcell, "sim_cell", keeping)
+    monkeypatch.setattr(cell.commands.run, "sim_cell", keeping)
     return got
 
 

@@ -113,7 +113,7 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
 
 def deviation_plot(result: CalibrationResult, path: Path) -> None:
     """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5)."""
-    import matplotlib
+    import matplotlib  # lazily: only a written report needs it (slow to import), and Agg goes before pyplot
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -1,13 +1,13 @@
 """Build the configured arm; the one place that maps a config kind to a driver class."""
 from __future__ import annotations
 
-from cell.errors import ConfigError
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig
 from drivers.arm.dynamixel import DynamixelArm, ExclusivePortHandler
 from drivers.arm.mock import MockArm
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
+from drivers.errors import ConfigError
 
 
 def with_overrides(cfg: ArmConfig, kind: str | None = None, port: str | None = None) -> ArmConfig:
