@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cell.calibration.models import model_from_dict
+from cell.atomicfile import write_text_atomic
 from cell.camera_model import CameraModel
 from cell.errors import InputError
 
@@ -127,17 +126,5 @@ class Calibration:
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
-    """Write to a temporary file beside `path`, fsync, then rename: never a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, allow_nan=False)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """JSON (no NaN or inf: a strict reader must be able to load it) written whole or not at all."""
+    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False) + "\n")

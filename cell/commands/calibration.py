@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.atomicfile import ensure_folder
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
 from cell.calibration.store import Calibration
@@ -94,7 +95,7 @@ def cmd_calibrate_demo(args: argparse.Namespace) -> int:
     config = CellConfig()
     camera = default_camera()
     image = render_plate(camera, config.plate)
-    args.out_dir.mkdir(parents=True, exist_ok=True)
+    ensure_folder(args.out_dir)
     write_image_atomic(args.out_dir / "plate.png", image)
     print(f"rendered the built-in plate: {args.out_dir / 'plate.png'}")
     result = calibrate(image, config)
