@@ -21,7 +21,7 @@ ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # NaN passes every bound
 
 
 class PlateConfig(Strict):

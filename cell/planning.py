@@ -165,6 +165,8 @@ class Planner:
             (float(rx), float(ry), z + plan.pick_above_table_mm), z + plan.approach_above_table_mm,
             angle, plan.bin_robot_mm,
         )
+        if not all(math.isfinite(v) for v in (*t.robot_mm, t.approach_z_mm, *(() if angle is None else (angle,)))):
+            raise Unreachable(f"target {t.robot_mm} mm, jaws {angle} deg: not a finite number (calibration?)")
         for point in t.waypoints():
             if why := self.violation(*point):
                 raise Unreachable(why)

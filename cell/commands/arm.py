@@ -7,6 +7,7 @@ from pathlib import Path
 
 from serial.tools import list_ports
 
+from cell.commands.argtypes import finite_float
 from cell.config import load_config
 from cell.errors import InputError
 from cell.locks import device_locks
@@ -23,9 +24,9 @@ def register(sub) -> None:
     j = sub.add_parser("jog", help="move the gripper to a robot-frame point, or open/close it")
     add_arm_arguments(j)
     what = j.add_mutually_exclusive_group(required=True)
-    what.add_argument("--to", nargs=3, type=float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
+    what.add_argument("--to", nargs=3, type=finite_float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
     what.add_argument("--gripper", choices=["open", "close"])
-    j.add_argument("--angle", type=float, metavar="DEG", help="gripper angle about the vertical, with --to")
+    j.add_argument("--angle", type=finite_float, metavar="DEG", help="gripper angle about the vertical, with --to")
     j.set_defaults(func=cmd_jog)
 
     h = sub.add_parser("home", help="home the arm (homing cycle or home pose)")

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from cell.calibration.store import Calibration
+from cell.commands.argtypes import finite_float
 from cell.config import load_config
 from cell.imageio import check_image_path, read_image, write_image_atomic
 from cell.vision.locate import PixelScale, locate
@@ -23,7 +24,7 @@ def register(sub) -> None:
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--calibration", type=Path, help="calibration JSON (table mm, height correction)")
     where.add_argument(
-        "--mm-per-px", type=float, help="a plain scale for an uncalibrated image (no height correction)"
+        "--mm-per-px", type=finite_float, help="a plain scale for an uncalibrated image (no height correction)"
     )
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
     p.add_argument("--preset", choices=["default", "paper"], help="override parts.preset")

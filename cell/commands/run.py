@@ -10,6 +10,7 @@ from pathlib import Path
 
 from cell.audit import AuditLog
 from cell.calibration.store import Calibration
+from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
 from cell.locks import device_locks
@@ -46,9 +47,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
                         "configs/sim-grbl.toml or configs/sim-dynamixel.toml)")
     g.add_argument("--port", help="override arm.port")
-    g.add_argument("--offset-x-mm", type=float, default=0.0,
+    g.add_argument("--offset-x-mm", type=finite_float, default=0.0,
                    help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)")
-    g.add_argument("--offset-y-mm", type=float, default=0.0, help="add to planning.offset_y_mm")
+    g.add_argument("--offset-y-mm", type=finite_float, default=0.0, help="add to planning.offset_y_mm")
     g.add_argument("--log-dir", type=Path, help="override run.log_dir")
 
 

@@ -17,7 +17,7 @@ TEMPLATE_FIELDS = {"x_mm": 1.0, "y_mm": 2.0, "z_mm": 3.0, "angle_deg": 4.0, "fee
 
 class _Strict(BaseModel):
     # Same rules as cell.config.Strict (not imported: cell.config imports this module).
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # NaN passes every bound
 
 
 class Workspace(_Strict):
