@@ -152,9 +152,9 @@ def _check_camera(camera: CameraModel, image_size: tuple[int, int], source: str)
         raise InputError(f"{source}: corrupt calibration (camera model is {camera.width_px} x {camera.height_px} px, "
                          f"the calibration {image_size[0]} x {image_size[1]} px)")
     centre = camera.center_table_mm
-    if not np.all(np.isfinite(centre)) or centre[2] <= 0:
-        raise InputError(f"{source}: corrupt calibration (camera at {np.round(centre, 1).tolist()} mm: "
-                         "not above the table)")
+    if not np.all(np.isfinite(centre)) or centre[2] <= 0 or camera.tvec[2] <= 0:
+        raise InputError(f"{source}: corrupt calibration (camera at {np.round(centre, 1).tolist()} mm with the "
+                         f"table {camera.tvec[2]:.1f} mm in front of it: not above the table, looking at it)")
     f = camera.camera_matrix[0, 0], camera.camera_matrix[1, 1]
     if min(f) <= 0:
         raise InputError(f"{source}: corrupt calibration (focal length {f} px is not positive)")
