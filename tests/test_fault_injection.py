@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import os
 import signal
+from pathlib import Path
 
 import pytest
 
@@ -89,3 +90,206 @@ def test_a_full_disk_at_an_audit_write_leaves_the_arm_safe_and_exits_3(writes, r
         return
     assert_arm_safe(sim.cell, tmp_path / "logs")
     assert "the audit log is incomplete; the run's summary:" in err
+
+
+# ---- signals -----------------------------------------------------------------------------------
+REASONS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
+# Where in the run a signal comes: at the write of this (kind, state), i.e. during that state's work.
+POINTS = {"start-up": ("run_start", "idle"), "idle": ("arm", "idle"), "home": ("arm", "home"),
+          "capture": ("state", "capture"), "locate": ("frame", "locate"), "plan": ("target", "plan"),
+          "pick": "after close_gripper", "place": ("arm", "place"), "verify": ("verify", "verify")}
+STOPS = list(REASONS)
+# The default suite: every point once, the three stop signals and both arms taking turns.
+STOP_CASES = [(point, STOPS[i % 3], KINDS[i % 2]) for i, point in enumerate(POINTS)]
+ALL_STOP_CASES = [c for c in itertools.product(POINTS, STOPS, KINDS) if c not in STOP_CASES]
+
+
+def signal_at(n: int, sig: int, then=None) -> FullDiskAt:
+    """Audit writes that send `sig` to this process at write n (a disk that never fills);
+    then(data) is called on every later write."""
+    def hook(count, data):
+        if count == n:
+            os.kill(os.getpid(), sig)
+        elif count > n and then is not None:
+            then(data)
+    return FullDiskAt(None, hook=hook)
+
+
+def point_number(writes, kind: str, point: str) -> int:
+    what = POINTS[point]
+    return write_number(writes, kind, "normal", what)
+
+
+def check_stopped(tmp_path, sim, sig, err: str) -> None:
+    assert_arm_safe(sim.cell, tmp_path / "logs")
+    events = audit_events(tmp_path / "logs")
+    end = events[-1]
+    assert end["kind"] == "run_end" and end["outcome"] == "stopped" and end["reason"].startswith(REASONS[sig])
+    assert err.strip().splitlines()[-1].startswith("run-cell run: stopped in ")
+    assert err.strip().splitlines()[-1].endswith(f"{REASONS[sig]} (arm made safe; exit 130)")
+
+
+def _stop_case(writes, point, sig, kind, tmp_path, monkeypatch, capsys):
+    signal_at(point_number(writes, kind, point), sig).install(monkeypatch)
+    sim = capture_sim(monkeypatch)
+    assert run_cell(tmp_path, kind) == 130
+    check_stopped(tmp_path, sim, sig, capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("point,sig,kind", STOP_CASES, ids=lambda v: getattr(v, "name", v))
+def test_a_stop_signal_in_each_state_stops_safely(writes, point, sig, kind, tmp_path, monkeypatch, capsys):
+    _stop_case(writes, point, sig, kind, tmp_path, monkeypatch, capsys)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("point,sig,kind", ALL_STOP_CASES, ids=lambda v: getattr(v, "name", v))
+def test_every_stop_signal_in_every_state_on_both_arms(writes, point, sig, kind, tmp_path, monkeypatch, capsys):
+    _stop_case(writes, point, sig, kind, tmp_path, monkeypatch, capsys)
+
+
+def test_a_stop_signal_before_any_device_is_opened(tmp_path, monkeypatch, capsys):
+    signal_at(1, signal.SIGTERM).install(monkeypatch)
+    sim = capture_sim(monkeypatch)
+    assert run_cell(tmp_path, "serial") == 130
+    assert sim.cell is None
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell run: stopped: SIGTERM"
+    assert audit_events(tmp_path / "logs")[-1]["outcome"] == "stopped"
+
+
+def test_a_stop_signal_during_plate_calibration(tmp_path, monkeypatch, capsys):
+    """The slow part of start-up: the pty of the emulated arm is not opened, nothing is left."""
+    import cell.sim.cell as simcell
+
+    real = simcell.calibrate
+
+    def hung_up(*a, **k):
+        os.kill(os.getpid(), signal.SIGHUP)
+        return real(*a, **k)
+
+    monkeypatch.setattr(simcell, "calibrate", hung_up)
+    cfg = fast_config(tmp_path, "dynamixel")
+    cfg.write_text(cfg.read_text().replace("perfect_calibration = true\n", ""))
+    ptys = set(Path("/tmp").glob("pty-*"))
+    assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell run: stopped: SIGHUP (terminal closed)"
+    assert audit_events(tmp_path / "logs")[-1]["reason"] == "SIGHUP (terminal closed)"
+    assert set(Path("/tmp").glob("pty-*")) <= ptys
+
+
+def test_a_stop_signal_during_the_safe_stop_does_not_cut_it_short(writes, tmp_path, monkeypatch, capsys):
+    n = firsts(writes["dynamixel"]["fault"])[("safe_step", "plan")]
+    signal_at(n, signal.SIGINT).install(monkeypatch)
+    sim = capture_sim(monkeypatch)
+    assert run_cell(tmp_path, "dynamixel", max_attempts=1) == 3  # the fault stands; Ctrl-C did not interrupt
+    assert_arm_safe(sim.cell, tmp_path / "logs")
+    steps = [(e["step"], e["ok"]) for e in audit_events(tmp_path / "logs") if e["kind"] == "safe_step"]
+    assert steps == [("finish motion", True), ("open gripper", True), ("home", True), ("release torque", True)]
+
+
+PAUSE_POINTS = ["start-up", "pick", "verify"]  # the default suite; -m slow takes the other states
+
+
+def _pause_case(writes, point, tmp_path, monkeypatch, capsys):
+    kind = "serial"
+    seen = {}
+    sim = capture_sim(monkeypatch)
+
+    def at_pause(data: bytes):
+        if b'"target":"paused"' in data and not seen:
+            seen["line"], seen["held"] = data.decode(), sim.cell.world.held()
+            os.kill(os.getpid(), signal.SIGTERM)  # stop while paused
+
+    signal_at(point_number(writes, kind, point), signal.SIGUSR1, then=at_pause).install(monkeypatch)
+    assert run_cell(tmp_path, kind) == 130
+    assert seen["held"] is None  # paused with nothing in the gripper
+    check_stopped(tmp_path, sim, signal.SIGTERM, capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("point", PAUSE_POINTS)
+def test_sigusr1_pauses_at_a_safe_point(writes, point, tmp_path, monkeypatch, capsys):
+    _pause_case(writes, point, tmp_path, monkeypatch, capsys)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("point", [p for p in POINTS if p not in PAUSE_POINTS])
+def test_sigusr1_pauses_at_a_safe_point_in_every_state(writes, point, tmp_path, monkeypatch, capsys):
+    _pause_case(writes, point, tmp_path, monkeypatch, capsys)
+
+
+def test_sigusr1_during_start_up_pauses_before_the_first_motion_and_resumes(writes, tmp_path, monkeypatch, capsys):
+    sim = capture_sim(monkeypatch)
+    seen = {}
+
+    def at_pause(data: bytes):
+        if b'"target":"paused"' in data and not seen:
+            seen["pose"] = sim.cell.emulated.emulator.tool_pose()
+            seen["line"] = data.decode()
+            os.kill(os.getpid(), signal.SIGUSR1)  # resume
+
+    signal_at(point_number(writes, "dynamixel", "start-up"), signal.SIGUSR1, then=at_pause).install(monkeypatch)
+    assert run_cell(tmp_path, "dynamixel", max_attempts=1) == 3  # one pick after resuming, then the safety stop
+    events = audit_events(tmp_path / "logs")
+    states = [(e["source"], e["target"]) for e in events if e["kind"] == "state"]
+    assert states[:4] == [("idle", "home"), ("home", "paused"), ("paused", "home"), ("home", "capture")]
+    before = [e["command"] for e in events[: events.index(next(e for e in events if e.get("target") == "paused"))]
+              if e["kind"] == "arm"]
+    assert before == ["connect"]  # nothing had moved when it paused
+    assert [e["kind"] for e in events].count("target") == 1 and any(
+        e["kind"] == "verify" and e["result"] == "picked" for e in events)
+
+
+# ---- the exhaustive sweep (-m slow): a full disk at every audit write of a whole run -------------
+@pytest.fixture(scope="module")
+def whole_run_writes(tmp_path_factory):
+    counts = {}
+    for kind in KINDS:
+        d = tmp_path_factory.mktemp(f"whole-{kind}")
+        assert run_cell(d, kind) == 0
+        counts[kind] = len(audit_events(d / "logs"))
+    return counts
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("n", range(1, 321))
+def test_a_full_disk_at_every_audit_write(whole_run_writes, kind, n, tmp_path, monkeypatch, capsys):
+    if n > whole_run_writes[kind]:
+        pytest.skip(f"the {kind} run writes {whole_run_writes[kind]} events")
+    FullDiskAt(n).install(monkeypatch)
+    sim = capture_sim(monkeypatch)
+    assert run_cell(tmp_path, kind) == 3
+    assert [e["seq"] for e in audit_events(tmp_path / "logs")] == list(range(1, n))
+    if sim.cell is not None:
+        assert_arm_safe(sim.cell, tmp_path / "logs")
+
+
+# ---- a real full disk ----------------------------------------------------------------------------
+@pytest.fixture
+def tiny_filesystem(tmp_path):
+    """A 64 KiB tmpfs (needs root and mount(8)); skipped, saying why, where that is not allowed."""
+    import shutil
+    import subprocess
+
+    where = tmp_path / "tiny"
+    where.mkdir()
+    if os.geteuid() != 0 or not shutil.which("mount"):
+        pytest.skip("mounting a 64 KiB tmpfs needs root and mount(8); the injected ENOSPC cases cover the logic")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(where)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", str(where)], check=False)
+
+
+def test_a_real_full_disk_mid_run(tiny_filesystem, monkeypatch, capsys):
+    sim = capture_sim(monkeypatch)
+    cfg = fast_config(tiny_filesystem.parent, "dynamixel")
+    assert main(["--config", str(cfg), "--log-dir", str(tiny_filesystem)]) == 3
+    err = capsys.readouterr().err
+    assert "write failed (No space left on device)" in err and "the audit log is incomplete" in err
+    assert "simulated truth: " in err and "gripper:" not in err
+    assert err.strip().splitlines()[-1].endswith("No space left on device (hint: free space on its filesystem or "
+                                                 "set run.log_dir elsewhere) (arm made safe; exit 3)")
+    assert_arm_safe(sim.cell, tiny_filesystem)
