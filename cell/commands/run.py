@@ -158,7 +158,11 @@ def run_cell(args: argparse.Namespace) -> int:
             for h in logging.getLogger().handlers:
                 if type(h) is logging.StreamHandler:
                     h.setLevel(logging.WARNING)
-        log_to_file(f"{stem}.log", exclusive=True)
+        try:
+            log_to_file(f"{stem}.log", exclusive=True)
+        except OSError as e:
+            raise ConfigError(f"run.log_dir {stem.parent}: cannot create the operator log: {e.strerror or e}",
+                              hint="set run.log_dir (or --log-dir) to a writable folder with free space") from None
         return _run_job(args, config, audit, controls)
     finally:
         with controls.shielded():
