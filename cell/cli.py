@@ -14,6 +14,7 @@ import sys
 
 from cell.commands import run
 from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
+from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
 
 # Modules that each add sub-commands through register(subparsers).
@@ -76,10 +77,7 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 
 def _last_line(text: str, code: int) -> int:
-    try:
-        print(text, file=sys.stderr, flush=True)
-    except (OSError, ValueError):
-        pass
+    tell_stderr(text)
     return code
 
 

@@ -26,8 +26,8 @@ def unique_stem(folder: Path, prefix: str, suffixes: tuple[str, ...]) -> Path:
     return stem
 
 
-def report_once(text: str) -> None:
-    """One line on stderr; silent if stderr itself is gone (a closed terminal)."""
+def tell_stderr(text: str) -> None:
+    """Text on stderr; silent if stderr itself is gone (a closed terminal)."""
     try:
         sys.stderr.write(text + "\n")
         sys.stderr.flush()
@@ -63,7 +63,7 @@ class RecordFile:
                 data = data[n:]
         except OSError as e:
             self.failed = e
-            report_once(f"{self.what} {self.path}: write failed ({e.strerror or e}); "
+            tell_stderr(f"{self.what} {self.path}: write failed ({e.strerror or e}); "
                         "its further lines are dropped")
             return False
         return True

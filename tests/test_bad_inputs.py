@@ -11,7 +11,6 @@ import zlib
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 from cell.calibration import recalibrate

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from datetime import datetime
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, Output
 from cell.imageio import read_image
 from cell.locks import holding
 from cell.oplog import log_to_file
+from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
@@ -159,8 +159,5 @@ def _dispatch(args: argparse.Namespace, controls: Controls) -> int:
 
 
 def _last_line(text: str, code: int) -> int:
-    try:
-        print(text, file=sys.stderr, flush=True)
-    except (OSError, ValueError):
-        pass
+    tell_stderr(text)
     return code

@@ -16,7 +16,7 @@ from cell.errors import REPORTED_ERRORS, ConfigError, InputError
 from cell.locks import device_locks
 from cell.oplog import log_to_file, stop_logging_to
 from cell.planning import Planner, save_taught, table_to_robot
-from cell.recordfile import report_once, unique_stem
+from cell.recordfile import tell_stderr, unique_stem
 from cell.run_config import RunConfig
 from cell.runner import EXIT_FAULT, EXIT_STOPPED, Runner
 from cell.signals import Controls
@@ -191,12 +191,12 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                 audit.best_effort = True
                 _log_fault(audit, args, e)
             raise
-        runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
-                        config.run, audit, controls, expect_motion, progress=say,
-                        truth=None if sim is None else lambda: sim_truth(sim.world),
-                        sim_motion_s=None if sim is None else sim.motion_time_s)
-        runner.run()
-        with controls.shielded():
+        with controls.shielded():  # from here the runner decides what a signal interrupts
+            runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
+                            config.run, audit, controls, expect_motion, progress=say,
+                            truth=None if sim is None else lambda: sim_truth(sim.world),
+                            sim_motion_s=None if sim is None else sim.motion_time_s)
+            runner.run()
             return _report(runner, audit, sim)
     finally:
         with controls.shielded():
@@ -217,13 +217,13 @@ def _report(runner: Runner, audit: AuditLog, sim) -> int:
     say(f"audit log: {audit.path}")
     code = summary.exit_code
     if audit.failed is not None:
-        report_once("the audit log is incomplete; the run's summary:\n" + "\n".join(lines))
+        tell_stderr("the audit log is incomplete; the run's summary:\n" + "\n".join(lines))
         code = EXIT_FAULT
     if code == EXIT_FAULT or code == EXIT_STOPPED:
         where = runner.sm.history[-1].source.name if runner.sm.history else "IDLE"
         what = "fault" if code == EXIT_FAULT else "stopped"
         reason = summary.reason if summary.outcome != "done" else f"audit log: {audit.failed}"
-        report_once(f"run-cell run: {what} in {where}: {reason} (arm made safe; exit {code})")
+        tell_stderr(f"run-cell run: {what} in {where}: {reason} (arm made safe; exit {code})")
     return code
 
 
@@ -248,7 +248,7 @@ def _log_early_fault(log_dir: Path, args: argparse.Namespace, e: BaseException) 
     try:
         audit = AuditLog(f"{unique_stem(Path(log_dir), 'run', ('.jsonl', '.log'))}.jsonl")
     except OSError as err:
-        report_once(f"audit log in {log_dir}: cannot be created ({err.strerror or err})")
+        tell_stderr(f"audit log in {log_dir}: cannot be created ({err.strerror or err})")
         return
     with audit:
         audit.best_effort = True
