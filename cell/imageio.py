@@ -8,7 +8,7 @@ import numpy as np
 
 from cell.atomicfile import write_bytes_atomic
 from cell.errors import InputError, OutputError
-from cell.imageheader import UnknownFormat, image_size
+from drivers.cameras.imageheader import UnknownFormat, image_size
 
 
 def read_image(path: str | Path, max_px: int | None = None, expected_size: tuple[int, int] | None = None) -> np.ndarray:
