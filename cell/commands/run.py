@@ -13,7 +13,7 @@ from cell.calibration.store import Calibration
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
-from cell.locks import device_locks
+from cell.locks import device_locks, holding
 from cell.oplog import log_to_file, stop_logging_to
 from cell.planning import Planner, save_taught, table_to_robot
 from cell.recordfile import tell_stderr, unique_stem
@@ -103,7 +103,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.dry_run:
         print("dry run: nothing written")
         return 0
-    save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
+    with holding(config.planning.taught_path, "taught frame file", wait_s=config.calibration.lock_wait_s):
+        save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
     print(f"wrote {config.planning.taught_path}; set planning.frame = \"taught\" to use it")
     return 0
 
