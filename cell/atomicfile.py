@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -79,12 +79,17 @@ def ensure_folder(path: str | Path) -> Path:
 
 
 def _temporary_beside(path: Path) -> str:
+    """A new, uniquely named empty file beside `path`, with the permissions the umask gives
+    (mkstemp's 0600 would make every report unreadable to the other operators)."""
     if path.is_dir():
         raise OutputError(f"{path}: is a folder, not a file", hint="give a file path")
     ensure_folder(path.parent)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as e:
-        raise output_error(path, e) from None
-    os.close(fd)
-    return tmp
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666))
+            return str(tmp)
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise output_error(path, e) from None
