@@ -153,6 +153,9 @@ class Planner:
             raise Unreachable(f"class {part.cls!r} is not picked")
         plan = self.cfg.for_class(part.cls)
         table_xy = part.grasp_mm or part.world_mm
+        if not all(math.isfinite(v) for v in (*table_xy, *(() if part.angle_deg is None else (part.angle_deg,)))):
+            raise Unreachable(f"part at table {tuple(table_xy)} mm, angle {part.angle_deg} deg: not a finite number "
+                              "(calibration?)")
         rx, ry = self.frame.to_robot(table_xy)[0]
         z = self.frame.table_z_mm
         angle = None

@@ -38,7 +38,7 @@ def fast_config(tmp_path: Path, kind: str, max_attempts: int | None = None, spee
 
 class FullDiskAt:
     """Audit-log files whose write number `n` (1-based, counted over the run) fails with ENOSPC,
-    as do all later ones; `hook(n, line)` may act at each write instead (a signal)."""
+    as do all later ones; `hook(n, line)` may act after each write instead (send a signal)."""
 
     def __init__(self, n: int | None = None, hook=None):
         self.n, self.hook, self.count, self.failed_line = n, hook, 0, None
@@ -47,13 +47,14 @@ class FullDiskAt:
         class Injected(RecordFile):
             def _write(self, data: bytes) -> int:
                 injector.count += 1
-                if injector.hook is not None:
-                    injector.hook(injector.count, data)
                 if injector.n is not None and injector.count >= injector.n:
                     if injector.failed_line is None:
                         injector.failed_line = data.decode()
                     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-                return super()._write(data)
+                written = super()._write(data)
+                if injector.hook is not None:  # after the line is written: a signal does not lose it
+                    injector.hook(injector.count, data)
+                return written
 
         self.record_file = Injected
 

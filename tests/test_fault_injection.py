@@ -193,6 +193,32 @@ def test_a_stop_signal_during_plate_calibration(tmp_path, monkeypatch, capsys):
     assert set(Path("/tmp").glob("pty-*")) <= ptys
 
 
+def test_sigusr1_during_plate_calibration_pauses_before_the_first_motion(tmp_path, monkeypatch, capsys):
+    import cell.sim.cell as simcell
+
+    real = simcell.calibrate
+
+    def paused(*a, **k):
+        os.kill(os.getpid(), signal.SIGUSR1)
+        return real(*a, **k)
+
+    def at_pause(data: bytes):
+        if b'"target":"paused"' in data:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(simcell, "calibrate", paused)
+    FullDiskAt(None, hook=lambda count, data: at_pause(data)).install(monkeypatch)
+    sim = capture_sim(monkeypatch)
+    cfg = fast_config(tmp_path, "serial")
+    cfg.write_text(cfg.read_text().replace("perfect_calibration = true\n", ""))
+    assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 130
+    events = audit_events(tmp_path / "logs")
+    assert [e["command"] for e in events if e["kind"] == "arm"] == ["connect"]  # paused before anything moved
+    assert [(e["source"], e["target"]) for e in events if e["kind"] == "state"][:2] == [("idle", "home"),
+                                                                                        ("home", "paused")]
+    check_stopped(tmp_path, sim, signal.SIGTERM, capsys.readouterr().err)
+
+
 def test_a_stop_signal_during_the_safe_stop_does_not_cut_it_short(writes, tmp_path, monkeypatch, capsys):
     n = firsts(writes["dynamixel"]["fault"])[("safe_step", "plan")]
     signal_at(n, signal.SIGINT).install(monkeypatch)
