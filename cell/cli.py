@@ -20,6 +20,7 @@ from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
     "cell.commands.calibration",
+    "cell.calibration.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.run",

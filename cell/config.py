@@ -9,19 +9,17 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
-from cell.vision.config import PartsConfig
+from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
+from drivers.cameras.config import CameraConfig
+from drivers.config import Strict
 
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # NaN passes every bound
 
 
 class PlateConfig(Strict):
@@ -37,7 +35,7 @@ class PlateConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _circles_do_not_touch(self) -> "PlateConfig":
+    def _circles_do_not_touch(self) -> PlateConfig:
         if self.diameter_mm >= min(self.pitch_x_mm, self.pitch_y_mm):
             raise ValueError(
                 f"plate.diameter_mm ({self.diameter_mm} mm) must be smaller than both pitches "
@@ -59,7 +57,7 @@ class PaperDetectionConfig(Strict):
     max_area_px: float = Field(2000, gt=0)
 
     @model_validator(mode="after")
-    def _area_order(self) -> "PaperDetectionConfig":
+    def _area_order(self) -> PaperDetectionConfig:
         if self.min_area_px >= self.max_area_px:
             raise ValueError(
                 f"detection.paper.min_area_px ({self.min_area_px} px) must be below "
@@ -71,7 +69,7 @@ class PaperDetectionConfig(Strict):
 class DetectionConfig(Strict):
     """How circle centres are found on the plate image."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: Preset = "default"
     paper: PaperDetectionConfig = PaperDetectionConfig()
     min_diameter_ratio: float = Field(
         0.6, gt=0, lt=1, description="smallest blob accepted, as a fraction of the lattice's circle diameter"
@@ -116,27 +114,11 @@ class CalibrationConfig(Strict):
     lock_wait_s: float = Field(120.0, ge=0, le=3600, description="how long a recalibration waits for another to finish")
 
     @model_validator(mode="after")
-    def _heights_ordered(self) -> "CalibrationConfig":
+    def _heights_ordered(self) -> CalibrationConfig:
         if self.camera_height_min_mm >= self.camera_height_max_mm:
             raise ValueError(f"calibration.camera_height_min_mm ({self.camera_height_min_mm}) must be below "
                              f"camera_height_max_mm ({self.camera_height_max_mm})")
         return self
-
-
-class CameraConfig(Strict):
-    """Where frames come from."""
-
-    source: str = Field("sim", description="'sim', a device index, a URL, a video file or an image folder")
-    width_px: int = Field(1920, ge=16, le=20000)
-    height_px: int = Field(1080, ge=16, le=20000)
-    timeout_s: float = Field(5.0, gt=0, le=120)
-    focus: float | None = Field(None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)")
-    exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
-    warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
-    loop: bool = Field(False, description="video file or image folder: start again at the end")
-    max_image_px: int = Field(
-        100_000_000, ge=256, description="an image file with more pixels is refused from its header, before decoding"
-    )
 
 
 class CellConfig(Strict):

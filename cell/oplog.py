@@ -58,3 +58,9 @@ def stop_logging_to(path: str | Path) -> None:
         if isinstance(h, RecordHandler) and h.path == Path(path):
             root.removeHandler(h)
             h.close()
+def quiet_terminal(level: int) -> None:
+    """Raise the terminal's log handlers to `level`: the operator's file keeps every line,
+    the terminal only what a command does not already say in its own one-line message."""
+    for h in logging.getLogger().handlers:
+        if type(h) is logging.StreamHandler:
+            h.setLevel(level)

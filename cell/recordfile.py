@@ -11,13 +11,13 @@ from __future__ import annotations
 import errno
 import os
 import sys
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 
 def unique_stem(folder: Path, prefix: str, suffixes: tuple[str, ...]) -> Path:
     """`folder/prefix-<utc time>-<pid>[-n]`: no file with any of `suffixes` exists under it yet."""
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     base = folder / f"{prefix}-{stamp}-{os.getpid()}"
     stem, n = base, 1
     while any(stem.with_name(stem.name + s).exists() for s in suffixes):

@@ -58,7 +58,7 @@ class FullDiskAt:
 
         self.record_file = Injected
 
-    def install(self, monkeypatch) -> "FullDiskAt":
+    def install(self, monkeypatch) -> FullDiskAt:
         monkeypatch.setattr("cell.audit.RecordFile", self.record_file)
         return self
 

@@ -21,6 +21,8 @@ from drivers.sim.dxl_emulator import DxlBusEmulator
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
+pytestmark = pytest.mark.timeout(90)  # opens ptys or subprocesses: never hang the suite
+
 RUN_CELL = Path(sys.executable).parent / "run-cell"
 
 

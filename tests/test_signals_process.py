@@ -9,12 +9,15 @@ import sys
 from pathlib import Path
 
 import cv2
+import pytest
 
 from cell.audit import read_events
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.sim.render import render_plate
 from tests.faults import fast_config
+
+pytestmark = pytest.mark.timeout(180)  # opens ptys or subprocesses: never hang the suite
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_CELL = Path(sys.executable).parent / "run-cell"

@@ -21,13 +21,13 @@ from cell.config import CalibrationConfig, PlateConfig
 def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, plate: PlateConfig) -> list[str]:
     """What makes the fit physically implausible (empty: nothing)."""
     problems = []
-    best = min(s.cv["rms_mm"] for s in result.scores)
+    best = min(s.cv.rms_mm for s in result.scores)
     camera = next((s for s in result.scores if s.name == "camera"), None)
     if camera is not None:
         worst_allowed = max(limits.max_camera_model_ratio * best, best + limits.max_camera_model_excess_mm)
-        if camera.cv["rms_mm"] > worst_allowed:
+        if camera.cv.rms_mm > worst_allowed:
             problems.append(
-                f"the physical camera model fits {camera.cv['rms_mm']:.3f} mm RMS (cross-validated) against the best "
+                f"the physical camera model fits {camera.cv.rms_mm:.3f} mm RMS (cross-validated) against the best "
                 f"model's {best:.4f} mm: the plate's geometry does not agree with the config (plate.pitch_x_mm "
                 f"{plate.pitch_x_mm:g}, pitch_y_mm {plate.pitch_y_mm:g}; calibration.max_camera_model_ratio "
                 f"{limits.max_camera_model_ratio:g})")

@@ -12,43 +12,63 @@ import argparse
 import logging
 from datetime import datetime
 from pathlib import Path
+from typing import get_args
 
 from cell.atomicfile import copy_unique, ensure_folder
 from cell.calibration.gates import change_problems, plausibility_problems
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
 from cell.calibration.store import Calibration
-from cell.config import load_config
+from cell.config import ModelName, load_config
 from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, OutputError, describe_os_error, exit_code
 from cell.imageio import read_image
 from cell.locks import holding
-from cell.oplog import log_to_file
+from cell.oplog import log_to_file, quiet_terminal
 from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
+from cell.vision.config import Preset
 from drivers.cameras.factory import make_camera
 
 log = logging.getLogger(__name__)
+DESCRIPTION = "Fit a new pixel -> table calibration from a plate image and make it active."
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="recalibrate.py",
-        description="Fit a new pixel -> table calibration from a plate image and make it active.",
-    )
+    """scripts/recalibrate.py's own parser; `run-cell recalibrate` takes the same options."""
+    p = argparse.ArgumentParser(prog="recalibrate.py", description=DESCRIPTION)
+    add_arguments(p)
+    return p
+
+
+def register(sub) -> None:
+    """`run-cell recalibrate`: the same command as scripts/recalibrate.py."""
+    p = sub.add_parser("recalibrate", help="fit a new calibration from a plate image and make it active",
+                       description=DESCRIPTION)
+    add_arguments(p)
+    p.set_defaults(func=cmd_recalibrate)
+
+
+def cmd_recalibrate(args: argparse.Namespace) -> int:
+    """As the script: the report on stdout, a failure as run-cell's one line (details in --log)."""
+    if not args.verbose:
+        quiet_terminal(logging.CRITICAL)
+    return recalibrate(args, getattr(args, "controls", None))
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image", type=Path, help="plate image (default: capture from the configured camera)")
     p.add_argument("--out", type=Path, help="calibration file to replace (default: calibration.active_path)")
     p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
-    p.add_argument("--model", choices=["auto", "quadratic", "homography", "polynomial", "camera"])
-    p.add_argument("--preset", choices=["default", "paper"], help="detector preset (overrides the config)")
+    p.add_argument("--model", choices=get_args(ModelName))
+    p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
     p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")
     p.add_argument("--accept-change", action="store_true",
                    help="replace the active calibration even if scale or origin move beyond the configured limits "
                         "(the camera or plate was moved on purpose)")
-    return p
 
 
 def capture_plate(config):
@@ -87,9 +107,9 @@ def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
             print(f"wrote {p}")
     limits = config.calibration
     cv = result.chosen.cv
-    if cv["rms_mm"] > limits.max_cv_rms_mm or cv["max_mm"] > limits.max_cv_error_mm:
+    if cv.rms_mm > limits.max_cv_rms_mm or cv.max_mm > limits.max_cv_error_mm:
         raise CalibrationRejected(
-            f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
+            f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
             f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
             f"{limits.max_cv_error_mm} mm; {out} left unchanged"
         )
@@ -99,7 +119,7 @@ def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
     with holding(out, "calibration file", wait_s=limits.lock_wait_s):  # one recalibration of a file at a time
         backup = _replace(out, result.calibration, backup_dir, args.accept_change, limits, controls)
     log.info("recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s", out, result.chosen.label,
-             cv["rms_mm"], cv["max_mm"], f"; previous kept as {backup}" if backup else "")
+             cv.rms_mm, cv.max_mm, f"; previous kept as {backup}" if backup else "")
     print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))
     return 0
 
@@ -125,37 +145,48 @@ def _replace(out: Path, new: Calibration, backup_dir: Path, accept_change: bool,
     return backup
 
 
-def main(argv: list[str] | None = None) -> int:
-    with handling_signals() as controls:
-        args = build_parser().parse_args(argv)
-        try:
-            log_to_file(args.log)
-        except OSError as e:
-            return _last_line(f"recalibrate: error: cannot open log {args.log}: {describe_os_error(e)}", 2)
-        return _dispatch(args, controls)
-
-
-def _dispatch(args: argparse.Namespace, controls: Controls) -> int:
-    """Run; whatever ends it, the last line on stderr names what failed and where."""
+def recalibrate(args: argparse.Namespace, controls: Controls | None = None) -> int:
+    """Run with the operator log open; a failure is logged there, then raised for the caller
+    to print as one line (exit 2, or 3 for a refused fit or a failed write)."""
+    try:
+        log_to_file(args.log)
+    except OSError as e:
+        raise InputError(f"cannot open log {args.log}: {describe_os_error(e)}") from None
     try:
         return run(args, controls)
     except CalibrationRejected as e:
         log.error("recalibration refused: %s", e)
-        return _last_line(f"recalibrate: refused: {e}", 3)
+        raise
     except REPORTED_ERRORS as e:
         log.error("recalibration failed: %s", e)
-        return _last_line(f"recalibrate: error: {e}", exit_code(e))
+        raise
     except StopRequested as e:
-        log.warning("recalibration stopped: %s", e.reason)
-        return _last_line(f"recalibrate: stopped: {e.reason}; the active calibration is unchanged", EXIT_STOPPED)
-    except KeyboardInterrupt:
-        return _last_line("recalibrate: stopped: Ctrl-C; the active calibration is unchanged", EXIT_STOPPED)
+        log.warning("recalibration stopped: %s; the active calibration is unchanged", e.reason)
+        raise
     except OSError as e:
         log.error("recalibration failed: %s", e)
-        return _last_line(f"recalibrate: error: {describe_os_error(e)}", 3)
-    except Exception as e:  # a bug: one line for the operator, the traceback in the log
-        log.exception("recalibration failed")
-        return _last_line(f"recalibrate: internal error: {type(e).__name__}: {e} (details in {args.log})", 3)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    """scripts/recalibrate.py: its messages start with `recalibrate:`; signals handled from the start."""
+    with handling_signals() as controls:
+        args = build_parser().parse_args(argv)
+        try:
+            return recalibrate(args, controls)
+        except CalibrationRejected as e:
+            return _last_line(f"recalibrate: refused: {e}", e.exit_code)
+        except REPORTED_ERRORS as e:
+            return _last_line(f"recalibrate: error: {e}", exit_code(e))
+        except StopRequested as e:
+            return _last_line(f"recalibrate: stopped: {e.reason}; the active calibration is unchanged", EXIT_STOPPED)
+        except KeyboardInterrupt:
+            return _last_line("recalibrate: stopped: Ctrl-C; the active calibration is unchanged", EXIT_STOPPED)
+        except OSError as e:
+            return _last_line(f"recalibrate: error: {describe_os_error(e)}", 3)
+        except Exception as e:  # a bug: one line for the operator, the traceback in the log
+            log.exception("recalibration failed")
+            return _last_line(f"recalibrate: internal error: {type(e).__name__}: {e} (details in {args.log})", 3)
 
 
 def _last_line(text: str, code: int) -> int:

@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cell.calibration.models import model_from_dict
 from cell.atomicfile import write_text_atomic
+from cell.calibration.models import model_from_dict
 from cell.camera_model import CameraModel
 from cell.errors import InputError
 
@@ -80,7 +80,7 @@ class Calibration:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, source: str = "calibration") -> "Calibration":
+    def from_dict(cls, d: dict, source: str = "calibration") -> Calibration:
         if not isinstance(d, dict) or d.get("schema") != SCHEMA:
             raise InputError(f"{source}: not a calibration file (schema is not {SCHEMA!r})")
         if d.get("version") != SCHEMA_VERSION:
@@ -120,7 +120,7 @@ class Calibration:
         write_json_atomic(path, self.to_dict())
 
     @classmethod
-    def load(cls, path: str | Path) -> "Calibration":
+    def load(cls, path: str | Path) -> Calibration:
         path = Path(path)
         try:
             text = path.read_text(encoding="utf-8")

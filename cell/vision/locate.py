@@ -84,7 +84,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes):
+    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct)
         part.outline_px = blob.outer
@@ -99,7 +99,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
     """A part whose position or angle is not a finite number is never picked (and says why)."""
-    numbers = [*part.world_mm, *(part.grasp_mm or ()), *(part.head_mm or ())]
+    numbers = [*part.table_mm, *(part.grasp_mm or ()), *(part.head_mm or ())]
     numbers += [v for v in (part.angle_deg, part.jaw_opening_mm) if v is not None]
     if part.pick and not np.all(np.isfinite(np.asarray(numbers, dtype=np.float64))):
         part.pick = False
@@ -183,7 +183,7 @@ def _place(feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsCon
         cls=verdict.cls,
         reason=verdict.reason,
         pixel=(float(centre[0]), float(centre[1])),
-        world_mm=(float(world[0]), float(world[1])),
+        table_mm=(float(world[0]), float(world[1])),
         angle_deg=angle,
         pick=verdict.cls in (BOLT, NUT),
         grasp_mm=None if grasp is None else (float(grasp[0]), float(grasp[1])),
