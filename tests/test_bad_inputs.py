@@ -21,7 +21,8 @@ from cell.cli import main
 from cell.config import CellConfig
 from cell.sim.render import render_plate
 
-pytestmark = pytest.mark.timeout(120)  # opens ptys or subprocesses: never hang the suite
+# Whole runs of the cell or of recalibrations (slow); ptys and subprocesses must never hang the suite.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 W, H = 1280, 720
 CAMERA = CameraModel.looking_down(W, H, 0.30, (132, 88), tilt_deg=3, k1=-0.06)

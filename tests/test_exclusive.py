@@ -33,6 +33,7 @@ def wait_for(predicate, timeout_s: float = 30.0) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # a run-cell subprocess jogging at the arm's real speed
 def test_a_second_jog_on_the_port_of_a_moving_arm_is_refused_and_the_first_stops_safely(capsys):
     emu = GrblEmulator(speed_scale=1)  # 500 mm/min: the first jog is still moving when the second comes
     with serve_pty(emu) as path:

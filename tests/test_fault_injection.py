@@ -18,7 +18,8 @@ import pytest
 from cell.cli import main
 from tests.faults import FullDiskAt, assert_arm_safe, audit_events, capture_sim, fast_config
 
-pytestmark = pytest.mark.timeout(180)  # opens ptys or subprocesses: never hang the suite
+# Whole runs of the cell or of recalibrations (slow); ptys and subprocesses must never hang the suite.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 KINDS = ("dynamixel", "serial")
 

@@ -17,7 +17,8 @@ from cell.config import CellConfig
 from cell.sim.render import render_plate
 from tests.faults import fast_config
 
-pytestmark = pytest.mark.timeout(180)  # opens ptys or subprocesses: never hang the suite
+# Whole runs of the cell or of recalibrations (slow); ptys and subprocesses must never hang the suite.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_CELL = Path(sys.executable).parent / "run-cell"
