@@ -30,8 +30,10 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 bench: $(STAMP)
+	$(PY) scripts/bench_detection.py
 	$(PY) scripts/bench_calibration.py
 	$(PY) scripts/bench_parts.py
+	$(PY) scripts/bench_drift.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -112,6 +112,9 @@ class CalibrationConfig(Strict):
         5.0, gt=0, description="a new calibration that maps the image centre this much elsewhere needs --accept-change"
     )
     lock_wait_s: float = Field(120.0, ge=0, le=3600, description="how long a recalibration waits for another to finish")
+    check_max_mm: float = Field(
+        0.3, gt=0, description="check-calibration fails when a plate point maps further than this from where it lies"
+    )
 
     @model_validator(mode="after")
     def _heights_ordered(self) -> CalibrationConfig:
@@ -121,12 +124,32 @@ class CalibrationConfig(Strict):
         return self
 
 
+class DriftConfig(Strict):
+    """Reference marks that stay in view while the cell works (printed dots at the table's edge,
+    a few plate circles): each frame they are measured and mapped through the calibration; when
+    they have moved the cell stops before the next pick. No marks: no watch."""
+
+    marks_mm: list[tuple[float, float]] = Field(
+        default_factory=list, description="centres of the dark round marks, table mm (the plate frame)"
+    )
+    mark_diameter_mm: float = Field(
+        1.5, gt=0, le=100, description="small enough (under parts.segment.noise_area_mm2) that locate ignores the marks"
+    )
+    limit_mm: float = Field(
+        0.25, gt=0, le=50,
+        description="stop when a mark maps further than this from its place: below 0.3 mm by more than the "
+                    "measurement noise, so that a 0.3 mm bump is caught",
+    )
+    search_mm: float = Field(3.0, gt=0, le=50, description="how far from its place a mark is looked for")
+
+
 class CellConfig(Strict):
     """The whole cell."""
 
     plate: PlateConfig = PlateConfig()
     detection: DetectionConfig = DetectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
+    drift: DriftConfig = DriftConfig()
     camera: CameraConfig = CameraConfig()
     arm: ArmConfig = ArmConfig()
     planning: PlanningConfig = PlanningConfig()

@@ -34,6 +34,10 @@ class PlateNotFound(CellError):
     """The calibration plate could not be found or numbered unambiguously."""
 
 
+class CameraMoved(CellError):
+    """The reference marks no longer map where they lie: the calibration no longer holds."""
+
+
 class CalibrationRejected(CellError):
     """A fit was made but is not good enough to replace the active calibration."""
 

@@ -97,6 +97,15 @@ class SimConfig(Strict):
     camera_bumped_mm: tuple[float, float] = Field(
         (0.0, 0.0), description="move the camera this far (table X, Y) after the plate was calibrated: a stale calibration"
     )
+    camera_bumped_at_pick: int = Field(
+        0, ge=0, description="when: 0 before the run starts; N the camera moves just before the frame that pick N "
+                             "is planned from"
+    )
+    reference_marks_mm: list[tuple[float, float]] = Field(
+        default_factory=lambda: [(-6.0, -6.0), (270.0, -6.0), (-6.0, 182.0), (270.0, 182.0)],
+        description="dark dots printed on the simulated table (drift.mark_diameter_mm across), just outside the "
+                    "plate's corners; the run watches them unless drift.marks_mm names others",
+    )
     jaw_across_tolerance_mm: float = Field(
         1.5, gt=0, le=20, description="error allowed along the jaws' closing direction"
     )

@@ -64,6 +64,7 @@ class Runner:
         progress: Callable[[str], None] | None = None,
         truth: Callable[[], dict] | None = None,
         sim_motion_s: Callable[[], float] | None = None,
+        drift_watch: Callable[[np.ndarray], object] | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
         self.cfg = cfg
@@ -73,6 +74,7 @@ class Runner:
         self.progress = progress or (lambda line: None)
         self.truth = truth  # the simulated world's account, logged before the summary
         self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
+        self.drift_watch = drift_watch  # raises CameraMoved on a frame whose reference marks have moved
         self.sm = StateMachine([self._on_transition])
         self.summary = Summary()
         self.tracker = Tracker(cfg.verify_radius_mm)
@@ -295,6 +297,8 @@ class Runner:
         return S.PLAN, reason
 
     def _plan(self) -> Step:
+        if self.drift_watch is not None:  # the camera must still be where it was calibrated
+            self.drift_watch(self.frame)
         if self.summary.attempts >= self.cfg.max_attempts_total:
             return S.FAULT, f"safety stop: {self.summary.attempts} pick attempts (run.max_attempts_total)"
         for part, track in self._choose():

@@ -3,20 +3,24 @@
 
 For each camera it renders the plate, calibrates it with both pipelines, and measures the
 error over the whole plate field at dense points (every 2 mm, none of them used in the
-fit) against the renderer's exact truth. Times are wall-clock on one core, median of
+fit) against the renderer's exact truth. Times are CPU times on one core, median of
 --repeat runs, with cv2.findCirclesGrid timed on the same image as the reference.
 
     python scripts/bench_calibration.py [--repeat 5]
 """
 from __future__ import annotations
 
-import argparse
-import statistics
-import sys
-import time
-from pathlib import Path
+import os
 
-import cv2
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one core: no BLAS worker threads (set before numpy loads)
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -42,11 +46,12 @@ def camera_for(spec) -> CameraModel:
 
 
 def timed(fn, repeat: int):
+    """(result, median CPU ms): CPU time, so that other jobs on a shared machine do not count."""
     times, out = [], None
     for _ in range(repeat):
-        t = time.perf_counter()
+        t = time.process_time()
         out = fn()
-        times.append(1e3 * (time.perf_counter() - t))
+        times.append(1e3 * (time.process_time() - t))
     return out, statistics.median(times)
 
 

@@ -237,8 +237,10 @@ def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
 
 @pytest.mark.slow
 def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
+    """Without reference marks (no drift watch) a moved camera shows only as misses; with
+    them the cell stops before the first pick (tests/test_drift_watch.py)."""
     cfg = tmp_path / "bumped.toml"
-    cfg.write_text(f'[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\n'
+    cfg.write_text(f'[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\nreference_marks_mm = []\n'
                    f'[run]\nmax_retries = 1\nlog_dir = "{tmp_path / "logs"}"\n')
     assert main(["--config", str(cfg)]) == 1
     c = counts_from_log(audit_of(tmp_path / "logs"))

@@ -65,8 +65,8 @@ def test_rendered_scene_classes_centres_and_angles(camera, calibration, seed):
             assert part.dims["shaft"] < obj.jaw_opening_mm < part.dims["shaft"] + 5
         else:
             assert obj.angle_deg is None
-    assert np.mean(errors) <= 0.25
-    assert np.max(errors) <= 0.7
+    assert np.mean(errors) <= 0.15  # at 0.3 mm/px (issue 12)
+    assert np.max(errors) <= 0.5
 
 
 def test_height_correction_is_what_brings_the_error_down(camera, calibration):

@@ -9,6 +9,7 @@ calibration is worse than none.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -28,30 +29,27 @@ class Numbering:
     missing: list[tuple[int, int]]  # lattice nodes with no blob
 
 
-def _nearest(points: np.ndarray, candidates: np.ndarray, q: np.ndarray) -> tuple[int, float]:
-    d = np.hypot(points[candidates, 0] - q[0], points[candidates, 1] - q[1])
-    i = int(d.argmin())
-    return int(candidates[i]), float(d[i])
-
-
-def _seed_basis(points: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _seed_basis(points: np.ndarray, near: np.ndarray, i: int) -> tuple[tuple, tuple] | None:
     """Two shortest non-parallel steps from point i to its neighbours."""
-    d = points - points[i]
-    dist = np.hypot(d[:, 0], d[:, 1])
-    order = np.argsort(dist)[1:9]
+    order = near[1:9]
     if len(order) < 4:
         return None
-    u = d[order[0]]
+    u = points[order[0]] - points[i]
     for j in order[1:]:
-        v = d[j]
+        v = points[j] - points[i]
         cos = abs(u @ v) / (np.linalg.norm(u) * np.linalg.norm(v))
         if cos < 0.5 and np.linalg.norm(v) < 2.0 * np.linalg.norm(u):
-            return u, v
+            return (float(u[0]), float(u[1])), (float(v[0]), float(v[1]))
     return None
 
 
-def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
-    basis = _seed_basis(points, seed)
+def _grow(points: np.ndarray, neighbours: np.ndarray, sizes, seed: int, tol: float):
+    """Lattice nodes reached from `seed`, stepping by the local lattice vectors.
+
+    A blob is taken for a node only if it is near the predicted position and, when sizes are
+    given, of a similar size to the blob it was reached from (clutter rarely is both).
+    """
+    basis = _seed_basis(points, neighbours[seed], seed)
     if basis is None:
         return {}, 1
     node_of = {seed: (0, 0)}
@@ -59,17 +57,30 @@ def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
     local = {seed: basis}
     conflicts = 0
     queue = deque([seed])
+    dirs = ((1, 0, 1), (1, 0, 2), (-1, 0, 1), (-1, 0, 2), (0, 1, 1), (0, 1, 2), (0, -1, 1), (0, -1, 2))
     while queue:
         p = queue.popleft()
         a, b = node_of[p]
-        u, v = local[p]
-        for step, (da, db) in ((u, (1, 0)), (-u, (-1, 0)), (v, (0, 1)), (-v, (0, -1))):
-            for k in (1, 2):
-                node = (a + k * da, b + k * db)
-                q = points[p] + k * step
-                j, dist = _nearest(points, neighbours[p], q)
-                if dist > tol * min(np.linalg.norm(u), np.linalg.norm(v)):
+        (ux, uy), (vx, vy) = local[p]
+        px, py = points[p]
+        reach = tol * min(math.hypot(ux, uy), math.hypot(vx, vy))
+        # All eight predictions (four directions, one or two steps) against the neighbours at once.
+        steps = np.array([(da * ux + db * vx, da * uy + db * vy) for da, db, _ in dirs]) * np.array(
+            [k for *_, k in dirs], dtype=np.float64
+        )[:, None]
+        cand = neighbours[p]
+        diff = points[cand][None, :, :] - (points[p] + steps)[:, None, :]
+        dist = np.hypot(diff[..., 0], diff[..., 1])
+        best = dist.argmin(axis=1)
+        nearest = cand[best].tolist()
+        far = (dist[np.arange(8), best] > reach).tolist()
+        for i in range(0, 8, 2):  # per direction: one step, else two steps (bridging a gap)
+            for k in (i, i + 1):
+                da, db, n = dirs[k]
+                j = nearest[k]
+                if far[k] or (sizes is not None and not 0.67 < sizes[j] / sizes[p] < 1.5):
                     continue
+                node = (a + n * da, b + n * db)
                 if j in node_of:
                     if node_of[j] != node:
                         conflicts += 1
@@ -79,15 +90,30 @@ def _grow(points: np.ndarray, neighbours: np.ndarray, seed: int, tol: float):
                     break
                 node_of[j] = node
                 blob_at[node] = j
-                observed = (points[j] - points[p]) / (k * (da + db))
-                local[j] = (observed, v) if db == 0 else (u, observed)
+                step = n * (da + db)
+                observed = ((points[j][0] - px) / step, (points[j][1] - py) / step)
+                local[j] = (observed, (vx, vy)) if db == 0 else ((ux, uy), observed)
                 queue.append(j)
                 break
     return node_of, conflicts
 
 
-def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missing: int = 10) -> Numbering:
-    """Give each blob centre its (column, row) on the plate, or fail saying what was seen."""
+def _neighbours(points: np.ndarray, k: int) -> np.ndarray:
+    """Each point's k nearest (itself first)."""
+    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    k = min(len(points), k)
+    near = np.argpartition(dist, k - 1, axis=1)[:, :k]
+    order = np.take_along_axis(dist, near, axis=1).argsort(axis=1)
+    return np.take_along_axis(near, order, axis=1)
+
+
+def number_lattice(
+    points: np.ndarray, plate: PlateConfig, tol: float, max_missing: int = 10, sizes: np.ndarray | None = None
+) -> Numbering:
+    """Give each blob centre its (column, row) on the plate, or fail saying what was seen.
+
+    `sizes` (blob diameters), when given, keep blobs of very different sizes off one lattice.
+    """
     n = len(points)
     if n < 4:
         raise PlateNotFound(f"found {n} blobs, too few for a {plate.columns} x {plate.rows} plate")
@@ -96,12 +122,17 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
     order = np.argsort(np.hypot(*(points - centre).T))
     seeds = list(order[:12]) + list(order[12 :: max(1, n // 12)])
     # Steps of one or two pitches stay within a point's 24 nearest neighbours.
-    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
-    neighbours = np.argsort(dist, axis=1)[:, : min(n, 25)]
-    best = {}
+    neighbours = _neighbours(points, 25)
+    size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64).tolist()
+    best, covered = {}, set()
     for s in seeds:
-        grown, conflicts = _grow(points, neighbours, int(s), tol)
-        if conflicts == 0 and len(grown) > len(best):
+        if int(s) in covered:
+            continue  # a seed on a lattice already grown would grow the same one again
+        grown, conflicts = _grow(points, neighbours, size_list, int(s), tol)
+        if conflicts:
+            continue
+        covered.update(grown)
+        if len(grown) > len(best):
             best = grown
             ab = np.array(list(grown.values()))
             if sorted(ab.max(axis=0) - ab.min(axis=0) + 1) == sorted((plate.columns, plate.rows)):
@@ -111,6 +142,8 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
     idx = np.array(list(best.keys()))
     ab = np.array([best[i] for i in idx])
     ab -= ab.min(axis=0)
+    keep = _plate_window(ab, plate)
+    idx, ab = idx[keep], ab[keep] - ab[keep].min(axis=0)
     extent = ab.max(axis=0) + 1
     col_row = _orient(points[idx], ab, extent, plate)
     ext = col_row.max(axis=0) + 1
@@ -127,6 +160,28 @@ def number_lattice(points: np.ndarray, plate: PlateConfig, tol: float, max_missi
         raise PlateNotFound(f"{fit} with {len(missing)} circles missing (at most {max_missing} allowed)")
     strays = np.setdiff1d(np.arange(n), idx)
     return Numbering(idx, col_row, strays, missing)
+
+
+def _plate_window(ab: np.ndarray, plate: PlateConfig) -> np.ndarray:
+    """Which grown nodes to keep: all of them, or, when the lattice ran past the plate onto
+    blobs that happen to line up with it (print, letters), the plate-sized window holding the
+    most nodes, if exactly one does."""
+    extent = ab.max(axis=0) + 1
+    sizes = {(plate.columns, plate.rows), (plate.rows, plate.columns)}
+    if not any(extent[0] > w or extent[1] > h for w, h in sizes) or not any(
+        extent[0] >= w and extent[1] >= h for w, h in sizes
+    ):
+        return np.ones(len(ab), bool)
+    counts = {}
+    for w, h in sizes:
+        for a in range(extent[0] - w + 1):
+            for b in range(extent[1] - h + 1):
+                inside = (ab[:, 0] >= a) & (ab[:, 0] < a + w) & (ab[:, 1] >= b) & (ab[:, 1] < b + h)
+                counts[(a, b, w, h)] = inside
+    ranked = sorted(counts.values(), key=np.count_nonzero, reverse=True)
+    if len(ranked) > 1 and np.count_nonzero(ranked[0]) == np.count_nonzero(ranked[1]):
+        return np.ones(len(ab), bool)  # no single best place: report the whole lattice
+    return ranked[0]
 
 
 def _missing_lines(col_row: np.ndarray, plate: PlateConfig) -> str:

@@ -9,9 +9,9 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from cell.calibration.detect import Blob, detect_blobs, detect_paper
-from cell.calibration.lattice import number_lattice
-from cell.calibration.models import PolynomialMap, fit_camera, fit_model, monomial_exponents
+from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
+from cell.calibration.lattice import Numbering, number_lattice
+from cell.calibration.models import fit_camera, fit_model, monomial_exponents
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
@@ -85,49 +85,111 @@ def find_points_paper(image: np.ndarray, config: CellConfig) -> PlatePoints:
 
 
 def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
-    """Default detection: sub-pixel blobs numbered by lattice growth, sizes checked against the plate."""
+    """Default detection: blob candidates on a pyramid, numbered by lattice growth, each centre
+    refined at full resolution, sizes checked against the plate."""
     plate, det = config.plate, config.detection
-    blobs: list[Blob] = detect_blobs(image)
-    if len(blobs) < 4:
-        raise PlateNotFound(f"found {len(blobs)} round dark blobs: no plate in view")
-    centres = np.array([b.centre_px for b in blobs])
-    numbering = number_lattice(centres, plate, det.lattice_tolerance, det.max_missing)
+    cands = find_candidates(to_gray(image))
+    if len(cands) < 4:
+        raise PlateNotFound(f"found {len(cands)} round dark blobs: no plate in view")
+    group, numbering = _number_by_size(cands, plate, det)
     idx, cr = numbering.index, numbering.col_row
-    # Size check: each blob against the circle size the local lattice pitch predicts.
-    pitch_px = _local_pitch_px(centres[idx], cr, plate)
+    centres, diam, ok = _refine(group, idx)
+    unseen = [tuple(x) for x in cr[~ok]]
+    if unseen:
+        log.info("circles at (col, row) %s not measured: cut by the image border or no contrast", unseen)
+    idx, cr, centres, diam = idx[ok], cr[ok], centres[ok], diam[ok]
+    # Size check: each circle against the size the local lattice pitch predicts.
+    pitch_px = _local_pitch_px(centres, cr, plate)
     expected_d = pitch_px * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
-    d = np.array([blobs[i].diameter_px for i in idx])
-    ok = (d > det.min_diameter_ratio * expected_d) & (d < det.max_diameter_ratio * expected_d)
-    rejected = [tuple(x) for x in cr[~ok]]
+    size_ok = (diam > det.min_diameter_ratio * expected_d) & (diam < det.max_diameter_ratio * expected_d)
+    rejected = [tuple(x) for x in cr[~size_ok]]
     if rejected:
         log.info("circles at (col, row) %s rejected: wrong size for the lattice", rejected)
-    idx, cr = idx[ok], cr[ok]
-    missing_cr = sorted(set(numbering.missing) | set(rejected), key=lambda t: (t[1], t[0]))
+    cr, centres = cr[size_ok], centres[size_ok]
+    missing_cr = sorted(set(numbering.missing) | set(unseen) | set(rejected), key=lambda t: (t[1], t[0]))
     if len(missing_cr) > det.max_missing:
         raise PlateNotFound(
-            f"found {len(blobs)} blobs, {len(idx)} fit a {plate.columns} x {plate.rows} lattice "
+            f"found {len(cands)} blobs, {len(cr)} fit a {plate.columns} x {plate.rows} lattice "
             f"at the right size: {len(missing_cr)} circles missing or covered "
             f"(at most {det.max_missing} allowed)"
         )
     order = np.lexsort((cr[:, 0], cr[:, 1]))
-    idx, cr = idx[order], cr[order]
-    missing = [r * plate.columns + c + 1 for c, r in missing_cr]
+    cr, centres = cr[order], centres[order]
+    missing = [int(r * plate.columns + c + 1) for c, r in missing_cr]
     return PlatePoints(
         point_numbers(cr, plate),
-        centres[idx],
+        centres,
         cr * np.array([plate.pitch_x_mm, plate.pitch_y_mm]),
         missing,
         len(numbering.strays),
-        len(blobs),
+        len(cands),
     )
 
 
+def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Refined centres and diameters (full-resolution px) of the numbered candidates.
+
+    Each is measured on the finest level where the circles are at most 32 px across (full
+    resolution for smaller ones): pyrDown's blur is symmetric, so it moves no centroid, and
+    larger windows would only cost time.
+    """
+    d = group.diameter_px[idx]
+    k = int(np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 16.0)), 0, len(group.pyramid) - 1))
+    s = 2.0**k
+    half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
+    coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)
+    centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error, half_res)
+    return centres * s, diam * s, ok
+
+
+def _size_groups(diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: int = 6, spread: float = 1.8) -> list[np.ndarray]:
+    """Blob index sets of similar size: the plate's circles are one of them. Those with at least
+    `need` blobs come first (fewer cannot be the plate), the deepest (printed dots, not specks
+    of texture) first among them."""
+    logd = np.log(diameter_px)
+    width = np.log(spread)
+    counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
+    groups, centres, used = [], [], np.zeros(len(logd), bool)
+    for i in np.argsort(-counts, kind="stable"):
+        if used[i] or len(groups) == tries:
+            continue
+        centre = np.median(logd[np.abs(logd - logd[i]) <= width])  # one mean-shift step onto the crowd
+        members = np.abs(logd - centre) <= width
+        used |= members
+        if all(abs(centre - c) > width / 2 for c in centres):
+            groups.append(np.flatnonzero(members))
+            centres.append(centre)
+    return sorted(groups, key=lambda g: (len(g) < need, -float(np.median(depth[g]))))
+
+
+def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candidates, Numbering]:
+    """Number the first size group that forms the whole plate; else fail with what the first one tried showed."""
+    errors = []
+    for members in _size_groups(cands.diameter_px, cands.depth, plate.count - det.max_missing):
+        group = cands.subset(members)
+        try:
+            return group, number_lattice(
+                group.centre_px, plate, det.lattice_tolerance, det.max_missing, group.diameter_px
+            )
+        except PlateNotFound as e:
+            errors.append(e)
+    raise errors[0]
+
+
 def _local_pitch_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
-    """Geometric-mean lattice pitch in pixels at each point, from a quadratic fit of the lattice."""
-    fit = PolynomialMap.fit(cr.astype(np.float64), pixel, 2)
-    c = cr.astype(np.float64)
-    J = np.stack([(fit(c + (0.5, 0)) - fit(c - (0.5, 0))), (fit(c + (0, 0.5)) - fit(c - (0, 0.5)))], axis=2)
-    return np.sqrt(np.abs(np.linalg.det(J)))
+    """Geometric-mean lattice pitch in pixels at each point: the area of the cell its lattice
+    neighbours span (central differences, one-sided at edges and gaps; the median where none)."""
+    grid = np.full((plate.rows + 2, plate.columns + 2, 2), np.nan)
+    c, r = cr[:, 0] + 1, cr[:, 1] + 1
+    grid[r, c] = pixel
+
+    def step(dc: int, dr: int) -> np.ndarray:
+        fwd, back = grid[r + dr, c + dc] - pixel, pixel - grid[r - dr, c - dc]
+        return np.where(np.isnan(fwd), back, np.where(np.isnan(back), fwd, (fwd + back) / 2))
+
+    u, v = step(1, 0), step(0, 1)
+    pitch = np.sqrt(np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]))
+    return np.where(np.isnan(pitch), np.nanmedian(pitch), pitch)
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from cell.imageio import write_image_atomic
 
 
 def table3_rows(result: CalibrationResult) -> list[dict]:
-    """Calibrated X/Y, original X/Y, deviation = original - calibrated, per point."""
+    """Calibrated X/Y, original X/Y, deviation = original - calibrated, per point found."""
     rows = []
     for num, px, cal, orig in zip(
         result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm, strict=True
@@ -37,10 +37,25 @@ def table3_rows(result: CalibrationResult) -> list[dict]:
     return rows
 
 
+FIELDS = ["point", "x_px", "y_px", "X_cal_mm", "Y_cal_mm", "X_mm", "Y_mm", "dX_mm", "dY_mm"]
+
+
+def missing_rows(result: CalibrationResult) -> list[dict]:
+    """Points not found on the image: their plate position, nothing measured."""
+    pattern = result.calibration.pattern
+    cols = int(pattern["columns"])
+    rows = []
+    for num in result.points.missing:
+        c, r = (int(num) - 1) % cols, (int(num) - 1) // cols
+        rows.append({"point": int(num), "X_mm": c * float(pattern["pitch_x_mm"]), "Y_mm": r * float(pattern["pitch_y_mm"])})
+    return rows
+
+
 def write_csv(result: CalibrationResult, path: Path) -> None:
-    rows = table3_rows(result)
+    """Every plate point in number order; a missing one has its plate position and empty measurements."""
+    rows = sorted(table3_rows(result) + missing_rows(result), key=lambda r: r["point"])
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer = csv.DictWriter(buf, fieldnames=FIELDS, restval="")
     writer.writeheader()
     for r in rows:
         writer.writerow({k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in r.items()})
@@ -87,7 +102,10 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     )
     if table:
         lines += ["", "Table III (all points):", f"{'point':>5}{'X cal':>11}{'Y cal':>11}{'X':>9}{'Y':>9}{'dX':>9}{'dY':>9}"]
-        for r in table3_rows(result):
+        for r in sorted(table3_rows(result) + missing_rows(result), key=lambda r: r["point"]):
+            if "X_cal_mm" not in r:
+                lines.append(f"{r['point']:>5}{'not found':>22}{r['X_mm']:>9.1f}{r['Y_mm']:>9.1f}")
+                continue
             lines.append(
                 f"{r['point']:>5}{r['X_cal_mm']:>11.4f}{r['Y_cal_mm']:>11.4f}{r['X_mm']:>9.1f}"
                 f"{r['Y_mm']:>9.1f}{r['dX_mm']:>9.4f}{r['dY_mm']:>9.4f}"
@@ -96,13 +114,24 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
 
 
 def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
-    """Every centre marked and numbered (the paper's Fig. 4)."""
+    """Every centre marked and numbered (the paper's Fig. 4); a missing point ringed where the
+    fitted camera puts it, its number followed by '?'."""
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     scale = max(0.35, out.shape[1] / 3000)
     for num, (x, y) in zip(result.points.number, result.points.pixel, strict=True):
         c = (int(round(x)), int(round(y)))
         cv2.drawMarker(out, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1, cv2.LINE_AA)
         cv2.putText(out, str(num), (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 160, 0), 1, cv2.LINE_AA)
+    camera = result.calibration.camera
+    missing = missing_rows(result)
+    if camera is not None and missing:
+        where = camera.project(np.array([[r["X_mm"], r["Y_mm"]] for r in missing]))
+        for r, (x, y) in zip(missing, where, strict=True):
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            c = (int(round(x)), int(round(y)))
+            cv2.circle(out, c, 8, (0, 0, 255), 1, cv2.LINE_AA)
+            cv2.putText(out, f"{r['point']}?", (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 255), 1, cv2.LINE_AA)
     return out
 
 

@@ -160,6 +160,15 @@ def _check_camera(camera: CameraModel, image_size: tuple[int, int], source: str)
         raise InputError(f"{source}: corrupt calibration (focal length {f} px is not positive)")
 
 
+def _plain(value):
+    """numpy scalars and arrays as the JSON numbers and lists they hold (json cannot write them)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
 def write_json_atomic(path: str | Path, data: dict) -> None:
     """JSON (no NaN or inf: a strict reader must be able to load it) written whole or not at all."""
-    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False, default=_plain) + "\n")

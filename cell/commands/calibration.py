@@ -1,23 +1,31 @@
-"""`run-cell map` (pixels -> table mm) and `run-cell calibrate-demo` (a rendered plate, calibrated)."""
+"""`run-cell map` (pixels -> table mm), `run-cell check-calibration` (a fresh plate image through
+the calibration in use) and `run-cell calibrate-demo` (a rendered plate, calibrated)."""
 from __future__ import annotations
 
 import argparse
 import csv
 import json
+import logging
 import math
 from pathlib import Path
 
 import numpy as np
 
 from cell.atomicfile import ensure_folder
+from cell.calibration.check import check_calibration, check_text
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
 from cell.calibration.store import Calibration
-from cell.config import CellConfig
+from cell.config import CellConfig, load_config
 from cell.errors import InputError
-from cell.imageio import write_image_atomic
+from cell.imageio import read_image, write_image_atomic
+from cell.oplog import log_to_file
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
+
+log = logging.getLogger(__name__)
+
+CHECK_FAILED = 3  # exit code of check-calibration when a point is over calibration.check_max_mm
 
 
 def register(sub) -> None:
@@ -27,6 +35,18 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("point", nargs="*", type=str, help="X Y: one pixel point")
     p.set_defaults(func=cmd_map)
+
+    c = sub.add_parser(
+        "check-calibration",
+        help="map a fresh plate image through the calibration in use and report the error per point",
+        description="Exit 0 when every plate point maps within calibration.check_max_mm of where it lies, "
+        "3 when one does not, 2 on bad input.",
+    )
+    c.add_argument("--image", required=True, type=Path, help="plate image, the plate in its fixture")
+    c.add_argument("--calibration", type=Path, help="calibration JSON (default: calibration.active_path)")
+    c.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
+    c.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
+    c.set_defaults(func=cmd_check_calibration)
 
     d = sub.add_parser("calibrate-demo", help="render the built-in plate, calibrate it, print the report")
     d.add_argument("--out-dir", type=Path, default=Path("demo-out"), help="report folder (default demo-out)")
@@ -104,6 +124,22 @@ def _check_inside(pixels: np.ndarray, image_size: tuple[int, int], source: Path 
         where = f"{source}: point {i + 1}: " if source else ""
         raise InputError(f"{where}pixel ({pixels[i][0]:g}, {pixels[i][1]:g}) is outside the calibrated "
                          f"{w} x {h} px image; {int(outside.sum())} such point(s)")
+
+
+def cmd_check_calibration(args: argparse.Namespace) -> int:
+    try:
+        log_to_file(args.log)
+    except OSError as e:
+        raise InputError(f"cannot open log {args.log}: {e}") from None
+    config = load_config(args.config)
+    path = args.calibration or config.calibration.active_path
+    result = check_calibration(read_image(args.image), Calibration.load(path), config)
+    print(check_text(result, str(args.image)))
+    log.info(
+        "calibration check of %s on %s: RMS %.4f mm, max %.4f mm, %s",
+        path, args.image, result.rms_mm, result.max_mm, "pass" if result.passed else "FAIL",
+    )
+    return 0 if result.passed else CHECK_FAILED
 
 
 def cmd_calibrate_demo(args: argparse.Namespace) -> int:

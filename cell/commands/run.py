@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import get_args
 
 from cell.audit import AuditLog
+from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
@@ -198,7 +199,8 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
             runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
                             config.run, audit, controls, expect_motion, progress=say,
                             truth=None if sim is None else lambda: sim_truth(sim.world),
-                            sim_motion_s=None if sim is None else sim.motion_time_s)
+                            sim_motion_s=None if sim is None else sim.motion_time_s,
+                            drift_watch=_drift_watch(config, calibration, sim))
             runner.run()
             return _report(runner, audit, sim)
     finally:
@@ -256,6 +258,14 @@ def _log_early_fault(log_dir: Path, args: argparse.Namespace, e: BaseException) 
     with audit:
         audit.best_effort = True
         _log_fault(audit, args, e)
+
+
+def _drift_watch(config: CellConfig, calibration, sim) -> DriftWatch | None:
+    """The reference-mark watch: the configured marks, else those printed on the simulated table."""
+    marks = config.drift.marks_mm or (sim.marks_mm if sim is not None else [])
+    if not marks:
+        return None
+    return DriftWatch(calibration, config.drift.model_copy(update={"marks_mm": list(marks)}))
 
 
 def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> None:

@@ -57,6 +57,7 @@ class SimCell:
     calibration: Calibration
     calibration_note: str
     emulated: EmulatedArm | None  # None: the arm is the geometric SimArm
+    marks_mm: list[tuple[float, float]]  # reference marks printed on the simulated table
 
     def motion_time_s(self) -> float:
         """Motion time so far: the emulator's motion model, or SimArm's distance / speed estimate."""
@@ -180,9 +181,13 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         note = "perfect (the camera model itself)"
     else:
         calibration, note = plate_calibration(config, model)
-    if any(sim.camera_bumped_mm):
+    bump = None
+    if any(sim.camera_bumped_mm) and sim.camera_bumped_at_pick == 0:
         model = _bumped(model, sim.camera_bumped_mm)
         note += f"; camera since moved by {sim.camera_bumped_mm} mm"
+    elif any(sim.camera_bumped_mm):
+        bump = (sim.camera_bumped_at_pick, _bumped(model, sim.camera_bumped_mm))
+        note += f"; camera to be moved by {sim.camera_bumped_mm} mm before pick {sim.camera_bumped_at_pick}"
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
     if sim.layout == "random":
         parts = random_scene(sim.seed)
@@ -196,15 +201,17 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     tolerance = JawTolerance(sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm,
                              sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg)
     world = World(parts, truth, bins, tolerance)
-    camera = SimCamera(world, model, seed=sim.seed)
+    marks = config.drift.marks_mm or sim.reference_marks_mm
+    camera = SimCamera(world, model, seed=sim.seed, marks_mm=np.array(marks), mark_diameter_mm=config.drift.mark_diameter_mm,
+                       bump=bump)
     log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
     if sim_arm_kind(config.arm) != "sim":
         with emulated_arm(config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips) as emulated:
-            yield SimCell(world, camera, emulated.arm, calibration, note, emulated)
+            yield SimCell(world, camera, emulated.arm, calibration, note, emulated, marks)
         return
     arm = SimArm(
         world,
         plan.workspace,
         speed_mm_s=sim.speed_mm_s, gripper_s=sim.gripper_s, realtime=sim.realtime,
     )
-    yield SimCell(world, camera, arm, calibration, note, None)
+    yield SimCell(world, camera, arm, calibration, note, None, marks)

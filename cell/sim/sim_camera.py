@@ -4,6 +4,9 @@ Each part's silhouette is rendered once and kept while the part stays put; a cap
 composes the kept silhouettes and exposes them (light fall-off, blur, fresh noise), so a
 frame costs one exposure, not a re-render of every part. `render_s` adds up the time
 spent, which the cell reports apart from its own software time.
+
+The table may carry printed reference marks (dark dots that never move), and the camera
+may be bumped: from a chosen frame on, it sees through a moved camera model.
 """
 from __future__ import annotations
 
@@ -13,13 +16,24 @@ import numpy as np
 
 from cell.camera_model import CameraModel
 from cell.sim.parts import part_coverage
-from cell.sim.render import Optics, expose
+from cell.sim.render import Optics, circles_coverage, expose
 from cell.sim.world import World
 from drivers.cameras.base import Camera
 
 
 class SimCamera(Camera):
-    def __init__(self, world: World, model: CameraModel, optics: Optics = Optics(), seed: int = 0):
+    def __init__(
+        self,
+        world: World,
+        model: CameraModel,
+        optics: Optics = Optics(),
+        seed: int = 0,
+        marks_mm: np.ndarray | None = None,
+        mark_diameter_mm: float = 1.5,
+        bump: tuple[int, CameraModel] | None = None,
+    ):
+        """`marks_mm`: printed reference marks' centres (table mm); `bump`: (frame number from
+        which on, the moved camera model)."""
         self.source = "sim"
         self.world = world
         self.model = model
@@ -31,6 +45,10 @@ class SimCamera(Camera):
         self.frames = 0
         self._silhouettes: dict = {}
         self._connected = False
+        self.marks_mm = np.zeros((0, 2)) if marks_mm is None else np.asarray(marks_mm, dtype=np.float64).reshape(-1, 2)
+        self.mark_radius_mm = mark_diameter_mm / 2
+        self.bump = bump
+        self._marks: np.ndarray | None = None
 
     def connect(self) -> None:
         self._connected = True
@@ -44,7 +62,12 @@ class SimCamera(Camera):
 
     def _grab(self) -> np.ndarray:
         t0 = time.perf_counter()
-        opacity = np.zeros((self.height_px, self.width_px), np.float64)
+        if self.bump is not None and self.frames + 1 >= self.bump[0]:
+            self.model, self.bump = self.bump[1], None
+            self._silhouettes, self._marks = {}, None  # everything is seen from elsewhere now
+        if self._marks is None:
+            self._marks = circles_coverage(self.model, self.marks_mm, self.mark_radius_mm)
+        opacity = self._marks.copy()
         keep = {}
         for part_id, spec in self.world.table_specs():
             key = (part_id, spec)

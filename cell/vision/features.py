@@ -135,10 +135,13 @@ class Profile:
     length_px: float  # edge to edge along the axis
 
 
-def width_profile(outline: np.ndarray, centre: tuple[float, float], axis: tuple[float, float]) -> Profile:
+def width_profile(
+    outline: np.ndarray, centre: tuple[float, float], axis: tuple[float, float], edge_px: float = 0.5
+) -> Profile:
     """Width across the axis in 1-px bins, oriented so that the wider end comes first.
 
-    The outline runs through edge-pixel centres, so widths and length gain one pixel.
+    `edge_px`: how far the true edge lies outside the outline. A mask's outline runs through
+    edge-pixel centres (0.5: widths and length gain one pixel); a sub-pixel outline needs less.
     """
     pts = resample(outline) - centre  # dense enough that every bin sees both edges
     a = np.asarray(axis, dtype=np.float64)
@@ -155,12 +158,12 @@ def width_profile(outline: np.ndarray, centre: tuple[float, float], axis: tuple[
     idx = np.arange(nb)
     vmax = np.interp(idx, idx[ok], vmax[ok])
     vmin = np.interp(idx, idx[ok], vmin[ok])
-    widths = vmax - vmin + 1
+    widths = vmax - vmin + 2 * edge_px
     mids = (vmax + vmin) / 2
     k = max(1, nb // 5)
     c = np.asarray(centre, dtype=np.float64)
-    length = u1 - u0 + 1
+    length = u1 - u0 + 2 * edge_px
     if widths[:k].mean() >= widths[-k:].mean():
-        return Profile(c + (u0 - 0.5) * a, a, idx + 1.0, widths, mids, length)
-    positions = (u1 + 0.5) - (u0 + idx[::-1] + 0.5)
-    return Profile(c + (u1 + 0.5) * a, -a, positions, widths[::-1].copy(), -mids[::-1], length)
+        return Profile(c + (u0 - edge_px) * a, a, idx + 0.5 + edge_px, widths, mids, length)
+    positions = (u1 + edge_px) - (u0 + idx[::-1] + 0.5)
+    return Profile(c + (u1 + edge_px) * a, -a, positions, widths[::-1].copy(), -mids[::-1], length)

@@ -16,9 +16,10 @@ import numpy as np
 from cell.errors import InputError
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
-from cell.vision.features import Features, measure
+from cell.vision.features import Features, measure, width_profile
 from cell.vision.footprint import bolt_pose
-from cell.vision.segment import segment
+from cell.vision.segment import segment, to_gray
+from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
 
 log = logging.getLogger(__name__)
@@ -82,11 +83,12 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
+    gray = to_gray(image)
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
     for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
-        part = _place(feat, verdict, local_scale, mapper, cfg, correct)
+        part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
@@ -141,13 +143,19 @@ def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
     return 0.0
 
 
-def _place(feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsConfig, correct: bool) -> LocatedPart:
+def _place(
+    feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsConfig, correct: bool, seen: tuple
+) -> LocatedPart:
+    """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
     world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof = verdict.profile
     if verdict.cls == BOLT and verdict.head_width_px is not None:
+        fine = subpixel_outline(*seen, cfg.segment.threshold_fraction)
+        if fine is not None:
+            prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
             prof,
             verdict.head_width_px,

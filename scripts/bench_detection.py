@@ -1,0 +1,185 @@
+#!/usr/bin/env python3
+"""Plate detection benchmark: ours (find_points: candidates, numbering, refinement) against
+cv2.findCirclesGrid on the same image, timed in the same run, side by side.
+
+Images: the real photos in ../shared/data/circles-opencv (640 x 480; also enlarged to 1280 x
+960, 1920 x 1440 and 4000 x 3000, as a higher-resolution camera would see the same scene),
+and rendered plates (the built-in 13 x 12 plate) from 640 x 480 to 4000 x 3000.
+
+For each image both detectors run alternately --repeat times on one core
+(cv2.setNumThreads(1), OPENBLAS_NUM_THREADS=1) and the medians of their CPU times are
+compared (CPU time, not wall time: the machine is shared, and a waiting process would
+otherwise be charged for another's work). findCirclesGrid's default blob detector
+looks for blobs of 25-5000 px area; where circles are larger than that it finds no grid, so it
+is also timed with the blob detector's area limits scaled to the image ("cv scaled"), which is
+what a user would have to set, and the ratio is taken against the run that finds the grid.
+Agreement: the largest distance between our centres and OpenCV's, in px, where both find the grid;
+then the same on the shared photos made hard (noise, blur, glare, uneven light, low contrast,
+scale, crops: cell/sim/degrade.py, as tests/test_real_circles.py uses them).
+
+    python scripts/bench_detection.py [--repeat 7]
+"""
+from __future__ import annotations
+
+import os
+
+# One core for both: cv2.setNumThreads(1) below, and no BLAS worker threads for numpy (set
+# before numpy loads; on small matrices they only add wake-up costs).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cell.calibration.agreement import agreement  # noqa: E402
+from cell.calibration.pipeline import find_points  # noqa: E402
+from cell.camera_model import CameraModel  # noqa: E402
+from cell.config import CellConfig, PlateConfig  # noqa: E402
+from cell.errors import PlateNotFound  # noqa: E402
+from cell.sim.degrade import VARIANTS, variant  # noqa: E402
+from cell.sim.render import render_plate  # noqa: E402
+
+PHOTOMETRIC = ["noise", "blur", "glare", "uneven light", "low contrast", "noise+blur+glare"]
+
+PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "circles-opencv"
+PHOTO_PLATE = PlateConfig(columns=7, rows=7, pitch_x_mm=10, pitch_y_mm=10, diameter_mm=5)
+PHOTO_SIZES = [(640, 480), (1280, 960), (1920, 1440), (4000, 3000)]
+RENDER_SIZES = [(640, 480), (1280, 720), (1920, 1080), (4000, 3000)]
+
+
+def scaled_detector(area_scale: float):
+    """findCirclesGrid's default blob detector with its area limits scaled to the image."""
+    p = cv2.SimpleBlobDetector_Params()
+    p.minArea *= area_scale
+    p.maxArea *= area_scale
+    p.minDistBetweenBlobs *= area_scale**0.5
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def run_ours(gray, config):
+    try:
+        return find_points(gray, config)
+    except PlateNotFound:
+        return None
+
+
+def run_cv(gray, size, detector=None):
+    kw = {"blobDetector": detector} if detector is not None else {}
+    found, centres = cv2.findCirclesGrid(gray, size, flags=cv2.CALIB_CB_SYMMETRIC_GRID, **kw)
+    return centres.reshape(-1, 2).astype(np.float64) if found else None
+
+
+def interleaved(fns, repeat: int):
+    """Run the functions alternately; (last results, median ms of each)."""
+    times = [[] for _ in fns]
+    out = [None] * len(fns)
+    for _ in range(repeat):
+        for k, fn in enumerate(fns):
+            t = time.process_time()
+            out[k] = fn()
+            times[k].append(1e3 * (time.process_time() - t))
+    return out, [statistics.median(t) for t in times]
+
+
+def bench(label: str, gray: np.ndarray, config: CellConfig, area_scale: float, repeat: int) -> float:
+    size = (config.plate.columns, config.plate.rows)
+    fns = [lambda: run_ours(gray, config), lambda: run_cv(gray, size)]
+    if area_scale > 1.5:
+        detector = scaled_detector(area_scale)
+        fns.append(lambda: run_cv(gray, size, detector))
+    results, ms = interleaved(fns, repeat)
+    ours, cv_default = results[0], results[1]
+    cv_scaled = results[2] if len(results) > 2 else None
+    ref_k = 1 if cv_default is not None or cv_scaled is None else 2
+    ref = results[ref_k]
+    ratio = ms[0] / ms[ref_k]
+    agree = "-"
+    if ours is not None and ref is not None:
+        a = agreement(ours.number, ours.pixel, ref, *size)
+        agree = f"{a.max_px:.3f}" + ("" if a.same_numbering and a.matched == len(ref) else " (numbering differs)")
+    found = lambda r: "yes" if r is not None else "no"  # noqa: E731
+    ours_found = "no" if ours is None else f"{len(ours.number)}" + (f" ({len(ours.missing)} missing)" if ours.missing else "")
+    scaled = f"{ms[2]:>8.1f} {found(cv_scaled):>4}" if len(ms) > 2 else f"{'-':>8} {'':>4}"
+    print(
+        f"{label:<34}{ms[0]:>8.1f} {ours_found:>14}{ms[1]:>9.1f} {found(cv_default):>4}{scaled}"
+        f"{ratio:>8.2f}{agree:>10}"
+    )
+    return ratio
+
+
+def variants_table(config: CellConfig) -> None:
+    """Agreement with findCirclesGrid on the shared photos made hard (cell/sim/degrade.py).
+
+    max px: largest distance between our centre and OpenCV's. For photometric variants (the
+    geometry is the photo's) also how far each detector's answer moved from its own answer
+    on the untouched photo: where the two disagree, the one that moved is the one misled."""
+    print(f"\n{'photo':<18}{'variant':<18}{'cv grid':>8}{'ours':>6}{'max px':>8}{'ours moved':>12}{'cv moved':>10}")
+    worst = []
+    for path in sorted(PHOTOS.glob("opencv_circles*.png")):
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        clean_cv, clean_ours = run_cv(gray, (7, 7)), run_ours(gray, config)
+        for kind in VARIANTS:
+            img = variant(kind, gray, seed=int(path.stem[-2:]) - 1)
+            ref, ours = run_cv(img, (7, 7)), run_ours(img, config)
+            row = f"{path.stem:<18}{kind:<18}{'yes' if ref is not None else 'no':>8}"
+            row += f"{'no' if ours is None else len(ours.number):>6}"
+            if ref is not None and ours is not None:
+                a = agreement(ours.number, ours.pixel, ref, 7, 7)
+                row += f"{a.max_px:>8.3f}"
+                worst.append(a.max_px)
+                if kind in PHOTOMETRIC and clean_cv is not None and clean_ours is not None:
+                    pair = lambda pts: pts[np.linalg.norm(pts[None] - clean_cv[:, None], axis=2).argmin(axis=1)]  # noqa: E731
+                    ours_moved = np.linalg.norm(pair(ours.pixel) - pair(clean_ours.pixel), axis=1).max()
+                    row += f"{ours_moved:>12.3f}{np.linalg.norm(ref - clean_cv, axis=1).max():>10.3f}"
+            print(row)
+    print(f"agreement over {len(worst)} variants OpenCV found: max |ours - OpenCV| median {np.median(worst):.3f} px, "
+          f"{sum(w <= 0.2 for w in worst)} of {len(worst)} within 0.2 px")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=7, help="timing repeats per image (median reported)")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    print(
+        f"{'image':<34}{'ours ms':>8} {'numbered':>14}{'cv ms':>9} {'grid':>4}{'cv scaled':>9} {'grid':>4}"
+        f"{'ratio':>8}{'max px':>10}"
+    )
+    ratios = []
+    if PHOTOS.exists():
+        config = CellConfig(plate=PHOTO_PLATE)
+        for path in sorted(PHOTOS.glob("opencv_circles*.png")):
+            gray0 = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            for w, h in PHOTO_SIZES:
+                s = w / gray0.shape[1]
+                gray = gray0 if s == 1 else cv2.resize(gray0, (w, h), interpolation=cv2.INTER_CUBIC)
+                ratios.append(bench(f"{path.stem} {w}x{h}", gray, config, s * s, args.repeat))
+    else:
+        print(f"({PHOTOS} is absent: real photos skipped)")
+    rendered_config = CellConfig()
+    for w, h in RENDER_SIZES:
+        # The plate (264 x 176 mm) filling most of the frame, mild barrel distortion and tilt.
+        plate = rendered_config.plate
+        mm_per_px = 1.15 * max(plate.pitch_x_mm * plate.columns / w, plate.pitch_y_mm * plate.rows / h)
+        cam = CameraModel.looking_down(w, h, mm_per_px, (132.0, 88.0), tilt_deg=4.0, tilt_azimuth_deg=30.0, roll_deg=2.0, k1=-0.08)
+        gray = cv2.cvtColor(render_plate(cam, plate, seed=7), cv2.COLOR_BGR2GRAY)
+        d_px = plate.diameter_mm / mm_per_px
+        ratios.append(bench(f"rendered 13x12 {w}x{h}", gray, rendered_config, max(1.0, (d_px / 40.0) ** 2), args.repeat))
+    print(
+        f"\ntime ratio ours / findCirclesGrid: max {max(ratios):.2f}, median {statistics.median(ratios):.2f} "
+        f"over {len(ratios)} images (median of {args.repeat} alternating runs each, one core; target <= 1.0)"
+    )
+    if PHOTOS.exists():
+        variants_table(CellConfig(plate=PHOTO_PLATE))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
