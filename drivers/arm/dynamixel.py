@@ -62,7 +62,17 @@ BUS_HINT = "check the servos' power, and arm.port / arm.dynamixel.baud / ids (`r
 
 
 class ExclusivePortHandler(PortHandler):
-    """The SDK's PortHandler opening its port for this process alone (the SDK itself does not)."""
+    """The SDK's PortHandler opening its port for this process alone (the SDK itself does not),
+    and waiting for a status packet as long as the adapter's latency timer says (the SDK fixes 16 ms)."""
+
+    def __init__(self, port_name: str, latency_timer_ms: float = 16.0):
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+
+    def setPacketTimeout(self, packet_length):
+        """The SDK's own formula (wire time + twice the latency timer + 2 ms) with the configured timer."""
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
 
     def setupPort(self, cflag_baud):
         if self.is_open:

@@ -30,4 +30,4 @@ def make_arm(cfg: ArmConfig) -> Arm:
         )
     if cfg.kind == "serial":
         return SerialGcodeArm(SerialLine(cfg.port, cfg.serial.baud), cfg.serial)
-    return DynamixelArm(ExclusivePortHandler(cfg.port), cfg.dynamixel)
+    return DynamixelArm(ExclusivePortHandler(cfg.port, cfg.dynamixel.latency_timer_ms), cfg.dynamixel)
