@@ -3,6 +3,11 @@
 A run killed at any moment leaves a valid file (at worst a last line cut short, which
 `read_events` drops) whose last complete line says the state it was in. Each event has
 `seq`, `t_utc`, `t_run_s`, `kind` and `state`; the rest depends on the kind.
+
+The file is created exclusively (never another run's). A write that fails (a full disk)
+raises AuditWriteFailed once, so the run faults and stops safely; from then on, and
+always once `best_effort` is set (while making safe and ending the run), events that
+cannot be written are dropped: the record never stands in the way of the safe stop.
 """
 from __future__ import annotations
 
@@ -13,6 +18,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+
+from cell.errors import CellError
+from cell.recordfile import RecordFile
 
 log = logging.getLogger(__name__)
 
@@ -34,16 +42,27 @@ def _plain(value):
     return getattr(value, "value", None) or str(value)
 
 
+class AuditWriteFailed(CellError):
+    """The audit log cannot be written: the run cannot keep its record, so it stops (a fault)."""
+
+    exit_code = 3
+
+
 class AuditLog:
     """Append-only JSON-lines writer; `state` is stamped on every event by the runner."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "a", encoding="utf-8")
+        self._file = RecordFile(self.path, exclusive=True, what="audit log")
         self._seq = 0
         self._t0 = time.monotonic()
         self.state = "idle"
+        self.best_effort = False  # set while making safe and ending: a failed write is never raised
+
+    @property
+    def failed(self) -> OSError | None:
+        """The write error that broke the log, if any (later events were dropped)."""
+        return self._file.failed
 
     def event(self, kind: str, **fields) -> dict:
         self._seq += 1
@@ -55,13 +74,16 @@ class AuditLog:
             "state": self.state,
             **_plain(fields),
         }
-        self._file.write(json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n")
-        self._file.flush()
+        broken_before = self.failed is not None
+        if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
+            if not (broken_before or self.best_effort):
+                raise AuditWriteFailed(f"audit log {self.path}: cannot write event {self._seq} ({kind}): "
+                                       f"{self.failed.strerror or self.failed}",
+                                       hint="free space on its filesystem or set run.log_dir elsewhere")
         return record
 
     def close(self) -> None:
-        if not self._file.closed:
-            self._file.close()
+        self._file.close()
 
     def __enter__(self) -> AuditLog:
         return self

@@ -2,7 +2,8 @@
 
 Every failure the operator can cause or meet (bad file, bad config, device trouble) is a
 CellError or a driver's DeviceError: one line on stderr saying what and where, and a
-non-zero exit.
+non-zero exit. Stop signals are handled from the start (cell.signals), before any command
+opens a device.
 """
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ import logging
 import sys
 
 from cell.commands import run
-from cell.errors import REPORTED_ERRORS, exit_code
+from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
+from cell.recordfile import tell_stderr
+from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
 
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
@@ -41,25 +44,43 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    if not getattr(args, "func", None):
-        if not (args.dry_run or args.run_config):
-            parser.print_help()
-            return 2
-        args.func, args.command = run.run_cell, "run"
+    with handling_signals() as controls:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        args.controls = controls
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.WARNING,
+            format="%(levelname)s %(name)s: %(message)s",
+        )
+        if not getattr(args, "func", None):
+            if not (args.dry_run or args.run_config):
+                parser.print_help()
+                return 2
+            args.func, args.command = run.run_cell, "run"
+        return _dispatch(args)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the command; whatever ends it, the last line on stderr names what failed and where."""
+    name = f"run-cell {args.command}"
     try:
         return int(args.func(args) or 0)
     except REPORTED_ERRORS as e:
-        print(f"run-cell {args.command}: error: {e}", file=sys.stderr)
-        return exit_code(e)
+        return _last_line(f"{name}: error: {e}", exit_code(e))
+    except StopRequested as e:
+        return _last_line(f"{name}: stopped: {e.reason}", EXIT_STOPPED)
     except KeyboardInterrupt:
-        print(f"run-cell {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return _last_line(f"{name}: stopped: Ctrl-C", EXIT_STOPPED)
+    except OSError as e:
+        return _last_line(f"{name}: error: {describe_os_error(e)}", 3)
+    except Exception as e:  # a bug: one line for the operator, the traceback in the log
+        log.exception("internal error in %s", name)
+        return _last_line(f"{name}: internal error: {type(e).__name__}: {e} (details in the log)", 3)
+
+
+def _last_line(text: str, code: int) -> int:
+    tell_stderr(text)
+    return code
 
 
 if __name__ == "__main__":

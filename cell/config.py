@@ -98,9 +98,31 @@ class CalibrationConfig(Strict):
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
+    max_camera_model_ratio: float = Field(
+        5.0, gt=1, description="refused when the physical camera model's CV RMS exceeds the best model's this many "
+                               "times (and by max_camera_model_excess_mm): the plate is not the configured one"
+    )
+    max_camera_model_excess_mm: float = Field(0.05, gt=0, le=10)
+    camera_height_min_mm: float = Field(50.0, gt=0, description="a fitted camera closer to the table is refused")
+    camera_height_max_mm: float = Field(3000.0, gt=0, description="a fitted camera farther from the table is refused")
+    max_scale_change_pct: float = Field(
+        2.0, gt=0, le=100, description="a new calibration whose scale (mm per px at the image centre) differs more "
+                                       "from the active one's needs --accept-change"
+    )
+    max_origin_change_mm: float = Field(
+        5.0, gt=0, description="a new calibration that maps the image centre this much elsewhere needs --accept-change"
+    )
+    lock_wait_s: float = Field(120.0, ge=0, le=3600, description="how long a recalibration waits for another to finish")
     check_max_mm: float = Field(
         0.3, gt=0, description="check-calibration fails when a plate point maps further than this from where it lies"
     )
+
+    @model_validator(mode="after")
+    def _heights_ordered(self) -> CalibrationConfig:
+        if self.camera_height_min_mm >= self.camera_height_max_mm:
+            raise ValueError(f"calibration.camera_height_min_mm ({self.camera_height_min_mm}) must be below "
+                             f"camera_height_max_mm ({self.camera_height_max_mm})")
+        return self
 
 
 class DriftConfig(Strict):

@@ -1,6 +1,8 @@
 """Errors the operator sees: each says what went wrong and where, in one line."""
 from __future__ import annotations
 
+import errno
+
 from drivers.errors import DeviceError
 
 DEVICE_EXIT_CODE = 2  # a device or driver-config failure exits as any other CellError does
@@ -51,3 +53,26 @@ REPORTED_ERRORS = (CellError, DeviceError)
 def exit_code(error: CellError | DeviceError) -> int:
     """The exit code the CLI returns for a reported error."""
     return error.exit_code if isinstance(error, CellError) else DEVICE_EXIT_CODE
+
+
+class OutputError(CellError):
+    """A file the command writes cannot be written (a folder given, read-only, full disk)."""
+
+
+def describe_os_error(e: OSError) -> str:
+    """'<file>: <reason>' from an OSError, naming the file it was about when it says."""
+    where = e.filename if e.filename is not None else ""
+    reason = e.strerror or str(e)
+    return f"{where}: {reason}" if where else reason
+
+
+def output_error(path, e: OSError) -> OutputError:
+    """A failed write to `path` as a one-line error: exit 2 for a wrong destination, 3 for the disk failing."""
+    err = OutputError(f"{path}: cannot write: {e.strerror or e}",
+                      hint="give a writable file path with free space on its filesystem")
+    if e.errno in _DISK_FAILED:
+        err.exit_code = 3
+    return err
+
+
+_DISK_FAILED = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG}

@@ -153,6 +153,9 @@ class Planner:
             raise Unreachable(f"class {part.cls!r} is not picked")
         plan = self.cfg.for_class(part.cls)
         table_xy = part.grasp_mm or part.table_mm
+        if not all(math.isfinite(v) for v in (*table_xy, *(() if part.angle_deg is None else (part.angle_deg,)))):
+            raise Unreachable(f"part at table {tuple(table_xy)} mm, angle {part.angle_deg} deg: not a finite number "
+                              "(calibration?)")
         rx, ry = self.frame.to_robot(table_xy)[0]
         z = self.frame.table_z_mm
         angle = None
@@ -165,6 +168,8 @@ class Planner:
             (float(rx), float(ry), z + plan.pick_above_table_mm), z + plan.approach_above_table_mm,
             angle, plan.bin_robot_mm,
         )
+        if not all(math.isfinite(v) for v in (*t.robot_mm, t.approach_z_mm, *(() if angle is None else (angle,)))):
+            raise Unreachable(f"target {t.robot_mm} mm, jaws {angle} deg: not a finite number (calibration?)")
         for point in t.waypoints():
             if why := self.violation(*point):
                 raise Unreachable(why)

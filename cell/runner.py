@@ -5,6 +5,11 @@ come in through their interfaces (Camera, Arm, a locate function), so the same l
 the line, the dry run with a mock arm, and the simulated cell. Failures become FAULT,
 a stop request or Ctrl-C becomes STOPPED; both first make the arm safe.
 
+The safe stop comes first and nothing around it can prevent it: a stop signal may
+interrupt a state's work but not the safe sequence or the end of the run (Controls), and
+once the run is ending the audit log is best effort (a write that fails is dropped, never
+raised), and what happened is logged after the arm is safe, not before.
+
 Parts are tracked across frames by position (cell.tracking). Verify judges the part just
 placed on the next frame: still there is a miss, retried up to max_retries, then the part
 is marked failed and skipped.
@@ -17,7 +22,6 @@ verified) with the arm homed and powered, ready for the next job.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -28,6 +32,7 @@ from cell.audit import AuditLog
 from cell.errors import REPORTED_ERRORS, CellError, ConfigError
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
+from cell.signals import Controls, StopRequested
 from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
 from cell.tracking import PartStatus, Track, Tracker
@@ -39,24 +44,9 @@ from drivers.cameras.base import Camera
 log = logging.getLogger(__name__)
 
 S = State
-PAUSABLE = frozenset({S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN, S.WAIT})
+PAUSABLE = frozenset({S.HOME, S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN, S.WAIT})  # HOME: before the first motion
 EXIT_DONE, EXIT_INCOMPLETE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 130
 Step = tuple[State, str]  # what a state handler returns: the next state and why
-
-
-class Controls:
-    """Operator requests, safe to set from another thread or a signal handler."""
-
-    def __init__(self):
-        self.stop = threading.Event()  # the safe stop (Ctrl-C, Halt): arm safe, torque released
-        self.pause = threading.Event()
-        self.finish = threading.Event()  # end the job at the next safe point, arm homed (Stop)
-        self.wake = threading.Event()  # cuts a WAIT short when any request arrives
-
-    def request(self, event: threading.Event, on: bool = True) -> None:
-        """Set or clear one of the requests above and wake a waiting runner to see it."""
-        event.set() if on else event.clear()
-        self.wake.set()
 
 
 class Runner:
@@ -104,6 +94,7 @@ class Runner:
         self.target: Target | None = None
         self.track: Track | None = None
         self.holding = False
+        self.homed = False
         self._handlers = {
             S.IDLE: self._idle, S.HOME: self._home, S.CAPTURE: self._capture, S.LOCATE: self._locate,
             S.VERIFY: self._verify, S.PLAN: self._plan, S.PICK: self._pick, S.PLACE: self._place,
@@ -112,41 +103,56 @@ class Runner:
 
     # ---- the loop -------------------------------------------------------------------
     def run(self) -> Summary:
+        """The loop until a terminal state; only a state's own work may be interrupted by a signal."""
         t0 = time.perf_counter()
-        self.audit.event("run_start", expect_motion=self.expect_motion, camera=self.camera.source,
-                         arm=type(self.arm).__name__, arm_port=self.arm.port)
-        try:
-            while not self.sm.finished:
-                try:
-                    self._step()
-                except KeyboardInterrupt:
-                    self._finish(S.STOPPED, "Ctrl-C")
-                except (*REPORTED_ERRORS, OSError) as e:
-                    self._finish(S.FAULT, f"{type(e).__name__}: {e}")
-                except Exception as e:  # a bug must still leave the arm safe
-                    log.exception("internal error in %s", self.sm.state.name)
-                    self._finish(S.FAULT, f"internal error: {type(e).__name__}: {e}")
-        finally:
-            self.camera.disconnect()
-            self.arm.disconnect()
-            s = self.summary
-            s.wall_s = time.perf_counter() - t0
-            s.motion_sim_s = float(self.sim_motion_s()) if self.sim_motion_s else 0.0
-            s.software_s = max(s.wall_s - s.capture_s - s.arm_s - s.paused_s, 0.0)
-            if self.result is not None:
-                s.unknown_left = sum(1 for o in self.result.objects if not o.pick)
-            if self.sm.state == S.DONE:
-                s.exit_code = EXIT_DONE if not (s.failed or s.unreachable) else EXIT_INCOMPLETE
-            if self.truth is not None:
-                self.audit.event("sim_truth", where=self.truth())
-            self.audit.event("summary", **s.to_dict())
-            self.audit.event("run_end", outcome=s.outcome, exit_code=s.exit_code, reason=s.reason)
+        with self.controls.shielded():
+            try:
+                self.audit.event("run_start", expect_motion=self.expect_motion, camera=self.camera.source,
+                                 arm=type(self.arm).__name__, arm_port=self.arm.port)
+                while not self.sm.finished:
+                    self._guarded_step()
+            except CellError as e:  # the audit log failed before the first step
+                self._finish(S.FAULT, f"{type(e).__name__}: {e}")
+            finally:
+                self.audit.best_effort = True
+                self._end(t0)
         return self.summary
+
+    def _guarded_step(self) -> None:
+        try:
+            with self.controls.shielded(False):
+                self._step()
+        except StopRequested as e:
+            self._finish(S.STOPPED, e.reason)
+        except KeyboardInterrupt:
+            self._finish(S.STOPPED, "Ctrl-C")
+        except (*REPORTED_ERRORS, OSError) as e:
+            self._finish(S.FAULT, f"{type(e).__name__}: {e}")
+        except Exception as e:  # a bug must still leave the arm safe
+            log.exception("internal error in %s", self.sm.state.name)
+            self._finish(S.FAULT, f"internal error: {type(e).__name__}: {e}")
+
+    def _end(self, t0: float) -> None:
+        """Close the devices, total the summary, end the log (best effort: the arm is already safe)."""
+        self.camera.disconnect()
+        self.arm.disconnect()
+        s = self.summary
+        s.wall_s = time.perf_counter() - t0
+        s.motion_sim_s = float(self.sim_motion_s()) if self.sim_motion_s else 0.0
+        s.software_s = max(s.wall_s - s.capture_s - s.arm_s - s.paused_s, 0.0)
+        if self.result is not None:
+            s.unknown_left = sum(1 for o in self.result.objects if not o.pick)
+        if self.sm.state == S.DONE:
+            s.exit_code = EXIT_DONE if not (s.failed or s.unreachable) else EXIT_INCOMPLETE
+        if self.truth is not None:
+            self.audit.event("sim_truth", where=self.truth())
+        self.audit.event("summary", **s.to_dict())
+        self.audit.event("run_end", outcome=s.outcome, exit_code=s.exit_code, reason=s.reason)
 
     def _step(self) -> None:
         state = self.sm.state
         if self.controls.stop.is_set():
-            self._finish(S.STOPPED, "stop requested")
+            self._finish(S.STOPPED, self.controls.stop_reason)
             return
         if self.controls.pause.is_set() and state in PAUSABLE and not self.holding:
             self.sm.go(S.PAUSED, "pause requested")
@@ -166,20 +172,27 @@ class Runner:
         log.info("%s -> %s: %s", t.source.name, t.target.name, t.reason)
 
     def _finish(self, state: State, reason: str) -> None:
-        """Enter a terminal state; the arm is made safe first unless the job is simply done."""
-        s = self.summary
-        s.outcome, s.reason = state.value, reason
-        s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
-        if state == S.FAULT:
-            self.audit.event("fault", reason=reason)
-            log.error("fault in %s: %s", self.sm.state.name, reason)
-        finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
-        self._make_safe(reason, park_only=state == S.DONE or finishing)
-        self.sm.go(state, reason)
+        """Enter a terminal state: the arm is made safe first (unless the job is simply done),
+        with stop signals held off and the log best effort, then what happened is logged."""
+        if self.sm.finished:  # a signal that came as the last step ended
+            return
+        with self.controls.shielded():
+            self.audit.best_effort = True
+            s = self.summary
+            s.outcome, s.reason = state.value, reason
+            s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
+            finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
+            steps = self._make_safe(reason, park_only=state == S.DONE or finishing)
+            if state == S.FAULT:
+                self.audit.event("fault", reason=reason)
+                log.error("fault in %s: %s", self.sm.state.name, reason)
+            for name, error in steps:
+                self.audit.event("safe_step", step=name, ok=error is None, **({"error": error} if error else {}))
+            self.sm.go(state, reason)
 
-    def _make_safe(self, reason: str, park_only: bool) -> None:
+    def _make_safe(self, reason: str, park_only: bool) -> list[tuple[str, str | None]]:
         """Finish the move in flight, open the gripper over the bin (or at the part), home,
-        release torque. Each step is tried even if an earlier one failed."""
+        release torque. Each step is tried even if an earlier one failed; returns (step, error)."""
         steps: list[tuple[str, Callable[[], None]]] = [
             ("finish motion", lambda: self.arm.wait_until_idle(self.cfg.motion_timeout_s)),
         ]
@@ -192,20 +205,28 @@ class Runner:
         steps.append(("home", self.arm.home))
         if not park_only:
             steps.append(("release torque", self.arm.stop))
+        done = []
         for name, step in steps:
-            t0 = time.perf_counter()
-            try:
-                if not self.arm.is_connected:
-                    self.audit.event("safe_step", step=name, ok=False, error="arm not connected")
-                    continue
-                step()
-                self.audit.event("safe_step", step=name, ok=True)
-            except (*REPORTED_ERRORS, OSError, KeyboardInterrupt) as e:
-                self.audit.event("safe_step", step=name, ok=False, error=f"{type(e).__name__}: {e}")
-                log.warning("making safe after %s: %s failed: %s", reason, name, e)
-            finally:
-                self.summary.arm_s += time.perf_counter() - t0
+            done.append((name, self._safe_step(name, step, reason)))
         self.holding = False
+        return done
+
+    def _safe_step(self, name: str, step: Callable[[], None], reason: str) -> str | None:
+        """One step of the safe sequence; its error as text (None: it worked). Never raises."""
+        t0 = time.perf_counter()
+        try:
+            if not self.arm.is_connected:
+                return "arm not connected"
+            step()
+            return None
+        except (*REPORTED_ERRORS, OSError, KeyboardInterrupt) as e:
+            log.warning("making safe after %s: %s failed: %s", reason, name, e)
+            return f"{type(e).__name__}: {e}"
+        except Exception as e:  # a driver bug must not skip the remaining steps
+            log.exception("making safe after %s: %s failed", reason, name)
+            return f"internal error: {type(e).__name__}: {e}"
+        finally:
+            self.summary.arm_s += time.perf_counter() - t0
 
     # ---- devices, timed -------------------------------------------------------------
     def _arm(self, method: str, *args, **kw) -> None:
@@ -237,6 +258,7 @@ class Runner:
     def _home(self) -> Step:
         self._arm("home")
         self._arm("open_gripper")
+        self.homed = True
         return S.CAPTURE, "arm homed, gripper open"
 
     def _capture(self) -> Step:
@@ -373,8 +395,12 @@ class Runner:
         while c.pause.is_set() and not c.stop.is_set() and not c.finish.is_set():
             time.sleep(0.05)
         self.summary.paused_s += time.perf_counter() - t0
-        if c.stop.is_set() or c.finish.is_set():
-            return S.STOPPED, "stop requested while paused"
+        if c.stop.is_set():
+            return S.STOPPED, f"{c.stop_reason} while paused"
+        if c.finish.is_set():
+            return S.STOPPED, "stop requested while paused: job ended"
+        if not self.homed:
+            return S.HOME, "resumed: homing first"
         return S.CAPTURE, "resumed: a fresh frame, the table may have changed"
 
     def _wait(self) -> Step:

@@ -41,7 +41,8 @@ class State(Enum):
     """Continuous mode: nothing pickable on the table; the arm stays parked while the cell waits
     one capture interval (no busy loop), then captures again."""
     PAUSED = "paused"
-    """Operator pause at a safe point (no part in the gripper); resumes with a fresh frame."""
+    """Operator pause at a safe point (no part in the gripper, or before the first motion);
+    resumes with a fresh frame (or by homing, if the pause came before it)."""
     DONE = "done"
     """No pickable part left that has not been picked, failed or found unreachable."""
     FAULT = "fault"
@@ -57,7 +58,7 @@ TERMINAL = frozenset({S.DONE, S.FAULT, S.STOPPED})
 # those two are added below so the table lists only the working transitions.
 _WORK: dict[State, frozenset[State]] = {
     S.IDLE: frozenset({S.HOME}),
-    S.HOME: frozenset({S.CAPTURE}),
+    S.HOME: frozenset({S.CAPTURE, S.PAUSED}),
     S.CAPTURE: frozenset({S.LOCATE, S.PAUSED}),
     S.LOCATE: frozenset({S.PLAN, S.VERIFY, S.PAUSED}),
     S.VERIFY: frozenset({S.PLAN, S.PAUSED}),
@@ -65,7 +66,7 @@ _WORK: dict[State, frozenset[State]] = {
     S.PICK: frozenset({S.PLACE}),
     S.PLACE: frozenset({S.CAPTURE}),
     S.WAIT: frozenset({S.CAPTURE, S.PAUSED}),
-    S.PAUSED: frozenset({S.CAPTURE}),
+    S.PAUSED: frozenset({S.CAPTURE, S.HOME}),
 }
 TRANSITIONS: dict[State, frozenset[State]] = {
     **{s: targets | {S.FAULT, S.STOPPED} for s, targets in _WORK.items()},

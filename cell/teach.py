@@ -40,13 +40,31 @@ def circle_table_mm(number: int, config: CellConfig) -> tuple[float, float]:
 
 
 def fit_points(points: list[TaughtPoint], config: CellConfig) -> tuple[TableToRobot, np.ndarray]:
-    """The fit and each point's residual, mm."""
-    if len(points) < 3:
-        raise InputError(f"teaching needs 3 or more circles, got {len(points)}",
-                         hint="--point CIRCLE X_MM Y_MM three times, or --circles 1 13 144 156")
+    """The fit and each point's residual, mm; refused unless the points can determine it."""
+    check_points(points)
     cfg = config.planning
     return fit_table_to_robot(np.array([p.table_mm for p in points]), np.array([p.robot_mm for p in points]),
                               cfg.table_z_mm, cfg.teach_fit_scale)
+
+
+def check_points(points: list[TaughtPoint]) -> None:
+    """Three or more distinct circles not on one line, every robot position a finite number:
+    the same circle three times (or three in a row) cannot fix a rotation."""
+    hint = "--point CIRCLE X_MM Y_MM for three circles not in one row or column, e.g. --circles 1 13 144 156"
+    for p in points:
+        if not np.all(np.isfinite(p.robot_mm)):
+            raise InputError(f"circle {p.circle}: robot position {p.robot_mm} is not a finite number")
+    circles = [p.circle for p in points]
+    if len(set(circles)) < 3:
+        raise InputError(f"teaching needs 3 or more distinct circles, got {sorted(set(circles))}", hint=hint)
+    if len(set(circles)) < len(circles):
+        raise InputError(f"circle(s) {sorted({c for c in circles if circles.count(c) > 1})} given more than once",
+                         hint=hint)
+    table = np.array([p.table_mm for p in points], dtype=np.float64)
+    centred = table - table.mean(axis=0)
+    spread = np.linalg.svd(centred, compute_uv=False)
+    if spread[1] < 1e-6 * max(spread[0], 1.0):
+        raise InputError(f"circles {circles} lie on one line: they cannot fix the rotation", hint=hint)
 
 
 def check_fit(points: list[TaughtPoint], residuals: np.ndarray, config: CellConfig) -> None:

@@ -1,15 +1,46 @@
 """Fixtures shared by the test modules; the fakes themselves are in tests/doubles.py.
 
 Markers (registered in pyproject.toml, --strict-markers): `slow` on the end-to-end runs
-(`make check` leaves them out); pytest-timeout bounds every test, and the ones that open a
-pty or a subprocess say their own, tighter, limit.
+(`make check` leaves them out); `exhaustive` on the fault-injection sweeps, collected only
+with --exhaustive. pytest-timeout bounds every test, and the ones that open a pty or a
+subprocess say their own, tighter, limit. Device and file locks go to a folder of this
+test session, not the machine's.
 """
 from __future__ import annotations
 
+import os
+
 import pytest
 
+from cell.locks import LOCK_DIR_ENV
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
+
+
+def pytest_addoption(parser):
+    parser.addoption("--exhaustive", action="store_true",
+                     help="also run the exhaustive fault-injection sweeps (every audit write, every signal in every "
+                          "state on both arms; far longer than the suite)")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--exhaustive"):
+        return
+    keep = [item for item in items if "exhaustive" not in item.keywords]
+    if len(keep) < len(items):
+        config.hook.pytest_deselected(items=[item for item in items if "exhaustive" in item.keywords])
+        items[:] = keep
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_lock_dir(tmp_path_factory):
+    before = os.environ.get(LOCK_DIR_ENV)
+    os.environ[LOCK_DIR_ENV] = str(tmp_path_factory.mktemp("locks"))
+    yield
+    if before is None:
+        os.environ.pop(LOCK_DIR_ENV, None)
+    else:
+        os.environ[LOCK_DIR_ENV] = before
 
 
 @pytest.fixture

@@ -34,7 +34,7 @@ def test_a_killed_writer_leaves_a_readable_log(tmp_path):
         "import os\nfrom cell.audit import AuditLog\n"
         f"log = AuditLog({str(path)!r})\n"
         "log.state = 'pick'\nlog.event('target', robot_mm=[1, 2, 3])\n"
-        "log._file.write('{\"seq\": 2, \"kind\": \"ver')\nlog._file.flush()\nos._exit(9)\n"
+        "os.write(log._file._fd, b'{\"seq\": 2, \"kind\": \"ver')\nos._exit(9)\n"
     )
     subprocess.run([sys.executable, "-c", code], check=False)
     events = read_events(path)
@@ -50,3 +50,42 @@ def test_counts_from_log_match_a_summary():
     s = Summary(picked={"nut": 1}, misses=1, retries=1, unreachable=1, attempts=2, unknown_left=1)
     assert counts_from_log(events) == s.counts()
     assert any("1 misses" in line for line in s.lines())
+
+
+def test_two_runs_started_in_the_same_second_write_two_logs(tmp_path):
+    """Each run's log is created exclusively under its own name (time, pid): never shared."""
+    code = ("import sys\nfrom pathlib import Path\nfrom cell.audit import AuditLog\n"
+            "from cell.recordfile import unique_stem\n"
+            f"log = AuditLog(f\"{{unique_stem(Path({str(tmp_path)!r}), 'run', ('.jsonl', '.log'))}}.jsonl\")\n"
+            "for i in range(200):\n    log.event('frame', i=i)\n")
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(2)]
+    assert [p.wait(timeout=60) for p in procs] == [0, 0]
+    logs = sorted(tmp_path.glob("run-*.jsonl"))
+    assert len(logs) == 2
+    for path in logs:
+        assert [e["seq"] for e in read_events(path)] == list(range(1, 201))
+
+
+def test_an_audit_log_never_opens_an_existing_file(tmp_path, monkeypatch):
+    from datetime import datetime
+
+    import pytest
+
+    import cell.recordfile
+    from cell.recordfile import unique_stem
+
+    path = tmp_path / "a.jsonl"
+    path.write_text("another run's\n")
+    with pytest.raises(FileExistsError):
+        AuditLog(path)
+
+    class Frozen(datetime):  # both names asked for in the same second
+        @classmethod
+        def now(cls, tz=None):
+            return datetime(2026, 1, 1, 12, 0, 0, tzinfo=tz)
+
+    monkeypatch.setattr(cell.recordfile, "datetime", Frozen)
+    first = unique_stem(tmp_path, "run", (".jsonl", ".log"))
+    AuditLog(f"{first}.jsonl").close()
+    second = unique_stem(tmp_path, "run", (".jsonl", ".log"))
+    assert second.name == first.name + "-2"

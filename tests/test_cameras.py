@@ -78,3 +78,16 @@ def test_factory_picks_the_source_kind(tmp_path):
     assert isinstance(make_camera(CameraConfig(source="rtsp://cam.local/stream")), OpenCVCamera)
     with pytest.raises(CameraError, match="no such device"):
         make_camera(CameraConfig(source=str(tmp_path / "missing")))
+
+
+def test_a_folder_image_of_the_wrong_size_is_refused_from_its_header(tmp_path):
+    """A 20000 x 20000 PNG (1.2 GB once decoded) in the folder is never decoded."""
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
+    (tmp_path / "big.png").write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr
+                                       + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr)))
+    with FolderCamera(tmp_path, 64, 48) as cam, pytest.raises(
+            CameraError, match="big.png: frame is 20000x20000 px, expected 64x48 px; not decoded"):
+        cam.capture()

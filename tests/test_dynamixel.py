@@ -4,10 +4,10 @@ import threading
 import time
 
 import pytest
-from dynamixel_sdk import PortHandler
 
+from cell.sim.emulated_arm import EMULATED_LATENCY_TIMER_MS
 from drivers.arm.config import DynamixelArmConfig
-from drivers.arm.dynamixel import DynamixelArm
+from drivers.arm.dynamixel import DynamixelArm, ExclusivePortHandler
 from drivers.arm.errors import ConnectionLost, ErrorResponse, HardwareFault, NoResponse, OutOfReach
 from drivers.arm.kinematics import FourAxisKinematics
 from drivers.sim.dxl_emulator import SYNC_WRITE, DxlBusEmulator, packet
@@ -37,7 +37,7 @@ def wait_still(emu) -> None:
 
 
 def make_arm(path: str, cfg: DynamixelArmConfig = CFG) -> DynamixelArm:
-    return DynamixelArm(PortHandler(path), cfg)
+    return DynamixelArm(ExclusivePortHandler(path, EMULATED_LATENCY_TIMER_MS), cfg)
 
 
 def torques(emu) -> list[bool]:

@@ -98,7 +98,7 @@ def test_the_shift_log_rolls_by_size_between_whole_lines(tmp_path):
     assert [e["track"] for e in events] == list(range(200))
 
 
-def test_the_shift_log_rolls_at_a_new_day_and_carries_on_its_last_file(tmp_path):
+def test_the_shift_log_rolls_at_a_new_day_and_a_restart_takes_the_next_file(tmp_path):
     day = {"d": "20261201"}
     log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: day["d"])
     log.event("a")
@@ -110,7 +110,7 @@ def test_the_shift_log_rolls_at_a_new_day_and_carries_on_its_last_file(tmp_path)
     again.close()
     assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["a"]
     assert [e["kind"] for e in read_shift(tmp_path, "20261202")] == ["b", "c"]
-    assert len(shift_files(tmp_path, "20261202")) == 1
+    assert [f.name for f in shift_files(tmp_path, "20261202")] == ["cell-20261202-000.jsonl", "cell-20261202-001.jsonl"]
 
 
 def test_shift_counts_agree_with_the_summary_recount():
@@ -136,7 +136,7 @@ def test_a_torn_last_line_is_skipped_when_the_shift_is_read_back(tmp_path):
     with open(shift_files(tmp_path, "20261201")[-1], "a") as f:
         f.write('{"seq":2,"kind":"verify","result":"pick')  # the writer killed mid-line
     assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify"]
-    again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")  # the restarted service carries on
+    again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")  # the restarted service: a new file
     again.event("service_start")
     again.close()
     assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify", "service_start"]

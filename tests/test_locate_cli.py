@@ -76,9 +76,9 @@ def test_plain_scale_and_paper_preset(files, capsys):
 @pytest.mark.parametrize(
     "make, message",
     [
-        (lambda d: d / "missing.png", "image not found"),
-        (lambda d: (d / "text.png").write_text("not an image") and d / "text.png", "cannot read image"),
-        (lambda d: cv2.imwrite(str(d / "small.png"), np.zeros((100, 100, 3), np.uint8)) and d / "small.png", "100x100"),
+        (lambda d: d / "missing.png", "image file not found"),
+        (lambda d: (d / "text.png").write_text("not an image") and d / "text.png", "cannot decode image"),
+        (lambda d: cv2.imwrite(str(d / "small.png"), np.zeros((100, 100, 3), np.uint8)) and d / "small.png", "100 x 100 px"),
     ],
 )
 def test_bad_images_give_one_line_errors(files, capsys, make, message):

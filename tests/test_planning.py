@@ -106,3 +106,11 @@ def test_angle_wraps_into_half_turn():
     frame = TableToRobot(170.0, 0.0, 0.0, 0.0)
     assert frame.angle_to_robot(100.0) == pytest.approx(-90.0)
     assert frame.angle_to_robot(-100.0) == pytest.approx(70.0)
+
+
+@pytest.mark.parametrize("xy,angle", [((float("nan"), 50.0), None), ((100.0, float("inf")), None),
+                                      ((100.0, 50.0), float("nan"))])
+def test_a_target_that_is_not_a_finite_number_never_reaches_the_arm(xy, angle):
+    cls = "nut" if angle is None else "bolt"
+    with pytest.raises(Unreachable, match="not a finite number"):
+        Planner(CFG, TableToRobot.from_offset(CFG)).target(part(cls, xy, angle))

@@ -239,3 +239,59 @@ def test_fault_in_verify_ends_in_fault_with_the_arm_safe(tmp_path):
     assert runner.sm.history[-1].source == State.VERIFY
     assert "No space left on device" in summary.reason
     assert ("stop",) in arm.calls and table.held is None
+
+
+# ---- the audit log fails (a full disk): at every write of a whole run ------------------------------
+def _run_writes(tmp_path) -> int:
+    runner, *_ = make_runner(tmp_path / "ref")
+    runner.run()
+    runner.audit.close()
+    return len(read_events(runner.audit.path))
+
+
+def test_a_full_disk_at_every_audit_write_faults_with_the_arm_safe(tmp_path, monkeypatch):
+    """The runner alone (fakes above the drivers), so every write of a whole run is cheap to fail."""
+    import errno
+    import os
+
+    from cell.recordfile import RecordFile
+
+    (tmp_path / "ref").mkdir()
+    total = _run_writes(tmp_path)
+    assert total > 50
+    for n in range(1, total + 1):
+        writes = {"n": 0}
+
+        class Full(RecordFile):
+            def _write(self, data):
+                writes["n"] += 1
+                if writes["n"] >= n:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                return super()._write(data)
+
+        monkeypatch.setattr("cell.audit.RecordFile", Full)
+        (tmp_path / str(n)).mkdir()
+        runner, table, arm, audit = make_runner(tmp_path / str(n))
+        summary = runner.run()
+        audit.close()
+        assert audit.failed is not None, n
+        assert table.held is None, n
+        names = [c[0] for c in arm.calls]
+        assert names[-1] == "disconnect", n
+        if summary.outcome == "fault":  # failed during the loop: made safe, torque released
+            assert summary.exit_code == EXIT_FAULT and "No space left on device" in summary.reason
+            assert "connect" not in names or names[-2] == "stop", (n, names[-4:])
+        else:  # failed while ending a finished run: the job was done, the record is what is lost
+            assert summary.outcome == "done", n
+        assert [e["seq"] for e in read_events(audit.path)] == list(range(1, n)), n
+
+
+def test_the_safe_stop_runs_before_the_fault_is_logged(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path, arm_fail={"close_gripper": 1})
+    order = []
+    real_event = audit.event
+    audit.event = lambda kind, **f: (order.append(("log", kind)), real_event(kind, **f))[1]
+    real_stop = arm.stop
+    arm.stop = lambda: (order.append(("arm", "stop")), real_stop())[1]
+    runner.run()
+    assert order.index(("arm", "stop")) < order.index(("log", "fault"))

@@ -10,7 +10,8 @@ import pytest
 from cell.audit import AuditLog
 from cell.planning import Planner
 from cell.run_config import RunConfig
-from cell.runner import Controls, Runner
+from cell.runner import Runner
+from cell.signals import Controls
 from cell.statemachine import State
 from tests.doubles import PLANNING, TRUE_FRAME, FakeArm, FakeCamera, FakeTable, fake_locator
 

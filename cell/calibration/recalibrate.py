@@ -1,24 +1,31 @@
 """Recalibration as the operator runs it: fit, report, and only then replace the active file.
 
-Exit codes: 0 replaced; 2 bad input (file, config, plate not found, size mismatch);
-3 fit rejected by the configured limits. In every failure the active file is untouched.
+Exit codes: 0 replaced; 2 bad input (file, config, plate not found, size mismatch, the
+calibration file in use); 3 fit rejected (the configured limits, an implausible plate or
+camera, a change beyond the limits without --accept-change) or a write failed; 130
+stopped by a signal. In every failure the active file is untouched and no temporary file
+is left. Recalibrations of one file are serialised by its lock; each keeps its own backup.
 """
 from __future__ import annotations
 
 import argparse
 import logging
-import shutil
-import sys
 from datetime import datetime
 from pathlib import Path
 from typing import get_args
 
+from cell.atomicfile import copy_unique, ensure_folder
+from cell.calibration.gates import change_problems, plausibility_problems
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
+from cell.calibration.store import Calibration
 from cell.config import ModelName, load_config
-from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, exit_code
+from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, OutputError, describe_os_error, exit_code
 from cell.imageio import read_image
+from cell.locks import holding
 from cell.oplog import log_to_file, quiet_terminal
+from cell.recordfile import tell_stderr
+from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
 from cell.vision.config import Preset
@@ -47,7 +54,7 @@ def cmd_recalibrate(args: argparse.Namespace) -> int:
     """As the script: the report on stdout, a failure as run-cell's one line (details in --log)."""
     if not args.verbose:
         quiet_terminal(logging.CRITICAL)
-    return recalibrate(args)
+    return recalibrate(args, getattr(args, "controls", None))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,6 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")
+    p.add_argument("--accept-change", action="store_true",
+                   help="replace the active calibration even if scale or origin move beyond the configured limits "
+                        "(the camera or plate was moved on purpose)")
 
 
 def capture_plate(config):
@@ -71,14 +81,20 @@ def capture_plate(config):
         return camera.capture()
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
+    controls = controls or Controls()
     config = load_config(args.config)
     if args.preset:
         config.detection.preset = args.preset
     out = args.out or config.calibration.active_path
-    image = read_image(args.image) if args.image else capture_plate(config)
-    h, w = image.shape[:2]
+    if out.is_dir():
+        raise OutputError(f"{out}: is a folder; --out must name the calibration file", hint="e.g. --out cal/active.json")
     want = (config.camera.width_px, config.camera.height_px)
+    if args.image:
+        image = read_image(args.image, config.camera.max_image_px, want)
+    else:
+        image = capture_plate(config)
+    h, w = image.shape[:2]
     if (w, h) != want:
         raise InputError(
             f"{args.image or 'camera frame'}: image is {w} x {h} px but the camera is configured for "
@@ -89,59 +105,90 @@ def run(args: argparse.Namespace) -> int:
     if args.report_dir:
         for p in write_report(image, result, args.report_dir):
             print(f"wrote {p}")
-    cv = result.chosen.cv
     limits = config.calibration
+    cv = result.chosen.cv
     if cv.rms_mm > limits.max_cv_rms_mm or cv.max_mm > limits.max_cv_error_mm:
         raise CalibrationRejected(
             f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
             f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
             f"{limits.max_cv_error_mm} mm; {out} left unchanged"
         )
-    backup = None
-    if out.exists():
-        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        backup_dir = limits.backup_dir if args.out is None else out.parent / "backups"
-        backup_dir.mkdir(parents=True, exist_ok=True)
-        backup = backup_dir / f"{out.stem}.{stamp}{out.suffix}"
-        shutil.copy2(out, backup)
-    result.calibration.save(out)
-    log.info(
-        "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
-        out,
-        result.chosen.label,
-        cv.rms_mm,
-        cv.max_mm,
-        f"; previous kept as {backup}" if backup else "",
-    )
+    if problems := plausibility_problems(result, limits, config.plate):
+        raise CalibrationRejected("; ".join(problems) + f"; {out} left unchanged")
+    backup_dir = limits.backup_dir if args.out is None else out.parent / "backups"
+    with holding(out, "calibration file", wait_s=limits.lock_wait_s):  # one recalibration of a file at a time
+        backup = _replace(out, result.calibration, backup_dir, args.accept_change, limits, controls)
+    log.info("recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s", out, result.chosen.label,
+             cv.rms_mm, cv.max_mm, f"; previous kept as {backup}" if backup else "")
     print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))
     return 0
 
 
-def recalibrate(args: argparse.Namespace) -> int:
+def _replace(out: Path, new: Calibration, backup_dir: Path, accept_change: bool, limits, controls: Controls):
+    """Under the file's lock: compare with the active file, back it up under a name of its own,
+    write the new one; a signal waits until both are done. Returns the backup path or None."""
+    if not out.exists():
+        new.save(out)
+        return None
+    try:
+        active = Calibration.load(out)
+    except InputError as e:
+        log.warning("the active calibration cannot be compared (%s); it is replaced and kept as a backup", e)
+        active = None
+    if active is not None and (problems := change_problems(new, active, limits)) and not accept_change:
+        raise CalibrationRejected("; ".join(problems) + f"; {out} left unchanged",
+                                  hint="if the camera or plate was moved on purpose, rerun with --accept-change")
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    with controls.shielded():
+        backup = copy_unique(out, ensure_folder(backup_dir), f"{out.stem}.{stamp}", out.suffix)
+        new.save(out)
+    return backup
+
+
+def recalibrate(args: argparse.Namespace, controls: Controls | None = None) -> int:
     """Run with the operator log open; a failure is logged there, then raised for the caller
-    to print as one line (exit 2, or 3 for a fit over the limits)."""
+    to print as one line (exit 2, or 3 for a refused fit or a failed write)."""
     try:
         log_to_file(args.log)
     except OSError as e:
-        raise InputError(f"cannot open log {args.log}: {e}") from None
+        raise InputError(f"cannot open log {args.log}: {describe_os_error(e)}") from None
     try:
-        return run(args)
+        return run(args, controls)
     except CalibrationRejected as e:
         log.error("recalibration refused: %s", e)
         raise
     except REPORTED_ERRORS as e:
         log.error("recalibration failed: %s", e)
         raise
+    except StopRequested as e:
+        log.warning("recalibration stopped: %s; the active calibration is unchanged", e.reason)
+        raise
+    except OSError as e:
+        log.error("recalibration failed: %s", e)
+        raise
 
 
 def main(argv: list[str] | None = None) -> int:
-    """scripts/recalibrate.py: its messages start with `recalibrate:`."""
-    args = build_parser().parse_args(argv)
-    try:
-        return recalibrate(args)
-    except CalibrationRejected as e:
-        print(f"recalibrate: refused: {e}", file=sys.stderr)
-        return e.exit_code
-    except REPORTED_ERRORS as e:
-        print(f"recalibrate: error: {e}", file=sys.stderr)
-        return exit_code(e)
+    """scripts/recalibrate.py: its messages start with `recalibrate:`; signals handled from the start."""
+    with handling_signals() as controls:
+        args = build_parser().parse_args(argv)
+        try:
+            return recalibrate(args, controls)
+        except CalibrationRejected as e:
+            return _last_line(f"recalibrate: refused: {e}", e.exit_code)
+        except REPORTED_ERRORS as e:
+            return _last_line(f"recalibrate: error: {e}", exit_code(e))
+        except StopRequested as e:
+            return _last_line(f"recalibrate: stopped: {e.reason}; the active calibration is unchanged", EXIT_STOPPED)
+        except KeyboardInterrupt:
+            return _last_line("recalibrate: stopped: Ctrl-C; the active calibration is unchanged", EXIT_STOPPED)
+        except OSError as e:
+            return _last_line(f"recalibrate: error: {describe_os_error(e)}", 3)
+        except Exception as e:  # a bug: one line for the operator, the traceback in the log
+            log.exception("recalibration failed")
+            return _last_line(f"recalibrate: internal error: {type(e).__name__}: {e} (details in {args.log})", 3)
+
+
+def _last_line(text: str, code: int) -> int:
+    tell_stderr(text)
+    return code

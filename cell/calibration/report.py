@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cell.atomicfile import ensure_folder, write_atomic, write_text_atomic
 from cell.calibration.pipeline import CalibrationResult
 from cell.imageio import write_image_atomic
 
@@ -58,13 +59,7 @@ def write_csv(result: CalibrationResult, path: Path) -> None:
     writer.writeheader()
     for r in rows:
         writer.writerow({k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in r.items()})
-    _write_text_atomic(path, buf.getvalue())
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    write_text_atomic(path, buf.getvalue())
 
 
 def summary_text(result: CalibrationResult, table: bool = True) -> str:
@@ -170,18 +165,18 @@ def deviation_plot(result: CalibrationResult, path: Path) -> None:
     ax2.set_ylabel("Y (mm)")
     ax2.set_title(f"error vectors (max {mag.max():.4f} mm, arrows not to scale)")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        write_atomic(path, lambda f: fig.savefig(f, dpi=90, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path) -> list[Path]:
     """All report files into `report_dir`; returns their paths."""
-    report_dir.mkdir(parents=True, exist_ok=True)
+    ensure_folder(report_dir)
     paths = [report_dir / "table3.csv", report_dir / "plate_numbered.png", report_dir / "deviation.png", report_dir / "report.txt"]
     write_csv(result, paths[0])
     write_image_atomic(paths[1], annotate_plate(image, result))
     deviation_plot(result, paths[2])
-    _write_text_atomic(paths[3], summary_text(result) + "\n")
+    write_text_atomic(paths[3], summary_text(result) + "\n")
     return paths

@@ -7,19 +7,20 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from cell.atomicfile import write_text_atomic
 from cell.calibration.models import model_from_dict
 from cell.camera_model import CameraModel
 from cell.errors import InputError
 
 SCHEMA = "pick-cell/calibration"
 SCHEMA_VERSION = 1
+MIN_IMAGE_PX, MAX_IMAGE_PX = 16, 20000  # as camera.width_px / height_px allow
 
 
 @dataclass
@@ -87,15 +88,23 @@ class Calibration:
                 f"{source}: calibration schema version {d.get('version')!r} is not supported "
                 f"(this program reads version {SCHEMA_VERSION})"
             )
+        if bad := _non_finite(d.get("coefficients"), "coefficients") or _non_finite(d.get("camera"), "camera"):
+            raise InputError(f"{source}: corrupt calibration ({bad} is not a finite number)")
         try:
             model = model_from_dict(d["model"], d["coefficients"])
             w, h = (int(v) for v in d["image_size"])
             camera = CameraModel.from_dict(d["camera"]) if d.get("camera") else None
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, cv2.error) as e:
             raise InputError(f"{source}: corrupt calibration ({type(e).__name__}: {e})") from None
-        probe = model(np.array([[w / 2, h / 2]], dtype=np.float64))
+        if not (MIN_IMAGE_PX <= w <= MAX_IMAGE_PX and MIN_IMAGE_PX <= h <= MAX_IMAGE_PX):
+            raise InputError(f"{source}: corrupt calibration (image size {w} x {h} px is outside "
+                             f"{MIN_IMAGE_PX}..{MAX_IMAGE_PX} px)")
+        if camera is not None:
+            _check_camera(camera, (w, h), source)
+        corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [w / 2, h / 2]], dtype=np.float64)
+        probe = np.asarray(model(corners))
         if not np.all(np.isfinite(probe)):
-            raise InputError(f"{source}: corrupt calibration (maps the image centre to {probe.tolist()})")
+            raise InputError(f"{source}: corrupt calibration (maps the image's corners and centre to {probe.tolist()})")
         return cls(
             d["model"],
             model,
@@ -126,6 +135,31 @@ class Calibration:
         return cls.from_dict(data, str(path))
 
 
+def _non_finite(value, where: str) -> str | None:
+    """The path of the first number in a JSON tree that is NaN or infinite (None: all finite)."""
+    if isinstance(value, dict):
+        return next((bad for k, v in value.items() if (bad := _non_finite(v, f"{where}.{k}"))), None)
+    if isinstance(value, list):
+        return next((bad for i, v in enumerate(value) if (bad := _non_finite(v, f"{where}[{i}]"))), None)
+    if isinstance(value, float) and not math.isfinite(value):
+        return where
+    return None
+
+
+def _check_camera(camera: CameraModel, image_size: tuple[int, int], source: str) -> None:
+    """The pose must put the camera above the table, looking at it, with the image's size."""
+    if (camera.width_px, camera.height_px) != tuple(image_size):
+        raise InputError(f"{source}: corrupt calibration (camera model is {camera.width_px} x {camera.height_px} px, "
+                         f"the calibration {image_size[0]} x {image_size[1]} px)")
+    centre = camera.center_table_mm
+    if not np.all(np.isfinite(centre)) or centre[2] <= 0 or camera.tvec[2] <= 0:
+        raise InputError(f"{source}: corrupt calibration (camera at {np.round(centre, 1).tolist()} mm with the "
+                         f"table {camera.tvec[2]:.1f} mm in front of it: not above the table, looking at it)")
+    f = camera.camera_matrix[0, 0], camera.camera_matrix[1, 1]
+    if min(f) <= 0:
+        raise InputError(f"{source}: corrupt calibration (focal length {f} px is not positive)")
+
+
 def _plain(value):
     """numpy scalars and arrays as the JSON numbers and lists they hold (json cannot write them)."""
     if isinstance(value, np.generic):
@@ -136,17 +170,5 @@ def _plain(value):
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
-    """Write to a temporary file beside `path`, fsync, then rename: never a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, allow_nan=False, default=_plain)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """JSON (no NaN or inf: a strict reader must be able to load it) written whole or not at all."""
+    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False, default=_plain) + "\n")

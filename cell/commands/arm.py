@@ -8,8 +8,10 @@ from typing import get_args
 
 from serial.tools import list_ports
 
+from cell.commands.argtypes import finite_float
 from cell.config import load_config
 from cell.errors import InputError
+from cell.locks import device_locks
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmKind
 from drivers.arm.factory import make_arm, with_overrides
@@ -24,9 +26,9 @@ def register(sub) -> None:
     j = sub.add_parser("jog", help="move the gripper to a robot-frame point, or open/close it")
     add_arm_arguments(j)
     what = j.add_mutually_exclusive_group(required=True)
-    what.add_argument("--to", nargs=3, type=float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
+    what.add_argument("--to", nargs=3, type=finite_float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
     what.add_argument("--gripper", choices=["open", "close"])
-    j.add_argument("--angle", type=float, metavar="DEG", help="gripper angle about the vertical, with --to")
+    j.add_argument("--angle", type=finite_float, metavar="DEG", help="gripper angle about the vertical, with --to")
     j.set_defaults(func=cmd_jog)
 
     h = sub.add_parser("home", help="home the arm (homing cycle or home pose)")
@@ -41,11 +43,10 @@ def add_arm_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (device path or pyserial URL)")
 
 
-def arm_from_args(args: argparse.Namespace) -> Arm:
-    """The arm from --config (or run-cell's own --config), with --arm / --port applied."""
+def arm_config_from_args(args: argparse.Namespace):
+    """The arm config from --config (or run-cell's own --config), with --arm / --port applied."""
     config = getattr(args, "config", None) or getattr(args, "run_config", None)
-    cfg = with_overrides(load_config(config).arm, kind=getattr(args, "arm", None), port=getattr(args, "port", None))
-    return make_arm(cfg)
+    return with_overrides(load_config(config).arm, kind=getattr(args, "arm", None), port=getattr(args, "port", None))
 
 
 def jog(arm: Arm, to_mm: tuple[float, float, float] | None = None, angle_deg: float | None = None,
@@ -72,17 +73,19 @@ def cmd_ports(args: argparse.Namespace) -> int:
 def cmd_jog(args: argparse.Namespace) -> int:
     if args.angle is not None and args.to is None:
         raise InputError("--angle goes with --to X Y Z")
-    arm = arm_from_args(args)
+    cfg = arm_config_from_args(args)
+    arm = make_arm(cfg)
     if args.to is not None:
         arm.check_target(*args.to, args.angle)  # refuse before connecting, let alone moving
-    with arm:
+    with device_locks(cfg), arm:  # the port is ours alone before anything is sent on it
         jog(arm, tuple(args.to) if args.to else None, args.angle, args.gripper)
         print(_describe(arm))
     return 0
 
 
 def cmd_home(args: argparse.Namespace) -> int:
-    with arm_from_args(args) as arm:
+    cfg = arm_config_from_args(args)
+    with device_locks(cfg), make_arm(cfg) as arm:
         arm.home()
         print(_describe(arm))
     return 0

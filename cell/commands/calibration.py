@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.atomicfile import ensure_folder
 from cell.calibration.check import check_calibration, check_text
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
@@ -95,7 +96,12 @@ def cmd_map(args: argparse.Namespace) -> int:
             raise InputError(f"point must be finite, got {' '.join(args.point)!r}")
     else:
         raise InputError("give --pixels FILE or one point as X Y (pixels)")
+    _check_inside(pixels, cal.image_size, args.pixels)
     table = cal.pixel_to_table_mm(pixels) if len(pixels) else np.zeros((0, 2))
+    if not np.all(np.isfinite(table)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(table), axis=1))[0])
+        raise InputError(f"{args.calibration}: maps pixel ({pixels[bad][0]:g}, {pixels[bad][1]:g}) to no finite "
+                         "table position (a corrupt calibration?)")
     rows = [
         {"x_px": float(p[0]), "y_px": float(p[1]), "X_mm": float(t[0]), "Y_mm": float(t[1])}
         for p, t in zip(pixels, table, strict=True)
@@ -107,6 +113,17 @@ def cmd_map(args: argparse.Namespace) -> int:
         for r in rows:
             print(f"{r['x_px']:>10.2f}{r['y_px']:>10.2f}{r['X_mm']:>12.4f}{r['Y_mm']:>12.4f}")
     return 0
+
+
+def _check_inside(pixels: np.ndarray, image_size: tuple[int, int], source: Path | None) -> None:
+    """A pixel outside the calibrated image maps to nothing real (a polynomial there is wild)."""
+    w, h = image_size
+    outside = ~((pixels[:, 0] >= -0.5) & (pixels[:, 0] <= w - 0.5) & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= h - 0.5))
+    if outside.any():
+        i = int(np.flatnonzero(outside)[0])
+        where = f"{source}: point {i + 1}: " if source else ""
+        raise InputError(f"{where}pixel ({pixels[i][0]:g}, {pixels[i][1]:g}) is outside the calibrated "
+                         f"{w} x {h} px image; {int(outside.sum())} such point(s)")
 
 
 def cmd_check_calibration(args: argparse.Namespace) -> int:
@@ -130,7 +147,7 @@ def cmd_calibrate_demo(args: argparse.Namespace) -> int:
     config = CellConfig()
     camera = default_camera()
     image = render_plate(camera, config.plate)
-    args.out_dir.mkdir(parents=True, exist_ok=True)
+    ensure_folder(args.out_dir)
     write_image_atomic(args.out_dir / "plate.png", image)
     print(f"rendered the built-in plate: {args.out_dir / 'plate.png'}")
     result = calibrate(image, config)

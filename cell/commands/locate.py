@@ -10,8 +10,9 @@ import cv2
 import numpy as np
 
 from cell.calibration.store import Calibration
+from cell.commands.argtypes import finite_float
 from cell.config import load_config
-from cell.errors import InputError
+from cell.imageio import check_image_path, read_image, write_image_atomic
 from cell.vision.config import Preset
 from cell.vision.locate import PixelScale, locate
 from cell.vision.types import LocateResult
@@ -25,22 +26,13 @@ def register(sub) -> None:
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--calibration", type=Path, help="calibration JSON (table mm, height correction)")
     where.add_argument(
-        "--mm-per-px", type=float, help="a plain scale for an uncalibrated image (no height correction)"
+        "--mm-per-px", type=finite_float, help="a plain scale for an uncalibrated image (no height correction)"
     )
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
     p.add_argument("--preset", choices=get_args(Preset), help="override parts.preset")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled")
     p.set_defaults(func=cmd_locate)
-
-
-def read_image(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise InputError(f"{path}: image not found")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError(f"{path}: cannot read image (not an image file, or corrupt)")
-    return image
 
 
 def cmd_locate(args: argparse.Namespace) -> int:
@@ -52,23 +44,28 @@ def cmd_locate(args: argparse.Namespace) -> int:
         mapper = Calibration.load(args.calibration)
     else:
         mapper = PixelScale(args.mm_per_px)
-    image = read_image(args.image)
-    h, w = image.shape[:2]
-    if mapper.image_size is not None and tuple(mapper.image_size) != (w, h):
-        cw, ch = mapper.image_size
-        raise InputError(f"{args.image}: image is {w}x{h} px but {args.calibration} was made at {cw}x{ch} px")
+    if args.annotate is not None:
+        check_image_path(args.annotate)  # refuse before the work, not after it
+    image = read_image(args.image, config.camera.max_image_px, mapper.image_size)
     result = locate(image, mapper, parts)
     if args.annotate:
-        write_annotated(args.annotate, image, result)
+        write_image_atomic(args.annotate, annotate(image, result))
     if args.json:
-        print(json.dumps(to_json(result)))
+        print(json.dumps(to_json(result), allow_nan=False))
     else:
         print(format_table(result))
     return 0
 
 
 def _round(values, digits: int = 3):
-    return None if values is None else [round(float(v), digits) for v in values]
+    """Rounded floats; a number that is not finite becomes null (JSON has no NaN)."""
+    if values is None:
+        return None
+    return [round(float(v), digits) if np.isfinite(v) else None for v in values]
+
+
+def _number(value, digits: int):
+    return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
 def to_json(result: LocateResult) -> dict:
@@ -81,10 +78,10 @@ def to_json(result: LocateResult) -> dict:
                 "reason": p.reason,
                 "pixel": _round(p.pixel),
                 "world_mm": _round(p.table_mm),  # the documented key tools read (table mm)
-                "angle_deg": None if p.angle_deg is None else round(p.angle_deg, 2),
+                "angle_deg": _number(p.angle_deg, 2),
                 "pick": p.pick,
                 "grasp_mm": _round(p.grasp_mm),
-                "jaw_opening_mm": None if p.jaw_opening_mm is None else round(p.jaw_opening_mm, 2),
+                "jaw_opening_mm": _number(p.jaw_opening_mm, 2),
                 "head_mm": _round(p.head_mm),
             }
         )
@@ -126,9 +123,3 @@ def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), thick + 2, cv2.LINE_AA)
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, thick, cv2.LINE_AA)
     return out
-
-
-def write_annotated(path: Path, image: np.ndarray, result: LocateResult) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), annotate(image, result)):
-        raise InputError(f"{path}: cannot write the annotated image (unknown extension or unwritable)")

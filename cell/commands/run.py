@@ -6,20 +6,22 @@ import argparse
 import contextlib
 import logging
 import os
-import signal
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
 from cell.audit import AuditLog
 from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
+from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
-from cell.oplog import log_to_file
+from cell.locks import device_locks, holding
+from cell.oplog import log_to_file, stop_logging_to
 from cell.planning import Planner, save_taught, table_to_robot
+from cell.recordfile import tell_stderr, unique_stem
 from cell.run_config import RunConfig
-from cell.runner import Controls, Runner
+from cell.runner import EXIT_FAULT, EXIT_STOPPED, Runner
+from cell.signals import Controls
 from cell.sim.cell import sim_arm_kind, sim_cell
 from cell.statemachine import markdown, mermaid
 from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
@@ -48,9 +50,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
                         "configs/sim-grbl.toml or configs/sim-dynamixel.toml)")
     g.add_argument("--port", help="override arm.port")
-    g.add_argument("--offset-x-mm", type=float, default=0.0,
+    g.add_argument("--offset-x-mm", type=finite_float, default=0.0,
                    help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)")
-    g.add_argument("--offset-y-mm", type=float, default=0.0, help="add to planning.offset_y_mm")
+    g.add_argument("--offset-y-mm", type=finite_float, default=0.0, help="add to planning.offset_y_mm")
     g.add_argument("--log-dir", type=Path, help="override run.log_dir")
 
 
@@ -83,7 +85,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.point and args.circles:
         raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
     if args.circles:
-        with make_arm(with_overrides(config.arm, args.arm, args.port)) as arm:
+        arm_cfg = with_overrides(config.arm, args.arm, args.port)
+        with device_locks(arm_cfg), make_arm(arm_cfg) as arm:
             points = jog_session(arm, args.circles, config, input, print)
     else:
         points = []
@@ -103,7 +106,8 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.dry_run:
         print("dry run: nothing written")
         return 0
-    save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
+    with holding(config.planning.taught_path, "taught frame file", wait_s=config.calibration.lock_wait_s):
+        save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
     print(f"wrote {config.planning.taught_path}; set planning.frame = \"taught\" to use it")
     return 0
 
@@ -134,66 +138,126 @@ def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack)
     arm_cfg = config.arm
     if dry_run and arm_cfg.kind in get_args(DeviceKind):  # the mock checks every command as the real driver would
         arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
+    resources.enter_context(device_locks(arm_cfg, config.camera.source))  # this job's alone until it ends
     return make_camera(config.camera), make_arm(arm_cfg), calibration, not dry_run, None
 
 
 def run_cell(args: argparse.Namespace) -> int:
+    """The job: start-up, the pick loop, the end; stop signals handled in every phase (cell.signals)."""
     if args.run_config is None and not args.dry_run:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
     if args.run_config is None and args.arm in SIM_CONFIGS:
         args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
-    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    controls = getattr(args, "controls", None) or Controls()
     try:
         config = _apply_overrides(load_config(args.run_config), args)
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
-        with AuditLog((args.log_dir or RunConfig().log_dir) / f"run-{stamp}.jsonl") as audit:
-            _log_fault(audit, args, e)
+        with controls.shielded():
+            _log_early_fault(args.log_dir or RunConfig().log_dir, args, e)
         raise
-    log_dir = config.run.log_dir
-    audit_path = log_dir / f"run-{stamp}.jsonl"
-    if not args.verbose:  # the operator's file gets INFO; the terminal keeps to warnings
-        for h in logging.getLogger().handlers:
-            if type(h) is logging.StreamHandler:
-                h.setLevel(logging.WARNING)
-    log_to_file(log_dir / f"run-{stamp}.log")
-    with AuditLog(audit_path) as audit, contextlib.ExitStack() as resources:
-        audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
-                    config=config.model_dump(mode="json"))
+    stem = unique_stem(config.run.log_dir, "run", (".jsonl", ".log"))
+    audit = _open_audit(Path(f"{stem}.jsonl"))
+    try:
+        if not args.verbose:  # the operator's file gets INFO; the terminal keeps to warnings
+            for h in logging.getLogger().handlers:
+                if type(h) is logging.StreamHandler:
+                    h.setLevel(logging.WARNING)
         try:
+            log_to_file(f"{stem}.log", exclusive=True)
+        except OSError as e:
+            raise ConfigError(f"run.log_dir {stem.parent}: cannot create the operator log: {e.strerror or e}",
+                              hint="set run.log_dir (or --log-dir) to a writable folder with free space") from None
+        return _run_job(args, config, audit, controls)
+    finally:
+        with controls.shielded():
+            audit.close()
+            stop_logging_to(f"{stem}.log")
+
+
+def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, controls: Controls) -> int:
+    resources = contextlib.ExitStack()
+    try:
+        try:
+            audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
+                        config=config.model_dump(mode="json"))
             camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run, resources)
             planner = Planner(config.planning, table_to_robot(config.planning))
+            if sim is not None:
+                say(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
+            if sim is not None and sim.emulated is not None:
+                emu = sim.emulated
+                say(f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
+                    f"(motion {emu.speed_scale:g}x faster than the arm's)")
+            say(f"pid {os.getpid()}: Ctrl-C, SIGTERM or SIGHUP stop safely; "
+                f"`kill -USR1 {os.getpid()}` pauses and resumes")
         except BaseException as e:
-            _log_fault(audit, args, e)
+            with controls.shielded():
+                audit.best_effort = True
+                _log_fault(audit, args, e)
             raise
-        if sim is not None:
-            print(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
-        if sim is not None and sim.emulated is not None:
-            emu = sim.emulated
-            print(f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
-                  f"(motion {emu.speed_scale:g}x faster than the arm's)")
-        controls = Controls()
-        previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),  # even if inherited ignored
-                    signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: controls.stop.set()),
-                    signal.SIGUSR1: signal.signal(signal.SIGUSR1, lambda *_: _toggle(controls.pause))}
-        print(f"pid {os.getpid()}: Ctrl-C stops safely; `kill -USR1 {os.getpid()}` pauses and resumes")
-        try:
+        with controls.shielded():  # from here the runner decides what a signal interrupts
             runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
-                            config.run, audit, controls, expect_motion, progress=print,
+                            config.run, audit, controls, expect_motion, progress=say,
                             truth=None if sim is None else lambda: sim_truth(sim.world),
                             sim_motion_s=None if sim is None else sim.motion_time_s,
                             drift_watch=_drift_watch(config, calibration, sim))
-            summary = runner.run()
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-    for line in summary.lines():
-        print(line)
+            runner.run()
+            return _report(runner, audit, sim)
+    finally:
+        with controls.shielded():
+            resources.close()
+
+
+def _report(runner: Runner, audit: AuditLog, sim) -> int:
+    """The summary on stdout (and on stderr too when the audit log could not keep it); the
+    exit code; a last line on stderr naming what failed and where."""
+    summary = runner.summary
+    lines = summary.lines()
     if sim is not None:
-        print("simulated truth: " + "; ".join(
+        lines.append("simulated truth: " + "; ".join(
             f"{where}: " + ", ".join(f"{n} {kind}" for kind, n in kinds.items())
             for where, kinds in sim_truth(sim.world).items()))
-    print(f"audit log: {audit_path}")
-    return summary.exit_code
+    for line in lines:
+        say(line)
+    say(f"audit log: {audit.path}")
+    code = summary.exit_code
+    if audit.failed is not None:
+        tell_stderr("the audit log is incomplete; the run's summary:\n" + "\n".join(lines))
+        code = EXIT_FAULT
+    if code == EXIT_FAULT or code == EXIT_STOPPED:
+        where = runner.sm.history[-1].source.name if runner.sm.history else "IDLE"
+        what = "fault" if code == EXIT_FAULT else "stopped"
+        reason = summary.reason if summary.outcome != "done" else f"audit log: {audit.failed}"
+        tell_stderr(f"run-cell run: {what} in {where}: {reason} (arm made safe; exit {code})")
+    return code
+
+
+def say(line: str) -> None:
+    """Print for the operator; a closed terminal (SIGHUP, EIO) must not stop the job or its safe stop."""
+    try:
+        print(line, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def _open_audit(path: Path) -> AuditLog:
+    try:
+        return AuditLog(path)
+    except OSError as e:
+        raise ConfigError(f"run.log_dir {path.parent}: cannot create the audit log {path.name}: {e.strerror or e}",
+                          hint="set run.log_dir (or --log-dir) to a writable folder with free space") from None
+
+
+def _log_early_fault(log_dir: Path, args: argparse.Namespace, e: BaseException) -> None:
+    """A run whose config failed still leaves a log saying why, where it can (best effort)."""
+    try:
+        audit = AuditLog(f"{unique_stem(Path(log_dir), 'run', ('.jsonl', '.log'))}.jsonl")
+    except OSError as err:
+        tell_stderr(f"audit log in {log_dir}: cannot be created ({err.strerror or err})")
+        return
+    with audit:
+        audit.best_effort = True
+        _log_fault(audit, args, e)
 
 
 def _drift_watch(config: CellConfig, calibration, sim) -> DriftWatch | None:
@@ -207,15 +271,11 @@ def _drift_watch(config: CellConfig, calibration, sim) -> DriftWatch | None:
 def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> None:
     """A run that never started still ends its log with the reason."""
     stopped = isinstance(e, KeyboardInterrupt)
-    outcome, code = ("stopped", 130) if stopped else ("fault", getattr(e, "exit_code", 2))
-    reason = "Ctrl-C" if stopped else f"{type(e).__name__}: {e}"
+    reason = getattr(e, "reason", "Ctrl-C") if stopped else f"{type(e).__name__}: {e}"
+    outcome, code = ("stopped", EXIT_STOPPED) if stopped else ("fault", getattr(e, "exit_code", 2))
     if not stopped:
         audit.event("fault", reason=reason, config_file=str(args.run_config or "built-in"))
     audit.event("run_end", outcome=outcome, exit_code=code, reason=reason)
-
-
-def _toggle(event) -> None:
-    event.clear() if event.is_set() else event.set()
 
 
 def sim_truth(world) -> dict:

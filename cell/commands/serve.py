@@ -21,6 +21,7 @@ from cell.oplog import log_to_file
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import Devices, LineService
 from cell.service.shiftlog import ShiftLog
+from cell.signals import STOP_SIGNALS
 from cell.sim.feeder import FedCamera, Feeder, SimClock
 from cell.sim.render import render_plate
 from cell.vision.locate import locate
@@ -123,7 +124,8 @@ async def _serve(config: CellConfig, service: LineService) -> int:
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}  # cell.signals' handlers, back afterwards
+    for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     interfaces, started = [OpcUaServer(service, config)], []
     try:
@@ -139,7 +141,8 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     finally:
         for interface in reversed(started):
             await interface.stop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig, handler in previous.items():
             loop.remove_signal_handler(sig)
+            signal.signal(sig, handler)
     print("stopped: cell halted safely", flush=True)
     return 0

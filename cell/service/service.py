@@ -29,7 +29,7 @@ from cell.calibration.store import Calibration
 from cell.commands.locate import annotate
 from cell.config import CellConfig
 from cell.planning import Planner, table_to_robot
-from cell.runner import Controls, Runner
+from cell.runner import Runner
 from cell.service.api import (
     Alarm,
     CalibrationInfo,
@@ -44,6 +44,7 @@ from cell.service.api import (
 )
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, iter_shift
+from cell.signals import Controls
 from cell.statemachine import State
 from drivers.arm.base import Arm
 from drivers.cameras.base import Camera
@@ -139,7 +140,7 @@ class LineService:
             self._closed = True
             if self._controls is not None:
                 self._halt_requested = True
-                self._controls.request(self._controls.stop)
+                self._controls.request(self._controls.stop, reason="the service is stopping")
         if self._worker.is_alive():
             self._jobs.put(None)
             self._worker.join(timeout_s or self.config.run.motion_timeout_s + 10)
@@ -231,7 +232,7 @@ class LineService:
             self._set_state(V.HALTED, "halted between jobs")
             return
         self._halt_requested = True
-        self._controls.request(self._controls.stop)
+        self._controls.request(self._controls.stop, reason="Halt requested")
 
     def _cmd_reset(self) -> None:
         self._alarm = None

@@ -48,16 +48,6 @@ def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
     return list(iter_shift(log_dir, day))
 
 
-def _end_torn_line(path: Path) -> None:
-    """A writer killed mid-line left no newline: end that line, so the next event starts its own."""
-    with open(path, "rb+") as f:
-        if f.seek(0, 2) == 0:
-            return
-        f.seek(-1, 2)
-        if f.read(1) != b"\n":
-            f.write(b"\n")
-
-
 class ShiftLog:
     """AuditLog's interface (event, state, close) over rolling files; thread-safe."""
 
@@ -79,14 +69,9 @@ class ShiftLog:
             return self._log
         if self._log is not None:
             self._log.close()
-        files = shift_files(self.log_dir, day)
-        if files and files[-1].stat().st_size < self.max_bytes:
-            path = files[-1]  # a restarted service carries on the shift's last file
-            _end_torn_line(path)
-        else:
-            n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0
-            path = self.log_dir / f"cell-{day}-{n:03d}.jsonl"
-        self._log = AuditLog(path)
+        files = shift_files(self.log_dir, day)  # audit logs are created, never reopened: a restart takes the next
+        n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0
+        self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl")
         self._open_day = day
         log.info("audit log: %s", self._log.path)
         return self._log

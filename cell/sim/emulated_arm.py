@@ -25,6 +25,7 @@ from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
 log = logging.getLogger(__name__)
+EMULATED_LATENCY_TIMER_MS = 50.0  # status wait about 100 ms: an emulator thread starved for a while still answers
 
 Emulator = GrblEmulator | DxlBusEmulator
 
@@ -66,12 +67,21 @@ def emulated_arm(cfg: ArmConfig, world: World, speed_scale: float, fault_after_g
     if fault_after_grips:
         emulator.add_tool_listener(_fault_after(emulator, fault_after_grips, cfg.dynamixel.gripper_id))
     with serve_pty(emulator, name) as path:
-        arm = make_arm(cfg.model_copy(update={"port": path}))
+        arm = make_arm(_for_emulator(cfg, path))
         log.info("emulated %s arm on %s at %gx speed", cfg.kind, path, speed_scale)
         try:
             yield EmulatedArm(arm, emulator, path, speed_scale)
         finally:
             arm.disconnect()  # before the pty goes away under it
+
+
+def _for_emulator(cfg: ArmConfig, path: str) -> ArmConfig:
+    """The arm's config on the emulator's pty. The emulated bus answers from a Python thread that
+    shares the CPU with the cell (and a test run's workers), so it gets a status wait of a
+    loaded machine rather than a U2D2's 16 ms latency timer."""
+    dxl = cfg.dynamixel.model_copy(
+        update={"latency_timer_ms": max(cfg.dynamixel.latency_timer_ms, EMULATED_LATENCY_TIMER_MS)})
+    return cfg.model_copy(update={"port": path, "dynamixel": dxl})
 
 
 def _acting_on(world: World) -> ToolListener:

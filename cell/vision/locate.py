@@ -90,13 +90,24 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
         part.outline_px = blob.outer
-        found.append(part)
+        found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
     for i, part in enumerate(found, start=1):
         part.id = i
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
+    """A part whose position or angle is not a finite number is never picked (and says why)."""
+    numbers = [*part.table_mm, *(part.grasp_mm or ()), *(part.head_mm or ())]
+    numbers += [v for v in (part.angle_deg, part.jaw_opening_mm) if v is not None]
+    if part.pick and not np.all(np.isfinite(np.asarray(numbers, dtype=np.float64))):
+        part.pick = False
+        part.reason = f"{part.cls} with no finite table position (calibration?): not picked"
+        part.cls = "unknown"
+    return part
 
 
 def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -163,6 +163,9 @@ class DynamixelArmConfig(Strict):
     poll_interval_s: float = Field(0.02, gt=0, le=5)
     reconnect_timeout_s: float = Field(10.0, ge=0, le=600, description="how long to wait for a re-plugged adapter")
     comm_retries: int = Field(2, ge=0, le=10, description="retries of a failed bus transfer before giving up")
+    latency_timer_ms: float = Field(
+        16.0, ge=1, le=255, description="the USB adapter's latency timer; a status packet is awaited twice this + 2 ms"
+    )
     workspace: Workspace = Workspace(
         x_min_mm=-400, x_max_mm=400, y_min_mm=-400, y_max_mm=400, z_min_mm=-100, z_max_mm=400
     )

@@ -61,6 +61,30 @@ STATUS_ERRORS = {
 BUS_HINT = "check the servos' power, and arm.port / arm.dynamixel.baud / ids (`run-cell ports`)"
 
 
+class ExclusivePortHandler(PortHandler):
+    """The SDK's PortHandler opening its port for this process alone (the SDK itself does not),
+    and waiting for a status packet as long as the adapter's latency timer says (the SDK fixes 16 ms)."""
+
+    def __init__(self, port_name: str, latency_timer_ms: float = 16.0):
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+
+    def setPacketTimeout(self, packet_length):
+        """The SDK's own formula (wire time + twice the latency timer + 2 ms) with the configured timer."""
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
+
+    def setupPort(self, cflag_baud):
+        if self.is_open:
+            self.closePort()
+        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS, timeout=0,
+                                 exclusive=True)
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
+
+
 def plan_move(kin: FourAxisKinematics, cfg: DynamixelArmConfig, x_mm, y_mm, z_mm, angle_deg=None) -> list[int]:
     """Goal ticks for the joints (base to wrist), after the workspace and joint-limit checks."""
     if why := cfg.workspace.violation(x_mm, y_mm, z_mm):

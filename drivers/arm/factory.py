@@ -1,11 +1,9 @@
 """Build the configured arm; the one place that maps a config kind to a driver class."""
 from __future__ import annotations
 
-from dynamixel_sdk import PortHandler
-
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig
-from drivers.arm.dynamixel import DynamixelArm
+from drivers.arm.dynamixel import DynamixelArm, ExclusivePortHandler
 from drivers.arm.mock import MockArm
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
@@ -32,4 +30,4 @@ def make_arm(cfg: ArmConfig) -> Arm:
         )
     if cfg.kind == "serial":
         return SerialGcodeArm(SerialLine(cfg.port, cfg.serial.baud), cfg.serial)
-    return DynamixelArm(PortHandler(cfg.port), cfg.dynamixel)
+    return DynamixelArm(ExclusivePortHandler(cfg.port, cfg.dynamixel.latency_timer_ms), cfg.dynamixel)

@@ -41,7 +41,9 @@ class SerialLine:
         """Open the port; serial_for_url so socket:// and spy:// work as well as device paths."""
         self.close()
         try:
-            self._ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.01, write_timeout=1.0)
+            # exclusive: a second program opening the port is refused, never let in to reset the controller
+            self._ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.01, write_timeout=1.0,
+                                              exclusive=True)
         except (*_PORT_ERRORS, ValueError) as e:
             raise ConnectionLost(
                 f"cannot open serial port: {e}",

@@ -17,3 +17,6 @@ class CameraConfig(Strict):
     exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
     warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
     loop: bool = Field(False, description="video file or image folder: start again at the end")
+    max_image_px: int = Field(
+        100_000_000, ge=256, description="an image file with more pixels is refused from its header, before decoding"
+    )

@@ -8,6 +8,7 @@ import numpy as np
 
 from drivers.cameras.base import Camera
 from drivers.cameras.errors import CameraError
+from drivers.cameras.imageheader import UnknownFormat, image_size
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 
@@ -45,6 +46,13 @@ class FolderCamera(Camera):
             self._next = 0
         path = self._files[self._next]
         self._next += 1
+        try:
+            size = image_size(path)
+        except (UnknownFormat, OSError) as e:
+            raise CameraError(f"{path.name}: not a readable image ({e})", source=self.source) from None
+        if size != (self.width_px, self.height_px):  # refused from the header: a huge file is never decoded
+            raise CameraError(f"{path.name}: frame is {size[0]}x{size[1]} px, expected {self.width_px}x{self.height_px} "
+                              "px; not decoded", source=self.source)
         frame = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if frame is None:
             raise CameraError(f"{path.name}: not a readable image", source=self.source)

@@ -60,6 +60,9 @@ class PtyServer:
         return self
 
     def stop(self) -> None:
+        """Stop once the device has handled what the driver sent last (a real device would get
+        the last packet, say torque off, even if the driver closes its port right after)."""
+        self.settle(timeout_s=0.5)
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=2)

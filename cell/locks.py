@@ -1,0 +1,100 @@
+"""One process per device and per file: an advisory lock per resource, naming its holder.
+
+A second `run-cell jog` on the port of a running job would soft-reset the controller under
+it; two recalibrations would interleave their backups. So each command takes the lock of
+every serial port, camera device and calibration file it uses, for as long as it uses it:
+an flock on a file in the lock folder (RUN_CELL_LOCK_DIR, default <tmp>/run-cell-locks)
+named after the resource's real path, holding "<program> pid N". The kernel drops the lock
+when the process dies, however it dies, so a stale file never blocks anyone.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import os
+import re
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from cell.errors import CellError
+
+LOCK_DIR_ENV = "RUN_CELL_LOCK_DIR"
+
+
+class Busy(CellError):
+    """A device or file is in use by another process."""
+
+    exit_code = 2
+
+
+def lock_dir() -> Path:
+    return Path(os.environ.get(LOCK_DIR_ENV) or Path(tempfile.gettempdir()) / "run-cell-locks")
+
+
+def lock_path(resource: str) -> Path:
+    """The lock file of a device path, URL or file: one per real path (symlinks resolved)."""
+    real = resource if "://" in resource else os.path.realpath(resource)
+    readable = re.sub(r"[^A-Za-z0-9._-]+", "_", real).strip("_")[-60:]
+    digest = hashlib.sha256(real.encode()).hexdigest()[:12]
+    return lock_dir() / f"{readable}-{digest}.lock"
+
+
+def holder_name() -> str:
+    return f"{Path(sys.argv[0]).name or 'python'} pid {os.getpid()}"
+
+
+@contextlib.contextmanager
+def holding(resource: str | os.PathLike, what: str = "port", wait_s: float = 0.0) -> Iterator[Path]:
+    """Hold the lock of `resource` for the block; Busy naming the holder if another process
+    keeps it longer than `wait_s` (0: do not wait)."""
+    resource = str(resource)
+    path = lock_path(resource)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    try:
+        _acquire(fd, resource, what, wait_s)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, holder_name().encode(), 0)
+        try:
+            yield path
+        finally:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+                raise Busy(f"{what} {resource} in use by {holder}",
+                           hint=f"wait for it to finish or stop it; lock file {lock_path(resource)}") from None
+            time.sleep(0.05)
+
+
+def device_locks(arm_cfg, camera_source: str | None = None) -> contextlib.ExitStack:
+    """The locks of the configured arm's serial port and of a camera device (an index is
+    /dev/videoN), for a `with` block; a mock arm and a file or URL camera need none."""
+    stack = contextlib.ExitStack()
+    try:
+        if arm_cfg.kind != "mock" and arm_cfg.port:
+            stack.enter_context(holding(arm_cfg.port, "port"))
+        source = (camera_source or "").strip()
+        device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None
+        if device:
+            stack.enter_context(holding(device, "camera"))
+    except BaseException:
+        stack.close()
+        raise
+    return stack
