@@ -53,48 +53,71 @@ def capture_plate(config):
         return camera.capture()
 
 
-def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    if args.preset:
-        config.detection.preset = args.preset
-    out = args.out or config.calibration.active_path
-    image = read_image(args.image) if args.image else capture_plate(config)
+def check_image_size(image, config, source: str) -> None:
+    """A plate image must be the camera's size: the calibration maps that camera's pixels."""
     h, w = image.shape[:2]
     want = (config.camera.width_px, config.camera.height_px)
     if (w, h) != want:
         raise InputError(
-            f"{args.image or 'camera frame'}: image is {w} x {h} px but the camera is configured for "
+            f"{source}: image is {w} x {h} px but the camera is configured for "
             f"{want[0]} x {want[1]} px (camera.width_px, camera.height_px)"
         )
-    result = calibrate(image, config, args.model)
-    print(summary_text(result, table=not args.quiet))
-    if args.report_dir:
-        for p in write_report(image, result, args.report_dir):
-            print(f"wrote {p}")
+
+
+def gate_failure(result, limits) -> str | None:
+    """Why a fit fails the configured limits (calibration.max_cv_*), or None when it passes."""
     cv = result.chosen.cv
+    if cv["rms_mm"] <= limits.max_cv_rms_mm and cv["max_mm"] <= limits.max_cv_error_mm:
+        return None
+    return (
+        f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
+        f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm {limits.max_cv_error_mm} mm"
+    )
+
+
+def replace_active(result, config, out: Path | None = None) -> tuple[Path, Path | None]:
+    """The quality gate, then the atomic replacement (previous file kept as a dated backup).
+
+    Every way of recalibrating (this script, the operator screen) goes through here; on any
+    refusal the active file is untouched. Returns the file written and the backup, if any.
+    """
     limits = config.calibration
-    if cv["rms_mm"] > limits.max_cv_rms_mm or cv["max_mm"] > limits.max_cv_error_mm:
-        raise CalibrationRejected(
-            f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
-            f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
-            f"{limits.max_cv_error_mm} mm; {out} left unchanged"
-        )
+    target = out or limits.active_path
+    why = gate_failure(result, limits)
+    if why:
+        raise CalibrationRejected(f"{why}; {target} left unchanged")
     backup = None
-    if out.exists():
+    if target.exists():
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        backup_dir = limits.backup_dir if args.out is None else out.parent / "backups"
+        backup_dir = limits.backup_dir if out is None else target.parent / "backups"
         backup_dir.mkdir(parents=True, exist_ok=True)
-        backup = backup_dir / f"{out.stem}.{stamp}{out.suffix}"
-        shutil.copy2(out, backup)
-    result.calibration.save(out)
+        backup = backup_dir / f"{target.stem}.{stamp}{target.suffix}"
+        shutil.copy2(target, backup)
+    result.calibration.save(target)
+    cv = result.chosen.cv
     log.info(
         "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
-        out,
+        target,
         result.chosen.label,
         cv["rms_mm"],
         cv["max_mm"],
         f"; previous kept as {backup}" if backup else "",
     )
+    return target, backup
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.preset:
+        config.detection.preset = args.preset
+    image = read_image(args.image) if args.image else capture_plate(config)
+    check_image_size(image, config, str(args.image or "camera frame"))
+    result = calibrate(image, config, args.model)
+    print(summary_text(result, table=not args.quiet))
+    if args.report_dir:
+        for p in write_report(image, result, args.report_dir):
+            print(f"wrote {p}")
+    out, backup = replace_active(result, config, args.out)
     print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))
     return 0
 

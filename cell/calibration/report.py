@@ -112,7 +112,14 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
 
 
 def deviation_plot(result: CalibrationResult, path: Path) -> None:
-    """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5)."""
+    """The deviation plot (the paper's Fig. 5) as a PNG file, written atomically."""
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    tmp.write_bytes(deviation_png(result))
+    tmp.replace(path)
+
+
+def deviation_png(result: CalibrationResult) -> bytes:
+    """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5), PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -141,10 +148,10 @@ def deviation_plot(result: CalibrationResult, path: Path) -> None:
     ax2.set_ylabel("Y (mm)")
     ax2.set_title(f"error vectors (max {mag.max():.4f} mm, arrows not to scale)")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=90)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
-    tmp.replace(path)
+    return buf.getvalue()
 
 
 def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path) -> list[Path]:
