@@ -16,7 +16,7 @@ from cell.config import CellConfig
 from cell.errors import ConfigError
 from cell.service.api import Command, VisionState
 from cell.web.app import build_app
-from cell.web.auth import Access, hash_password, is_loopback, verify_password
+from cell.web.auth import Access, is_loopback
 from cell.web.config import WebConfig
 from tests.fake_service import FakeLineService, plate_image
 
@@ -38,9 +38,12 @@ def config(tmp_path):
     return c
 
 
-def make_client(service, config, web=WebConfig(), environ=None, base_url=LOCAL):
-    access = Access(web, environ or {})
-    return TestClient(build_app(service, config, web, access), base_url=base_url)
+def make_client(service, config, host="127.0.0.1", web=WebConfig(), check=None, base_url=LOCAL):
+    return TestClient(build_app(service, config, web, Access(host, web, check)), base_url=base_url)
+
+
+def operator_pw7(user: str, password: str) -> bool:
+    return user == "operator" and password == "pw-7"
 
 
 @pytest.fixture
@@ -129,13 +132,6 @@ def test_state_json_has_what_the_screen_shows(client, service):
 
 
 # ---- password ----------------------------------------------------------------------
-def test_password_hash_round_trip_and_malformed_hash():
-    h = hash_password("line 4 secret")
-    assert verify_password("line 4 secret", h) and not verify_password("line 4 secreT", h)
-    with pytest.raises(ConfigError, match="hash-password"):
-        Access(WebConfig(password_scrypt="md5$abc"), {})
-
-
 def test_loopback_detection():
     assert all(is_loopback(h) for h in ("127.0.0.1", "localhost", "::1", "[::1]", "127.0.0.2"))
     assert not any(is_loopback(h) for h in ("0.0.0.0", "192.168.1.20", "cellpc.local", "::"))
@@ -143,22 +139,20 @@ def test_loopback_detection():
 
 def test_non_loopback_bind_without_password_refuses_to_start():
     with pytest.raises(ConfigError, match="beyond loopback, without a password"):
-        Access(WebConfig(host="0.0.0.0"), {})
+        Access("0.0.0.0", WebConfig())
 
 
-@pytest.mark.parametrize("how", ["hash", "env"])
-def test_non_loopback_needs_the_password_for_view_and_controls(service, config, how):
-    web = WebConfig(host="0.0.0.0", password_scrypt=hash_password("pw-7") if how == "hash" else None)
-    environ = {"CELL_WEB_PASSWORD": "pw-7"} if how == "env" else {}
-    with make_client(service, config, web, environ, base_url="http://192.0.2.10:8080") as c:
+def test_non_loopback_needs_the_password_for_view_and_controls(service, config):
+    with make_client(service, config, "0.0.0.0", check=operator_pw7, base_url="http://192.0.2.10:8080") as c:
         assert c.get("/").status_code == 200  # the login page itself
         assert c.get("/api/session").json()["can_view"] is False
         assert c.get("/api/state").status_code == 401
         assert c.get("/api/events").status_code == 401
         assert c.post("/api/command/StartSingleJob").status_code == 401
-        wrong = c.post("/api/login", json={"password": "pw-8"})
+        wrong = c.post("/api/login", json={"user": "operator", "password": "pw-8"})
         assert wrong.status_code == 401 and "cell_session" not in c.cookies
-        ok = c.post("/api/login", json={"password": "pw-7"})
+        assert c.post("/api/login", json={"password": "pw-7"}).status_code == 400
+        ok = c.post("/api/login", json={"user": "operator", "password": "pw-7"})
         assert ok.status_code == 200 and "cell_session" in c.cookies
         assert "httponly" in ok.headers["set-cookie"].lower() and "samesite=strict" in ok.headers["set-cookie"].lower()
         assert c.get("/api/state").status_code == 200
@@ -170,8 +164,8 @@ def test_non_loopback_needs_the_password_for_view_and_controls(service, config, 
 
 
 def test_view_may_be_left_open_while_controls_keep_the_password(service, config):
-    web = WebConfig(host="0.0.0.0", view_without_password=True)
-    with make_client(service, config, web, {"CELL_WEB_PASSWORD": "pw"}, base_url="http://192.0.2.10:8080") as c:
+    web = WebConfig(view_without_password=True)
+    with make_client(service, config, "0.0.0.0", web, operator_pw7, base_url="http://192.0.2.10:8080") as c:
         assert c.get("/api/state").status_code == 200
         session = c.get("/api/session").json()
         assert session["can_view"] and not session["can_control"] and session["csrf"] is None
@@ -181,8 +175,8 @@ def test_view_may_be_left_open_while_controls_keep_the_password(service, config)
 
 
 def test_login_from_another_origin_is_refused(service, config):
-    with make_client(service, config, WebConfig(), {"CELL_WEB_PASSWORD": "pw"}) as c:
-        r = c.post("/api/login", json={"password": "pw"}, headers={"origin": "http://evil.example"})
+    with make_client(service, config, check=operator_pw7) as c:
+        r = c.post("/api/login", json={"user": "operator", "password": "pw-7"}, headers={"origin": "http://evil.example"})
         assert r.status_code == 403 and "cell_session" not in c.cookies
 
 
@@ -267,7 +261,7 @@ def test_upload_of_the_wrong_size_and_without_a_plate(client, config):
 
 
 def test_oversized_upload_refused_before_it_is_read(service, config):
-    with make_client(service, config, WebConfig(max_upload_mb=1)) as c:
+    with make_client(service, config, web=WebConfig(max_upload_mb=1)) as c:
         token = c.get("/api/session").json()["csrf"]
         r = c.post("/api/recalibration/upload", content=b"\x89PNG" + b"\x00" * (1024 * 1024 + 1),
                    headers={"x-csrf-token": token})

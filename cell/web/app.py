@@ -133,15 +133,16 @@ class ScreenApp:
         if isinstance(body, Response):
             return body
         try:
-            password = json.loads(body)["password"]
-            if not isinstance(password, str):
-                raise TypeError("password is not a string")
+            sent = json.loads(body)
+            user, password = sent["user"], sent["password"]
+            if not (isinstance(user, str) and isinstance(password, str)):
+                raise TypeError("user and password must be strings")
         except (ValueError, KeyError, TypeError):
-            return _error(400, 'send JSON {"password": "..."}')
-        if not await run_in_threadpool(self.access.check_password, password):
+            return _error(400, 'send JSON {"user": "...", "password": "..."}')
+        if not await run_in_threadpool(self.access.check_password, user, password):
             log.warning("screen: failed login from %s", request.client.host if request.client else "?")
             await asyncio.sleep(0.5)  # slows guessing
-            return _error(401, "wrong password")
+            return _error(401, "wrong user or password")
         sid, csrf = self.access.new_session()
         log.info("screen: login from %s", request.client.host if request.client else "?")
         reply = JSONResponse({"csrf": csrf})
@@ -325,9 +326,9 @@ def _sse(event: str, data: dict) -> str:
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
 
 
-def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access | None = None):
-    """The screen as an ASGI app; `access` defaults to the rules `web` sets (refuses an unsafe bind)."""
-    screen = ScreenApp(service, config, web, access or Access(web))
+def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
+    """The screen as an ASGI app: Starlette routes behind the Host check and security headers."""
+    screen = ScreenApp(service, config, web, access)
 
     @contextlib.asynccontextmanager
     async def lifespan(app):

@@ -1,22 +1,16 @@
-"""`[service.web]`: where the operator screen listens and who may use it."""
+"""`[service.web]`: the operator screen's own settings. Where it listens (`service.host`,
+`service.http_port`) and the password (`service.user`, `service.password_hash` or
+`password_env`) are the line service's, shared with OPC UA."""
 from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
 
 class WebConfig(BaseModel):
-    """The screen's listener, access and frame settings."""
+    """Who may watch, how long a login lasts, upload and frame limits."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    host: str = Field("127.0.0.1", min_length=1, description="address to listen on; loopback unless a password is set")
-    port: int = Field(8080, ge=0, le=65535, description="TCP port (0: any free port, printed when ready)")
-    password_scrypt: str | None = Field(
-        None, description="password hash from `run-cell hash-password` (scrypt$N$r$p$salt$hash)"
-    )
-    password_env: str = Field(
-        "CELL_WEB_PASSWORD", pattern=r"^[A-Z_][A-Z0-9_]*$", description="environment variable holding the password"
-    )
     view_without_password: bool = Field(
         False, description="with a password: let anyone who reaches the screen watch (controls still need it)"
     )

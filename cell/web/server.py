@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+from typing import Callable
 
 import uvicorn
 
@@ -32,7 +33,7 @@ def bind(host: str, port: int) -> socket.socket:
         sock.close()
         raise ConfigError(
             f"screen: cannot listen on {host}:{port}: {e.strerror or e}",
-            hint="another program has the port (choose --http-port or [service.web] port) or the address is not this machine's",
+            hint="another program has the port (choose --http-port or service.http_port) or the address is not this machine's",
         ) from None
     return sock
 
@@ -40,11 +41,12 @@ def bind(host: str, port: int) -> socket.socket:
 class WebServer:
     """Start, address, stop. Stopping ends every open event stream and joins the thread."""
 
-    def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig):
-        self.access = Access(web)  # refuses a non-loopback bind without a password, before binding
+    def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig, host: str, port: int,
+                 check_password: Callable[[str, str], bool] | None = None):
+        self.access = Access(host, web, check_password)  # refuses a non-loopback bind without a password
         self.app = build_app(service, config, web, self.access)
-        self.host = web.host
-        self._sock = bind(web.host, web.port)
+        self.host = host
+        self._sock = bind(host, port)
         self.port = self._sock.getsockname()[1]
         self._server = uvicorn.Server(uvicorn.Config(
             self.app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=2,

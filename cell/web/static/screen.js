@@ -160,7 +160,7 @@ async function login(event) {
   event.preventDefault();
   const reply = await fetch("/api/login", {
     method: "POST", credentials: "same-origin", headers: { "Content-Type": "application/json" },
-    body: JSON.stringify({ password: $("login-password").value }),
+    body: JSON.stringify({ user: $("login-user").value, password: $("login-password").value }),
   });
   if (!reply.ok) {
     const data = await reply.json().catch(() => ({}));
