@@ -242,6 +242,7 @@ class ScreenApp:
             return _error(409, str(e))
         except CellError as e:
             return _error(422, f"{e}; the active calibration is unchanged")
+        self.hub.publish_now()  # every screen: Start and Resume wait for the answer
         return JSONResponse(report.summary_json())
 
     async def recal_picture(self, request: Request) -> Response:
@@ -265,6 +266,7 @@ class ScreenApp:
         try:
             if answer == "reject":
                 self.desk.reject(report_id)
+                self.hub.publish_now()
                 return JSONResponse({"ok": True, "accepted": False})
             if not may_recalibrate(self.service.snapshot()):
                 return _error(409, "the cell is running: pause or stop it before accepting a calibration")
@@ -277,6 +279,7 @@ class ScreenApp:
             return _error(409, f"{e}: the calibration file was written but the running cell did not take it")
         except (CellError, OSError) as e:
             return _error(500, f"accepting failed: {e}")
+        self.hub.publish_now()
         return JSONResponse({"ok": True, "accepted": True, "model": info.model})
 
     async def calibration_picture(self, request: Request) -> Response:

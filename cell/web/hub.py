@@ -146,6 +146,10 @@ class Hub:
             s.snapshot = snapshot
             s.wake.set()
 
+    def publish_now(self) -> None:
+        """Push the current state to every screen (from the loop: the screen's own news, e.g. a report opened)."""
+        self._publish_state(self.service.snapshot())
+
     def _publish_frame(self, frame: EncodedFrame) -> None:
         self.latest = frame
         for s in self.screens:

@@ -35,7 +35,7 @@ async function post(url, body, contentType) {
 }
 
 function localTime(iso) {
-  return iso ? new Date(iso).toLocaleTimeString() : "-";
+  return iso ? new Date(iso).toLocaleTimeString([], { hour12: false }) : "-";
 }
 
 function fixed(values, digits) {
@@ -89,7 +89,7 @@ function renderCalibration(cal) {
   $("cal-model").textContent = cal.model;
   $("cal-rms").textContent = cal.cv_rms_mm.toFixed(4);
   $("cal-max").textContent = cal.cv_max_mm.toFixed(4);
-  $("cal-time").textContent = cal.time ? new Date(cal.time).toLocaleString() : "-";
+  $("cal-time").textContent = cal.time ? new Date(cal.time).toLocaleString([], { hour12: false }) : "-";
   $("cal-source").textContent = cal.source_image;
   if (cal.pictures) {
     const tag = encodeURIComponent(cal.time || "");
