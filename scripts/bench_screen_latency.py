@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""Frame push latency of the operator screen, capture -> shown in the page, in headless Chromium.
+
+Starts `run-cell serve --dry-run` (or, with --fake, the tests' fake service with the real
+screen server), opens the screen, presses `Start continuous`, and reads what the page
+measured for each frame: Date.now() once the JPEG is decoded in the <img>, minus the
+frame's capture time (same machine, same clock). Prints count, median, p95 and max.
+With --screenshot PATH it also saves the screen while running (docs/screen.png).
+
+    .venv/bin/python scripts/bench_screen_latency.py [--frames 100] [--fake] [--screenshot docs/screen.png]
+
+Needs the test extras (playwright) and the system Chromium (Debian package `chromium`).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.browser import launch, why_no_browser  # noqa: E402
+
+
+def start_fake():
+    from cell.config import CellConfig
+    from cell.web.config import WebConfig
+    from cell.web.server import WebServer
+    from tests.fake_service import FakeLineService
+
+    service = FakeLineService(frame_size=(1920, 1080), interval_s=0.1)
+    server = WebServer(service, CellConfig(), WebConfig(), "127.0.0.1", 0)
+    server.start()
+
+    def stop():
+        server.stop()
+        service.close()
+
+    return server.url, stop
+
+
+def start_serve(workdir: Path):
+    from tests.serve_process import ServeProcess
+
+    proc = ServeProcess(workdir)
+    return proc.url, proc.stop
+
+
+def poll(page, expression: str, timeout_s: float):
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise SystemExit(f"bench_screen_latency: not true within {timeout_s} s: {expression}")
+        time.sleep(0.05)
+
+
+def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) -> list[float]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = launch(p)
+        page = browser.new_page(viewport={"width": 1600, "height": 1000})
+        page.goto(url)
+        poll(page, "window.screenStats && screenStats.states > 0", 20)
+        page.get_by_role("button", name="Start continuous", exact=True).click()
+        poll(page, f"screenStats.frames >= {frames}", timeout_s)
+        if screenshot is not None:
+            screenshot.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(screenshot))
+            print(f"wrote {screenshot}")
+        latencies = page.evaluate("screenStats.latenciesMs.slice()")
+        page.get_by_role("button", name="Stop", exact=True).click()
+        page.click("#confirm-yes")
+        poll(page, "document.getElementById('state-label').textContent.startsWith('Stopped')", 30)
+        browser.close()
+    return latencies
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=100, help="frames to measure (default 100)")
+    ap.add_argument("--fake", action="store_true", help="the tests' fake service instead of run-cell serve --dry-run")
+    ap.add_argument("--screenshot", type=Path, help="save the running screen here")
+    ap.add_argument("--timeout-s", type=float, default=300.0)
+    args = ap.parse_args()
+    if why := why_no_browser():
+        print(f"bench_screen_latency: {why}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix="screen-bench-") as tmp:
+        url, stop = start_fake() if args.fake else start_serve(Path(tmp))
+        try:
+            latencies = measure(url, args.frames, args.screenshot, args.timeout_s)
+        finally:
+            stop()
+    q = statistics.quantiles(latencies, n=20)
+    source = "fake service, 1920 x 1080 frames" if args.fake else "run-cell serve --dry-run"
+    print(f"capture -> shown in Chromium, {len(latencies)} frames ({source}): median {statistics.median(latencies):.0f} ms, "
+          f"p95 {q[18]:.0f} ms, max {max(latencies):.0f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
