@@ -1,7 +1,8 @@
 """`run-cell`: the operator's command. Each sub-command lives in its own module.
 
 Every failure the operator can cause or meet (bad file, bad config, device trouble) is a
-CellError: one line on stderr saying what and where, and a non-zero exit.
+CellError or a driver's DeviceError: one line on stderr saying what and where, and a
+non-zero exit.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import logging
 import sys
 
 from cell.commands import run
-from cell.errors import CellError
+from cell.errors import REPORTED_ERRORS, exit_code
 
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
@@ -51,9 +52,9 @@ def main(argv: list[str] | None = None) -> int:
         args.func, args.command = run.run_cell, "run"
     try:
         return int(args.func(args) or 0)
-    except CellError as e:
+    except REPORTED_ERRORS as e:
         print(f"run-cell {args.command}: error: {e}", file=sys.stderr)
-        return e.exit_code
+        return exit_code(e)
     except KeyboardInterrupt:
         print(f"run-cell {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -1,4 +1,9 @@
 """Errors the operator sees: each says what went wrong and where, in one line."""
+from __future__ import annotations
+
+from drivers.errors import DeviceError
+
+DEVICE_EXIT_CODE = 2  # a device or driver-config failure exits as any other CellError does
 
 
 class CellError(Exception):
@@ -29,3 +34,14 @@ class PlateNotFound(CellError):
 
 class CalibrationRejected(CellError):
     """A fit was made but is not good enough to replace the active calibration."""
+
+
+# What the CLI reports as one line with a documented exit code, and the runner treats as a
+# fault rather than a bug: the application's errors and the drivers' (which cannot subclass
+# CellError: drivers/ never imports cell/).
+REPORTED_ERRORS = (CellError, DeviceError)
+
+
+def exit_code(error: CellError | DeviceError) -> int:
+    """The exit code the CLI returns for a reported error."""
+    return error.exit_code if isinstance(error, CellError) else DEVICE_EXIT_CODE

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from cell.audit import AuditLog
-from cell.errors import CellError, ConfigError
+from cell.errors import REPORTED_ERRORS, CellError, ConfigError
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.statemachine import State, StateMachine, Transition
@@ -104,7 +104,7 @@ class Runner:
                     self._step()
                 except KeyboardInterrupt:
                     self._finish(S.STOPPED, "Ctrl-C")
-                except (CellError, OSError) as e:
+                except (*REPORTED_ERRORS, OSError) as e:
                     self._finish(S.FAULT, f"{type(e).__name__}: {e}")
                 except Exception as e:  # a bug must still leave the arm safe
                     log.exception("internal error in %s", self.sm.state.name)
@@ -179,7 +179,7 @@ class Runner:
                     continue
                 step()
                 self.audit.event("safe_step", step=name, ok=True)
-            except (CellError, OSError, KeyboardInterrupt) as e:
+            except (*REPORTED_ERRORS, OSError, KeyboardInterrupt) as e:
                 self.audit.event("safe_step", step=name, ok=False, error=f"{type(e).__name__}: {e}")
                 log.warning("making safe after %s: %s failed: %s", reason, name, e)
             finally:

@@ -10,6 +10,8 @@ Verify checks and the next Plan uses, so each pick costs one frame.
 """
 from __future__ import annotations
 
+import ast
+import inspect
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -125,9 +127,6 @@ def markdown() -> str:
 
 def _state_docs() -> dict[State, str]:
     """Enum members cannot carry docstrings; read the string after each member from the source."""
-    import ast
-    import inspect
-
     tree = ast.parse(inspect.getsource(State))
     body = tree.body[0].body
     docs = {}

@@ -1,1 +1,1 @@
-"""Device drivers (cameras, arms) and their simulated twins (drivers.sim)."""
+"""Device drivers (cameras, arms) and their emulated firmware (drivers.sim); imports nothing from cell."""

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cell.calibration.pipeline import calibrate  # noqa: E402
 from cell.camera_model import CameraModel  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from drivers.sim.render import plate_field_error_mm, render_plate  # noqa: E402
+from cell.sim.render import plate_field_error_mm, render_plate  # noqa: E402
 
 # (label, width, height, mm/px, k1, k2, tilt_deg, tilt_azimuth_deg, roll_deg)
 CAMERAS = [

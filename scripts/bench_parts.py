@@ -36,10 +36,10 @@ from cell.calibration.pipeline import calibrate  # noqa: E402
 from cell.calibration.store import Calibration  # noqa: E402
 from cell.camera_model import CameraModel  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
+from cell.sim.parts import random_scene, render_scene  # noqa: E402
+from cell.sim.render import render_plate  # noqa: E402
 from cell.vision.config import PartsConfig  # noqa: E402
 from cell.vision.locate import locate  # noqa: E402
-from drivers.sim.parts import random_scene, render_scene  # noqa: E402
-from drivers.sim.render import render_plate  # noqa: E402
 
 # (label, mm/px, k1, k2, tilt_deg, tilt_azimuth_deg, roll_deg); 1920 x 1080, hfov 70:
 # the camera is 330-370 mm above the table.

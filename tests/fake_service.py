@@ -41,8 +41,8 @@ _NEXT = {
 def plate_image(size=(1920, 1080)) -> np.ndarray:
     """The built-in plate as the simulated camera sees it (rendered once: it takes seconds)."""
     from cell.config import CellConfig
-    from drivers.sim.render import render_plate
-    from drivers.sim.rig import default_camera
+    from cell.sim.render import render_plate
+    from cell.sim.rig import default_camera
 
     image = render_plate(default_camera(*size), CellConfig().plate)
     image.setflags(write=False)

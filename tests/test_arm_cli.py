@@ -83,7 +83,8 @@ def test_no_device_at_port_is_one_clear_line(tmp_path, capsys):
 
 def test_real_arm_without_port_is_a_config_error(capsys):
     assert main(["jog", "--arm", "dynamixel", "--to", "200", "0", "50"]) == 2
-    assert "arm.port is empty" in capsys.readouterr().err
+    assert capsys.readouterr().err == ("run-cell jog: error: arm.port is empty but arm.kind is 'dynamixel' (hint: set "
+                                       "arm.port in the config or pass --port; `run-cell ports` lists the serial ports)\n")
 
 
 @pytest.mark.parametrize(

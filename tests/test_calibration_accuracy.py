@@ -10,7 +10,7 @@ import pytest
 from cell.calibration.pipeline import calibrate
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
-from drivers.sim.render import plate_field_error_mm, render_plate
+from cell.sim.render import plate_field_error_mm, render_plate
 
 CONFIG = CellConfig()
 PAPER = CONFIG.model_copy(deep=True)

@@ -11,7 +11,7 @@ from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.cli import main
-from drivers.sim.parts import PartSpec, render_scene
+from cell.sim.parts import PartSpec, render_scene
 
 W, H = 960, 540
 PARTS = [

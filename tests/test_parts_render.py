@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cell.camera_model import CameraModel
-from drivers.sim.parts import NUTS_MM, PartSpec, random_scene, render_scene, scene_opacity
+from cell.sim.parts import NUTS_MM, PartSpec, random_scene, render_scene, scene_opacity
 
 
 def _camera(**kw) -> CameraModel:

@@ -7,8 +7,8 @@ from cell.calibration.pipeline import calibrate, find_points, find_points_paper
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.errors import PlateNotFound
-from drivers.sim.render import Optics, render_plate
-from drivers.sim.rig import default_camera
+from cell.sim.render import Optics, render_plate
+from cell.sim.rig import default_camera
 
 CONFIG = CellConfig()
 PLATE = CONFIG.plate

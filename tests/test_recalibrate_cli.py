@@ -10,7 +10,7 @@ import pytest
 
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
-from drivers.sim.render import render_plate
+from cell.sim.render import render_plate
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "recalibrate.py"
@@ -115,6 +115,17 @@ def test_bad_config_value(work, tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[plate]\npitch_x_mm = -22\n")
     assert "plate.pitch_x_mm" in _untouched_after(work, tmp_path, "--config", cfg)
+
+
+def test_a_missing_camera_is_one_line_and_the_active_file_stays(work, tmp_path):
+    cfg = tmp_path / "camera.toml"
+    cfg.write_text(f'[camera]\nsource = "{tmp_path / "no-camera"}"\n')
+    out = tmp_path / "active.json"
+    out.write_text('{"keep": "me"}')
+    r = run(SCRIPT, "--out", out, "--config", cfg, "--log", work / "cell.log")
+    assert r.returncode == 2 and out.read_text() == '{"keep": "me"}', r.stdout + r.stderr
+    assert r.stderr.startswith("recalibrate: error: camera ") and "no such device" in r.stderr
+    assert r.stderr.count("\n") == 1 and "(hint: camera.source is 'sim'" in r.stderr
 
 
 def test_fit_over_the_limit_is_refused(work, tmp_path):

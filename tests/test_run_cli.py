@@ -75,7 +75,7 @@ def test_a_missing_camera_is_a_fault_in_the_log(tmp_path, capsys):
     cal = tmp_path / "cal.json"
     from cell.calibration.models import CameraMap
     from cell.calibration.store import Calibration
-    from drivers.sim.rig import default_camera
+    from cell.sim.rig import default_camera
 
     cam = default_camera(64, 48)
     Calibration("camera", CameraMap(cam), (64, 48), cam).save(cal)
@@ -94,7 +94,7 @@ def test_a_missing_camera_is_a_fault_in_the_log(tmp_path, capsys):
 def test_an_empty_camera_folder_faults_in_idle_and_exits_non_zero(tmp_path, capsys):
     from cell.calibration.models import CameraMap
     from cell.calibration.store import Calibration
-    from drivers.sim.rig import default_camera
+    from cell.sim.rig import default_camera
 
     cam = default_camera(64, 48)
     Calibration("camera", CameraMap(cam), (64, 48), cam).save(tmp_path / "cal.json")
@@ -157,9 +157,9 @@ def line_config(tmp_path: Path, nut_bin=(250.0, 250.0, 60.0)) -> Path:
 
     from cell.calibration.models import CameraMap
     from cell.calibration.store import Calibration
-    from cell.simcell import paper_layout
-    from drivers.sim.parts import render_scene
-    from drivers.sim.rig import default_camera
+    from cell.sim.cell import paper_layout
+    from cell.sim.parts import render_scene
+    from cell.sim.rig import default_camera
 
     cam = default_camera(960, 540)
     (tmp_path / "frames").mkdir()

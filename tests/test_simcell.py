@@ -6,14 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from cell.simcell import _outline_gap_mm, paper_layout
+from cell.sim.cell import _outline_gap_mm, paper_layout
+from cell.sim.parts import PartSpec
+from cell.sim.rig import default_camera
+from cell.sim.sim_arm import SimArm
+from cell.sim.sim_camera import SimCamera
+from cell.sim.world import Bin, Truth, World
 from drivers.arm.config import Workspace
 from drivers.arm.errors import HardwareFault, OutOfReach
-from drivers.sim.parts import PartSpec
-from drivers.sim.rig import default_camera
-from drivers.sim.sim_arm import SimArm
-from drivers.sim.sim_camera import SimCamera
-from drivers.sim.world import Bin, Truth, World
 
 TRUTH = Truth(0.0, -132.0, 40.0, 0.0)
 BINS = [Bin("nut", (200.0, 60.0), 40.0), Bin("bolt", (-200.0, 60.0), 40.0)]

@@ -9,9 +9,9 @@ from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
+from cell.sim.parts import PartSpec, render_scene
 from cell.vision.config import PartsConfig
 from cell.vision.locate import locate
-from drivers.sim.parts import PartSpec, render_scene
 
 
 def test_cell_config_carries_parts_defaults():

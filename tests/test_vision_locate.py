@@ -9,9 +9,9 @@ from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.errors import InputError
+from cell.sim.parts import PartSpec, random_scene, render_scene
 from cell.vision.config import PartsConfig
 from cell.vision.locate import PixelScale, locate
-from drivers.sim.parts import PartSpec, random_scene, render_scene
 
 W, H = 1280, 720
 

@@ -15,9 +15,12 @@ from pathlib import Path
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
 from cell.config import load_config
-from cell.errors import CalibrationRejected, CellError, InputError
+from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError
 from cell.imageio import read_image
 from cell.oplog import log_to_file
+from cell.sim.render import render_plate
+from cell.sim.rig import default_camera
+from drivers.cameras.factory import make_camera
 
 log = logging.getLogger(__name__)
 
@@ -41,13 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
 def capture_plate(config):
     """One frame from the configured camera; the simulated camera sees the built-in plate."""
     if config.camera.source.strip() == "sim":
-        from drivers.sim.render import render_plate
-        from drivers.sim.rig import default_camera
-
         log.info("capturing the plate from the simulated camera")
         return render_plate(default_camera(config.camera.width_px, config.camera.height_px), config.plate)
-    from drivers.cameras.factory import make_camera
-
     log.info("capturing the plate from camera %s", config.camera.source)
     with make_camera(config.camera) as camera:
         return camera.capture()
@@ -135,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("recalibration refused: %s", e)
         print(f"recalibrate: refused: {e}", file=sys.stderr)
         return 3
-    except CellError as e:
+    except REPORTED_ERRORS as e:
         log.error("recalibration failed: %s", e)
         print(f"recalibrate: error: {e}", file=sys.stderr)
         return 2

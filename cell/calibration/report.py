@@ -120,7 +120,7 @@ def deviation_plot(result: CalibrationResult, path: Path) -> None:
 
 def deviation_png(result: CalibrationResult) -> bytes:
     """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5), PNG bytes."""
-    import matplotlib
+    import matplotlib  # lazily: only a written report needs it (slow to import), and Agg goes before pyplot
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -5,6 +5,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from serial.tools import list_ports
+
 from cell.config import load_config
 from cell.errors import InputError
 from drivers.arm.base import Arm
@@ -56,8 +58,6 @@ def jog(arm: Arm, to_mm: tuple[float, float, float] | None = None, angle_deg: fl
 
 
 def cmd_ports(args: argparse.Namespace) -> int:
-    from serial.tools import list_ports
-
     ports = sorted(list_ports.comports(), key=lambda p: p.device)
     if not ports:
         print("no serial ports found (is the arm's USB cable plugged in?)")

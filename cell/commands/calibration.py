@@ -9,8 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.calibration.pipeline import calibrate
+from cell.calibration.report import summary_text, write_report
 from cell.calibration.store import Calibration
+from cell.config import CellConfig
 from cell.errors import InputError
+from cell.imageio import write_image_atomic
+from cell.sim.render import render_plate
+from cell.sim.rig import default_camera
 
 
 def register(sub) -> None:
@@ -85,13 +91,6 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_demo(args: argparse.Namespace) -> int:
     """The calibration part of the job on built-in defaults: both presets on one rendered plate."""
-    from cell.calibration.pipeline import calibrate
-    from cell.calibration.report import summary_text, write_report
-    from cell.config import CellConfig
-    from cell.imageio import write_image_atomic
-    from drivers.sim.render import render_plate
-    from drivers.sim.rig import default_camera
-
     config = CellConfig()
     camera = default_camera()
     image = render_plate(camera, config.plate)

@@ -11,14 +11,19 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from cell.audit import AuditLog
+from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
-from cell.errors import CellError, ConfigError, InputError
+from cell.errors import REPORTED_ERRORS, ConfigError, InputError
 from cell.oplog import log_to_file
 from cell.planning import Planner, save_taught, table_to_robot
 from cell.run_config import RunConfig
 from cell.runner import Controls, Runner
+from cell.sim.cell import sim_cell
 from cell.statemachine import markdown, mermaid
 from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
+from cell.vision.locate import locate
+from drivers.arm.factory import make_arm, with_overrides
+from drivers.cameras.factory import make_camera
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +80,6 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.point and args.circles:
         raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
     if args.circles:
-        from drivers.arm.factory import make_arm, with_overrides
-
         with make_arm(with_overrides(config.arm, args.arm, args.port)) as arm:
             points = jog_session(arm, args.circles, config, input, print)
     else:
@@ -111,8 +114,6 @@ def _apply_overrides(config: CellConfig, args: argparse.Namespace) -> CellConfig
     if args.log_dir:
         config.run.log_dir = args.log_dir
     if args.arm or args.port:
-        from drivers.arm.factory import with_overrides
-
         config.arm = with_overrides(config.arm, args.arm, args.port)
     return config
 
@@ -121,22 +122,16 @@ def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack)
     """(camera, arm, calibration, expect_motion, sim cell or None); what must be shut down
     after the run (an emulated arm) goes on `resources`."""
     if config.camera.source == "sim":
-        from cell.simcell import sim_cell
-
         if config.arm.kind != "mock" and config.arm.port:
             log.warning("camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
                         config.arm.kind, config.arm.port)
         sim = resources.enter_context(sim_cell(config))
         return sim.camera, sim.arm, sim.calibration, True, sim
-    from cell.calibration.store import Calibration
-    from drivers.arm import factory
-    from drivers.cameras.factory import make_camera
-
     calibration = Calibration.load(config.calibration.active_path)
     arm_cfg = config.arm
     if dry_run and arm_cfg.kind != "mock":  # the mock checks every command as the real driver would
         arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
-    return make_camera(config.camera), factory.make_arm(arm_cfg), calibration, not dry_run, None
+    return make_camera(config.camera), make_arm(arm_cfg), calibration, not dry_run, None
 
 
 def run_cell(args: argparse.Namespace) -> int:
@@ -147,7 +142,7 @@ def run_cell(args: argparse.Namespace) -> int:
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
     try:
         config = _apply_overrides(load_config(args.run_config), args)
-    except CellError as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
+    except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
         with AuditLog((args.log_dir or RunConfig().log_dir) / f"run-{stamp}.jsonl") as audit:
             _log_fault(audit, args, e)
         raise
@@ -158,8 +153,6 @@ def run_cell(args: argparse.Namespace) -> int:
             if type(h) is logging.StreamHandler:
                 h.setLevel(logging.WARNING)
     log_to_file(log_dir / f"run-{stamp}.log")
-    from cell.vision.locate import locate
-
     with AuditLog(audit_path) as audit, contextlib.ExitStack() as resources:
         audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
                     config=config.model_dump(mode="json"))

@@ -15,7 +15,7 @@ from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 
 from cell.config import CellConfig
-from cell.errors import CalibrationRejected, CellError
+from cell.errors import REPORTED_ERRORS, CalibrationRejected
 from cell.service.api import Command, InvalidState, LineServiceAPI
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
@@ -240,7 +240,7 @@ class ScreenApp:
             return _error(409, str(e))
         except Busy as e:
             return _error(409, str(e))
-        except CellError as e:
+        except REPORTED_ERRORS as e:  # no plate, bad image, or the camera failed
             return _error(422, f"{e}; the active calibration is unchanged")
         self.hub.publish_now()  # every screen: Start and Resume wait for the answer
         return JSONResponse(report.summary_json())
@@ -277,8 +277,8 @@ class ScreenApp:
             return _error(422, str(e))
         except InvalidState as e:
             return _error(409, f"{e}: the calibration file was written but the running cell did not take it")
-        except (CellError, OSError) as e:
-            return _error(500, f"accepting failed: {e}")
+        except (*REPORTED_ERRORS, OSError) as e:
+            return _error(500, f"accepting failed: {e}; the previous calibration is kept in calibration.backup_dir")
         self.hub.publish_now()
         return JSONResponse({"ok": True, "accepted": True, "model": info.model})
 

@@ -2,35 +2,11 @@
 so the one-line message the operator sees says what failed, where, and what to do."""
 from __future__ import annotations
 
-from cell.errors import CellError
+from drivers.errors import DeviceError
 
 
-class ArmError(CellError):
+class ArmError(DeviceError):
     """Base of every arm failure."""
-
-    default_hint: str | None = None
-
-    def __init__(
-        self,
-        message: str,
-        *,
-        port: str | None = None,
-        command: str | None = None,
-        reply: str | None = None,
-        hint: str | None = None,
-    ):
-        details = []
-        if port:
-            details.append(f"port {port}")
-        if command:
-            details.append(f"command {command!r}")
-        if reply:
-            details.append(f"reply {reply!r}")
-        full = f"{message} [{', '.join(details)}]" if details else message
-        super().__init__(full, hint or self.default_hint)
-        self.port = port
-        self.command = command
-        self.reply = reply
 
 
 class NoResponse(ArmError):

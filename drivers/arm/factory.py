@@ -3,13 +3,13 @@ from __future__ import annotations
 
 from dynamixel_sdk import PortHandler
 
-from cell.errors import ConfigError
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig
 from drivers.arm.dynamixel import DynamixelArm
 from drivers.arm.mock import MockArm
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
+from drivers.errors import ConfigError
 
 
 def with_overrides(cfg: ArmConfig, kind: str | None = None, port: str | None = None) -> ArmConfig:

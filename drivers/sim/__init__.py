@@ -1,1 +1,1 @@
-"""Simulated twins of the hardware: camera model, renderers, emulated firmware."""
+"""Emulated firmware on pseudo-terminals (GRBL, Dynamixel bus) for driving the real drivers."""

@@ -10,11 +10,11 @@ import logging
 import math
 import time
 
+from cell.sim.world import World
 from drivers.arm.base import Arm, ArmStatus
 from drivers.arm.config import Workspace
 from drivers.arm.errors import HardwareFault, NotConnected, OutOfReach
 from drivers.arm.kinematics import Pose
-from drivers.sim.world import World
 
 log = logging.getLogger(__name__)
 

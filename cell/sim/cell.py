@@ -18,18 +18,19 @@ from typing import Iterator
 import numpy as np
 
 from cell.calibration.models import CameraMap
+from cell.calibration.pipeline import calibrate
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
+from cell.sim.emulated_arm import EmulatedArm, emulated_arm
+from cell.sim.parts import PartSpec, random_scene
+from cell.sim.render import render_plate
+from cell.sim.rig import default_camera
+from cell.sim.sim_arm import SimArm
+from cell.sim.sim_camera import SimCamera
+from cell.sim.world import Bin, JawTolerance, Truth, World
 from drivers.arm.base import Arm
 from drivers.arm.config import Workspace
-from drivers.sim.emulated_arm import EmulatedArm, emulated_arm
-from drivers.sim.parts import PartSpec, random_scene
-from drivers.sim.render import render_plate
-from drivers.sim.rig import default_camera
-from drivers.sim.sim_arm import SimArm
-from drivers.sim.sim_camera import SimCamera
-from drivers.sim.world import Bin, JawTolerance, Truth, World
 
 log = logging.getLogger(__name__)
 
@@ -145,8 +146,6 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         calibration = Calibration("camera", CameraMap(model), (model.width_px, model.height_px), model)
         note = "perfect (the camera model itself)"
     else:
-        from cell.calibration.pipeline import calibrate
-
         plate_image = render_plate(model, config.plate, seed=sim.seed)
         result = calibrate(plate_image, config)
         calibration = result.calibration

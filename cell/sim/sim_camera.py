@@ -12,10 +12,10 @@ import time
 import numpy as np
 
 from cell.camera_model import CameraModel
+from cell.sim.parts import part_coverage
+from cell.sim.render import Optics, expose
+from cell.sim.world import World
 from drivers.cameras.base import Camera
-from drivers.sim.parts import part_coverage
-from drivers.sim.render import Optics, expose
-from drivers.sim.world import World
 
 
 class SimCamera(Camera):

@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 from typing import Iterator
 
+from cell.sim.world import World
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig
 from drivers.arm.factory import make_arm
@@ -22,7 +23,6 @@ from drivers.sim.dxl_emulator import DxlBusEmulator
 from drivers.sim.emulated_device import ToolListener
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
-from drivers.sim.world import World
 
 log = logging.getLogger(__name__)
 

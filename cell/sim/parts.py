@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from cell.camera_model import CameraModel
-from drivers.sim.render import Optics, expose
+from cell.sim.render import Optics, expose
 
 # ISO 4032 nuts: across flats, thickness (rounded as in the issue), thread minor diameter
 # (what light passes through).

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from drivers.sim.parts import PartSpec
+from cell.sim.parts import PartSpec
 
 
 @dataclass(frozen=True)
