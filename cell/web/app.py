@@ -278,7 +278,7 @@ class ScreenApp:
         except InvalidState as e:
             return _error(409, f"{e}: the calibration file was written but the running cell did not take it")
         except (*REPORTED_ERRORS, OSError) as e:
-            return _error(500, f"accepting failed: {e}; the previous calibration is kept in calibration.backup_dir")
+            return _error(500, f"accepting failed: {e}")
         self.hub.publish_now()
         return JSONResponse({"ok": True, "accepted": True, "model": info.model})
 
