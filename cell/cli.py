@@ -20,6 +20,7 @@ COMMAND_MODULES = [
     "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.run",
+    "cell.commands.serve",
 ]
 
 log = logging.getLogger(__name__)

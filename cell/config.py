@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
+from cell.service.config import ServiceConfig
 from cell.vision.config import PartsConfig
 from drivers.arm.config import ArmConfig
 
@@ -126,6 +127,7 @@ class CellConfig(Strict):
     run: RunConfig = RunConfig()
     sim: SimConfig = SimConfig()
     parts: PartsConfig = PartsConfig()
+    service: ServiceConfig = ServiceConfig()
 
 
 def _format_errors(path: Path | str, err: ValidationError) -> str:

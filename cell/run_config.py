@@ -83,6 +83,33 @@ class RunConfig(Strict):
     motion_timeout_s: float = Field(30.0, gt=0, le=600, description="longest wait for the arm to finish a move")
 
 
+class FeederConfig(Strict):
+    """The dry run's parts supply for continuous mode: parts dropped onto free spots of the table."""
+
+    parts_per_minute: float = Field(6.0, ge=0, le=600, description="arrival rate in simulated minutes; 0 = none")
+    bolt_share: float = Field(0.45, ge=0, le=1, description="fraction of arrivals that are bolts")
+    nut_share: float = Field(0.45, ge=0, le=1, description="fraction that are nuts")
+    washer_share: float = Field(0.10, ge=0, le=1, description="fraction that are washers (the cell must leave them)")
+    seed: int = Field(1, ge=0)
+    area_mm: tuple[float, float, float, float] = Field(
+        (15.0, 10.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm)"
+    )
+    max_on_table: int = Field(40, ge=1, le=500, description="a part due when this many lie on the table is not dropped")
+    clear_after_s: float = Field(
+        600.0, ge=0, description="a part left on the table this long (simulated s) is cleared away, as an operator "
+                                 "clears rejects (washers); 0 = never"
+    )
+
+    @model_validator(mode="after")
+    def _some_mix(self) -> "FeederConfig":
+        if self.bolt_share + self.nut_share + self.washer_share <= 0:
+            raise ValueError("sim.feeder: bolt_share + nut_share + washer_share must be above 0")
+        x0, y0, x1, y1 = self.area_mm
+        if x0 >= x1 or y0 >= y1:
+            raise ValueError(f"sim.feeder.area_mm {self.area_mm}: x_min < x_max and y_min < y_max, please")
+        return self
+
+
 class SimConfig(Strict):
     """The built-in simulated cell: the truth the planner's config should agree with."""
 
@@ -119,6 +146,11 @@ class SimConfig(Strict):
         50.0, gt=0, le=10000, description="arm.kind serial/dynamixel (the real driver against an emulated arm): "
                                           "the emulator moves this many times faster than the arm would; 1 = real time"
     )
+    speed_factor: float = Field(
+        1.0, gt=0, le=10000, description="simulated time runs this many times faster than the wall clock (the feeder, "
+                                         "the capture interval, the mock arm's realtime motion): rehearse a shift in minutes"
+    )
+    feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(
         0, ge=0, description="arm.kind serial/dynamixel: rehearse a fault after this many grips (GRBL ALARM:1 on the "
                              "next move; Dynamixel gripper servo overload); 0 = never"

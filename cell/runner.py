@@ -8,9 +8,15 @@ a stop request or Ctrl-C becomes STOPPED; both first make the arm safe.
 Parts are tracked across frames by position: a detection within verify_radius_mm of a
 tracked part is that part. Verify judges the part just placed on the next frame: still
 there is a miss, retried up to max_retries, then the part is marked failed and skipped.
+
+Continuous mode (the line service): with nothing to pick, PLAN goes to WAIT instead of
+DONE, and the cell captures again after the interval; only a stop ends the job. A
+`finish` request ends it at the next safe point (no part in the gripper, the last pick
+verified) with the arm homed and powered, ready for the next job.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -33,7 +39,7 @@ from drivers.cameras.base import Camera
 log = logging.getLogger(__name__)
 
 S = State
-PAUSABLE = frozenset({S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN})
+PAUSABLE = frozenset({S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN, S.WAIT})
 EXIT_DONE, EXIT_INCOMPLETE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 130
 
 
@@ -41,8 +47,15 @@ class Controls:
     """Operator requests, safe to set from another thread or a signal handler."""
 
     def __init__(self):
-        self.stop = threading.Event()
+        self.stop = threading.Event()  # the safe stop (Ctrl-C, Halt): arm safe, torque released
         self.pause = threading.Event()
+        self.finish = threading.Event()  # end the job at the next safe point, arm homed (Stop)
+        self.wake = threading.Event()  # cuts a WAIT short when any request arrives
+
+    def request(self, event: threading.Event, on: bool = True) -> None:
+        """Set or clear one of the requests above and wake a waiting runner to see it."""
+        event.set() if on else event.clear()
+        self.wake.set()
 
 
 @dataclass
@@ -70,6 +83,7 @@ class Runner:
         progress: Callable[[str], None] | None = None,
         truth: Callable[[], dict] | None = None,
         sim_motion_s: Callable[[], float] | None = None,
+        continuous_interval_s: float | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
         self.cfg = cfg
@@ -79,6 +93,9 @@ class Runner:
         self.progress = progress or (lambda line: None)
         self.truth = truth  # the simulated world's account, logged before the summary
         self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
+        self.continuous_interval_s = continuous_interval_s  # None: clear the table once and finish
+        self._attempt_mark = 0  # continuous mode: attempts counted against the limit since the last pick or wait
+        self._track_ids = itertools.count(1)
         self.sm = StateMachine([self._on_transition])
         self.summary = Summary()
         self.tracks: list[Track] = []
@@ -90,7 +107,7 @@ class Runner:
         self._handlers = {
             S.IDLE: self._idle, S.HOME: self._home, S.CAPTURE: self._capture, S.LOCATE: self._locate,
             S.VERIFY: self._verify, S.PLAN: self._plan, S.PICK: self._pick, S.PLACE: self._place,
-            S.PAUSED: self._paused,
+            S.PAUSED: self._paused, S.WAIT: self._wait,
         }
 
     # ---- the loop -------------------------------------------------------------------
@@ -134,6 +151,9 @@ class Runner:
         if self.controls.pause.is_set() and state in PAUSABLE and not self.holding:
             self.sm.go(S.PAUSED, "pause requested")
             return
+        if self.controls.finish.is_set() and state in PAUSABLE and not self.holding and self.track is None:
+            self._finish(S.STOPPED, "stop requested: job ended at a safe point")
+            return
         target, reason = self._handlers[state]()
         if target in (S.DONE, S.FAULT, S.STOPPED):
             self._finish(target, reason)
@@ -153,7 +173,8 @@ class Runner:
         if state == S.FAULT:
             self.audit.event("fault", reason=reason)
             log.error("fault in %s: %s", self.sm.state.name, reason)
-        self._make_safe(reason, park_only=state == S.DONE)
+        finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
+        self._make_safe(reason, park_only=state == S.DONE or finishing)
         self.sm.go(state, reason)
 
     def _make_safe(self, reason: str, park_only: bool) -> None:
@@ -252,6 +273,7 @@ class Runner:
             self.summary.rehearsed += 1
         elif not still:
             track.status, result = "picked", "picked"
+            self._attempt_mark = self.summary.attempts
             self.summary.picked[track.cls] = self.summary.picked.get(track.cls, 0) + 1
         else:
             result = "missed"
@@ -270,15 +292,18 @@ class Runner:
         return S.PLAN, reason
 
     def _plan(self):
-        if self.summary.attempts >= self.cfg.max_attempts_total:
+        if self.summary.attempts - self._attempt_mark >= self.cfg.max_attempts_total:
             return S.FAULT, f"safety stop: {self.summary.attempts} pick attempts (run.max_attempts_total)"
-        candidates = []
+        candidates, seen = [], []
         for o in self.result.objects:
             if not o.pick:
                 continue
             track = self._track_for(o)
+            seen.append(track)
             if track.status == "pending":
                 candidates.append((o, track))
+        if self.continuous_interval_s is not None:  # forget parts gone from the table: a shift leaks nothing
+            self.tracks = [t for t in self.tracks if any(t is s for s in seen)]
         by_id = {id(o): t for o, t in candidates}
         status = self.arm.status()
         here = (status.pose.x_mm, status.pose.y_mm) if status.pose is not None else None
@@ -306,6 +331,9 @@ class Runner:
                              jaw_angle_deg=target.jaw_angle_deg, bin_robot_mm=target.bin_robot_mm)
             return S.PICK, f"part {track.id} ({target.cls}), attempt {track.attempts}"
         left = {st: sum(t.status == st for t in self.tracks) for st in ("failed", "unreachable")}
+        if self.continuous_interval_s is not None:
+            self._attempt_mark = self.summary.attempts
+            return S.WAIT, f"nothing to pick ({left['failed']} failed, {left['unreachable']} unreachable): waiting for parts"
         return S.DONE, f"no pickable part left ({left['failed']} failed, {left['unreachable']} unreachable)"
 
     def _track_for(self, part: LocatedPart) -> Track:
@@ -318,7 +346,7 @@ class Runner:
             if d <= best_d:
                 best, best_d = t, d
         if best is None:
-            best = Track(len(self.tracks) + 1, part.cls, part.world_mm)
+            best = Track(next(self._track_ids), part.cls, part.world_mm)
             self.tracks.append(best)
         best.table_mm = tuple(part.world_mm)
         return best
@@ -345,12 +373,19 @@ class Runner:
     def _paused(self):
         self.progress("paused at a safe point")
         t0 = time.perf_counter()
-        while self.controls.pause.is_set() and not self.controls.stop.is_set():
+        c = self.controls
+        while c.pause.is_set() and not c.stop.is_set() and not c.finish.is_set():
             time.sleep(0.05)
         self.summary.paused_s += time.perf_counter() - t0
-        if self.controls.stop.is_set():
+        if c.stop.is_set() or c.finish.is_set():
             return S.STOPPED, "stop requested while paused"
         return S.CAPTURE, "resumed: a fresh frame, the table may have changed"
+
+    def _wait(self):
+        """Sleep one capture interval, cut short by any operator request; the arm does not move."""
+        self.controls.wake.wait(self.continuous_interval_s)
+        self.controls.wake.clear()
+        return S.CAPTURE, f"waited up to {self.continuous_interval_s:g} s for parts"
 
     def _pick_line(self, t: Target, track: Track, result: str) -> str:
         s = self.summary

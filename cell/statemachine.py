@@ -5,7 +5,8 @@ a transition that is not in TRANSITIONS is a programming error and raises. Every
 transition carries the reason it was taken, which the runner logs.
 
 The loop: Idle -> Home -> Capture -> Locate -> Plan -> Pick -> Place -> Capture ->
-Locate -> Verify -> Plan -> ... -> Done. The frame captured after a place is the one
+Locate -> Verify -> Plan -> ... -> Done; in continuous mode Plan with nothing to pick goes
+to Wait -> Capture instead of Done, until a stop. The frame captured after a place is the one
 Verify checks and the next Plan uses, so each pick costs one frame.
 """
 from __future__ import annotations
@@ -35,6 +36,9 @@ class State(Enum):
     """Approach, descend, close the gripper, lift."""
     PLACE = "place"
     """Carry to the class's bin, open the gripper, lift."""
+    WAIT = "wait"
+    """Continuous mode: nothing pickable on the table; the arm stays parked while the cell waits
+    one capture interval (no busy loop), then captures again."""
     PAUSED = "paused"
     """Operator pause at a safe point (no part in the gripper); resumes with a fresh frame."""
     DONE = "done"
@@ -56,9 +60,10 @@ _WORK: dict[State, frozenset[State]] = {
     S.CAPTURE: frozenset({S.LOCATE, S.PAUSED}),
     S.LOCATE: frozenset({S.PLAN, S.VERIFY, S.PAUSED}),
     S.VERIFY: frozenset({S.PLAN, S.PAUSED}),
-    S.PLAN: frozenset({S.PICK, S.DONE, S.PAUSED}),
+    S.PLAN: frozenset({S.PICK, S.DONE, S.WAIT, S.PAUSED}),
     S.PICK: frozenset({S.PLACE}),
     S.PLACE: frozenset({S.CAPTURE}),
+    S.WAIT: frozenset({S.CAPTURE, S.PAUSED}),
     S.PAUSED: frozenset({S.CAPTURE}),
 }
 TRANSITIONS: dict[State, frozenset[State]] = {

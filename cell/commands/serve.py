@@ -1,0 +1,125 @@
+"""`run-cell serve`: the cell as a long-running line service, driven over OPC UA (and the
+operator screen); SIGTERM and SIGINT stop it safely (any job halted, arm safe)."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+from datetime import datetime, timezone
+from pathlib import Path
+
+from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices
+from cell.config import CellConfig, load_config
+from cell.errors import ConfigError
+from cell.oplog import log_to_file
+from cell.service.security import check_exposure
+from cell.service.service import Devices, LineService
+from cell.service.shiftlog import ShiftLog
+
+log = logging.getLogger(__name__)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("serve", help="run the cell as a line service: OPC UA server, continuous mode, a whole shift")
+    # SUPPRESS: the same options given before `serve` (run-cell's own) still count.
+    p.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
+    p.add_argument("--dry-run", action="store_true", default=argparse.SUPPRESS,
+                   help="a mock arm over the config's camera; with no --config, the built-in simulated shift")
+    p.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS,
+                   help="override arm.kind (with --dry-run and no --config: the emulated arm's sim config)")
+    p.add_argument("--log-dir", type=Path, default=argparse.SUPPRESS, help="override run.log_dir")
+    p.add_argument("--opcua-port", type=int, help="override service.opcua_port")
+    p.add_argument("--http-port", type=int, help="override service.http_port (the operator screen)")
+    p.set_defaults(func=cmd_serve)
+
+    h = sub.add_parser("hash-password", help="read a password (twice, not echoed) and print its hash for service.password_hash")
+    h.set_defaults(func=cmd_hash_password)
+
+
+def cmd_hash_password(args: argparse.Namespace) -> int:
+    import getpass
+
+    from cell.service.security import hash_password
+
+    first = getpass.getpass("password: ")
+    if len(first) < 8 or first != getpass.getpass("again: "):
+        raise ConfigError("the two passwords differ or are shorter than 8 characters: nothing printed")
+    print(hash_password(first))
+    return 0
+
+
+def serve_config(args: argparse.Namespace) -> CellConfig:
+    """The config `serve` runs, with the command line's overrides."""
+    if args.run_config is None and not args.dry_run:
+        raise ConfigError("give --config FILE to serve the cell, or --dry-run for the built-in simulated shift")
+    if args.run_config is None and args.arm in SIM_CONFIGS:
+        args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
+    config = _apply_overrides(load_config(args.run_config), args)
+    for key in ("opcua_port", "http_port"):
+        if getattr(args, key, None) is not None:
+            if not 1 <= getattr(args, key) <= 65535:
+                raise ConfigError(f"--{key.replace('_', '-')} {getattr(args, key)}: a port is 1-65535")
+            setattr(config.service, key, getattr(args, key))
+    return config
+
+
+def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack) -> LineService:
+    """Devices built as `run-cell` builds them (the simulated cell gets its feeder), the shift's
+    audit log, and the service over them; everything to close goes on `resources`."""
+    from cell.vision.locate import locate
+
+    camera, arm, calibration, expect_motion, sim = _devices(config, dry_run, resources)
+    devices = Devices(camera, arm, calibration, expect_motion, sim)
+    if sim is not None:
+        from cell.feeder import FedCamera, Feeder, SimClock
+        from drivers.sim.render import render_plate
+
+        feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))
+        camera = FedCamera(sim.camera, feeder)
+        devices.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
+    audit = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
+    service = LineService(config, devices, audit, lambda frame, cal: locate(frame, cal, config), camera)
+    resources.callback(service.close)
+    return service
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    config = serve_config(args)
+    check_exposure(config.service)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d")
+    if not args.verbose:
+        for h in logging.getLogger().handlers:
+            if type(h) is logging.StreamHandler:
+                h.setLevel(logging.WARNING)
+    log_to_file(config.run.log_dir / f"serve-{stamp}.log")
+    with contextlib.ExitStack() as resources:
+        service = open_service(config, args.dry_run, resources)
+        service.start()
+        return asyncio.run(_serve(config, service))
+
+
+async def _serve(config: CellConfig, service: LineService) -> int:
+    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down."""
+    from cell.service.opcua import OpcUaServer
+
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    opcua = OpcUaServer(service, config)
+    await opcua.start()
+    try:
+        print(f"ready: OPC UA {opcua.endpoint} (pid {os.getpid()}; SIGTERM or Ctrl-C stops safely)", flush=True)
+        await stop.wait()
+        log.info("stop signal: halting the cell")
+        await asyncio.to_thread(service.close)
+        await asyncio.sleep(0.2)  # let subscribers see the final state
+    finally:
+        await opcua.stop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+    print("stopped: cell halted safely", flush=True)
+    return 0

@@ -1,0 +1,43 @@
+"""The shift's counters, kept up event by event from the audit stream; the same counts as
+cell.summary.counts_from_log, so reading the shift's log back after a restart gives them again."""
+from __future__ import annotations
+
+from cell.service.api import Counters
+
+
+class ShiftCounts:
+    def __init__(self):
+        self.picked: dict[str, int] = {}
+        self.misses = self.retries = self.failed = self.unreachable = self.unknown_left = self.attempts = 0
+
+    def apply(self, e: dict) -> bool:
+        """Count one audit event; True when a counter changed."""
+        kind = e.get("kind")
+        if kind == "target":
+            self.attempts += 1
+            self.retries += e["attempt"] > 1
+            return e["attempt"] > 1
+        if kind == "verify":
+            if e["result"] == "picked":
+                self.picked[e["cls"]] = self.picked.get(e["cls"], 0) + 1
+            self.misses += e["result"] == "missed"
+            return e["result"] in ("picked", "missed")
+        if kind in ("failed", "unreachable"):
+            setattr(self, kind, getattr(self, kind) + 1)
+            return True
+        if kind == "frame":
+            left = sum(1 for d in e["detections"] if not d["pick"])
+            changed, self.unknown_left = left != self.unknown_left, left
+            return changed
+        return False
+
+    @classmethod
+    def from_events(cls, events: list[dict]) -> "ShiftCounts":
+        counts = cls()
+        for e in events:
+            counts.apply(e)
+        return counts
+
+    def counters(self) -> Counters:
+        return Counters(self.picked.get("bolt", 0), self.picked.get("nut", 0), self.misses, self.retries,
+                        self.failed, self.unreachable, self.unknown_left)

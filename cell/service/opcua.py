@@ -1,0 +1,197 @@
+"""The cell's OPC UA server (asyncua): an object `Cell` in namespace urn:pick-cell with the
+OPC 40100-1 style methods and the cell's state, counters, last pick, alarm and calibration.
+
+It holds only a LineServiceAPI. A method call becomes `service.command()`; a command the
+state does not allow returns BadInvalidState, a call with arguments BadTooManyArguments:
+the cell stays as it was. Service events (from the cell's worker thread) only mark the
+values dirty; one task on the server's loop writes what changed, and the heartbeat, so
+a slow client never holds the cell up. Node tree and types: docs/opcua.md.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import socket
+from datetime import datetime, timezone
+from pathlib import Path
+
+from asyncua import Server, ua
+from asyncua.crypto.permission_rules import User, UserRole
+
+from cell.config import CellConfig
+from cell.service.api import Command, InvalidState, LineServiceAPI, ServiceEvent, Snapshot
+from cell.service.security import credentials_configured, password_ok
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "urn:pick-cell"
+APP_URI = "urn:pick-cell:server"
+_T = ua.VariantType
+_EPOCH = datetime(1601, 1, 1, tzinfo=timezone.utc)  # OPC UA's "no time"
+
+# BrowseName -> (type, array?) ; the values come from a Snapshot in _values().
+VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
+    "VisionState": (_T.String, False), "CellState": (_T.String, False),
+    "Paused": (_T.Boolean, False), "WaitingForParts": (_T.Boolean, False),
+    "PickedBolts": (_T.UInt32, False), "PickedNuts": (_T.UInt32, False), "Misses": (_T.UInt32, False),
+    "Retries": (_T.UInt32, False), "Failed": (_T.UInt32, False), "Unreachable": (_T.UInt32, False),
+    "UnknownLeft": (_T.UInt32, False), "PartsPerMinute": (_T.Double, False),
+    "LastPickClass": (_T.String, False), "LastPickTableMm": (_T.Double, True), "LastPickRobotMm": (_T.Double, True),
+    "LastPickAngleDeg": (_T.Double, False), "LastPickOutcome": (_T.String, False),
+    "LastPickTime": (_T.DateTime, False),
+    "ActiveAlarm": (_T.String, False), "Heartbeat": (_T.UInt32, False),
+    "CalibrationModel": (_T.String, False), "CalibrationCvRmsMm": (_T.Double, False),
+    "CalibrationCvMaxMm": (_T.Double, False), "CalibrationTime": (_T.DateTime, False),
+}
+
+
+def _values(s: Snapshot) -> dict:
+    c, last, cal = s.counters, (s.last_picks[-1] if s.last_picks else None), s.calibration
+    alarm = "" if s.alarm is None else f"{s.alarm.reason} (hint: {s.alarm.hint})"
+    return {
+        "VisionState": s.vision_state.value, "CellState": s.cell_state, "Paused": s.paused,
+        "WaitingForParts": s.waiting_for_parts,
+        "PickedBolts": c.picked_bolts, "PickedNuts": c.picked_nuts, "Misses": c.misses, "Retries": c.retries,
+        "Failed": c.failed, "Unreachable": c.unreachable, "UnknownLeft": c.unknown_left,
+        "PartsPerMinute": round(s.parts_per_min, 3),
+        "LastPickClass": last.cls if last else "",
+        "LastPickTableMm": [float(v) for v in last.table_mm] if last else [],
+        "LastPickRobotMm": [float(v) for v in last.robot_mm] if last else [],
+        "LastPickAngleDeg": float(last.angle_deg) if last and last.angle_deg is not None else 0.0,
+        "LastPickOutcome": last.outcome if last else "",
+        "LastPickTime": last.time_utc if last else _EPOCH,
+        "ActiveAlarm": alarm, "Heartbeat": s.heartbeat,
+        "CalibrationModel": cal.model if cal else "",
+        "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
+        "CalibrationCvMaxMm": _finite(cal.cv_max_mm) if cal else 0.0,
+        "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
+    }
+
+
+def _finite(v: float) -> float:
+    return float(v) if math.isfinite(v) else 0.0
+
+
+class _OneUser:
+    """asyncua user manager: the configured user and password, nobody else."""
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+
+    def get_user(self, iserver, username=None, password=None, certificate=None):
+        if password_ok(self.cfg, username, password):
+            return User(role=UserRole.User, name=username)
+        log.warning("OPC UA login refused for user %r", username)
+        return None
+
+
+class OpcUaServer:
+    def __init__(self, service: LineServiceAPI, config: CellConfig):
+        self.service, self.cfg = service, config.service
+        self.secure = credentials_configured(self.cfg)
+        self.cert_dir = self.cfg.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
+        self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
+        self.server = Server(user_manager=_OneUser(self.cfg) if self.secure else None)
+        self.nodes: dict[str, ua.NodeId] = {}
+        self._written: dict[str, object] = {}
+        self._dirty = asyncio.Event()
+        self._task: asyncio.Task | None = None
+        self._unsubscribe = None
+
+    async def start(self) -> None:
+        for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+        s = self.server
+        await s.init()
+        s.set_endpoint(self.endpoint)
+        s.set_server_name("pick-cell")
+        await s.set_application_uri(APP_URI)
+        if self.secure:
+            await self._secure()
+        else:
+            s.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+            s.set_identity_tokens([ua.AnonymousIdentityToken])
+        ns = await s.register_namespace(NAMESPACE)
+        cell = await s.nodes.objects.add_object(ua.NodeId("Cell", ns), ua.QualifiedName("Cell", ns))
+        values = _values(self.service.snapshot())
+        for name, (vtype, array) in VARIABLES.items():
+            var = await cell.add_variable(ua.NodeId(name, ns), ua.QualifiedName(name, ns),
+                                          ua.Variant(values[name], vtype, is_array=array or None))
+            self.nodes[name] = var.nodeid
+            self._written[name] = values[name]
+        for command in Command:
+            await cell.add_method(ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns),
+                                  self._method(command), [], [])
+        loop = asyncio.get_running_loop()
+        self._unsubscribe = self.service.subscribe(lambda e: self._on_event(loop, e))
+        try:
+            await s.start()
+        except OSError as e:
+            from cell.errors import ConfigError
+
+            raise ConfigError(f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
+                              hint="another program holds the port: choose another with --opcua-port") from None
+        self._task = asyncio.create_task(self._publish())
+        log.info("OPC UA server on %s (%s)", self.endpoint, "Basic256Sha256 SignAndEncrypt, user" if self.secure
+                 else "loopback, no security")
+
+    async def _secure(self) -> None:
+        from asyncua.crypto.cert_gen import setup_self_signed_certificate
+        from cryptography.x509.oid import ExtendedKeyUsageOID
+
+        self.cert_dir.mkdir(parents=True, exist_ok=True)
+        key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
+        await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(),
+                                            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+                                            {"commonName": "pick-cell", "organizationName": "pick-cell"})
+        key.chmod(0o600)
+        await self.server.load_certificate(str(cert))
+        await self.server.load_private_key(str(key))
+        self.server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+        self.server.set_identity_tokens([ua.UserNameIdentityToken])
+
+    def _method(self, command: Command):
+        async def call(parent, *args):
+            if args:
+                log.warning("OPC UA %s called with %d arguments: refused", command.value, len(args))
+                return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+            try:
+                self.service.command(command)
+            except InvalidState as e:
+                log.info("OPC UA %s refused: %s", command.value, e)
+                return ua.StatusCode(ua.StatusCodes.BadInvalidState)
+            return []
+
+        return call
+
+    def _on_event(self, loop: asyncio.AbstractEventLoop, event: ServiceEvent) -> None:
+        """From the cell's thread: only wake the publisher (frames carry nothing OPC UA shows)."""
+        if event.kind != "frame" and not loop.is_closed():
+            loop.call_soon_threadsafe(self._dirty.set)
+
+    async def _publish(self) -> None:
+        """Write every value that changed (the heartbeat at least once a second)."""
+        while True:
+            try:
+                await asyncio.wait_for(self._dirty.wait(), timeout=0.5)
+            except asyncio.TimeoutError:
+                pass
+            self._dirty.clear()
+            for name, value in _values(self.service.snapshot()).items():
+                if self._written.get(name) != value:
+                    vtype, array = VARIABLES[name]
+                    await self.server.write_attribute_value(
+                        self.nodes[name], ua.DataValue(ua.Variant(value, vtype, is_array=array or None)))
+                    self._written[name] = value
+
+    async def stop(self) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+        await self.server.stop()

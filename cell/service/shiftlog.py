@@ -1,0 +1,84 @@
+"""The service's audit log: the same JSON lines as a run's, in files that roll over at each UTC
+day and past a size, so a shift of any length stays readable and no file grows without end.
+
+A roll happens only between two events, so every file holds whole lines. The files of a
+day are that day's shift: the service reads them back at start to carry its counters over
+a restart. Listeners hear every event as it is written (the service's view of the runner).
+"""
+from __future__ import annotations
+
+import logging
+import re
+import threading
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+from cell.audit import AuditLog, read_events
+
+log = logging.getLogger(__name__)
+
+_NAME = re.compile(r"^cell-(\d{8})-(\d{3})\.jsonl$")
+
+
+def _today() -> str:
+    return datetime.now(timezone.utc).strftime("%Y%m%d")
+
+
+def shift_files(log_dir: Path, day: str) -> list[Path]:
+    """The audit files of one UTC day (YYYYMMDD), oldest first."""
+    found = [(m.group(2), p) for p in Path(log_dir).glob(f"cell-{day}-*.jsonl") if (m := _NAME.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
+    """Every complete event of the day's shift, in order."""
+    return [e for p in shift_files(log_dir, day or _today()) for e in read_events(p)]
+
+
+class ShiftLog:
+    """AuditLog's interface (event, state, close) over rolling files; thread-safe."""
+
+    def __init__(self, log_dir: Path, max_bytes: int, day: Callable[[], str] = _today):
+        self.log_dir, self.max_bytes, self._day = Path(log_dir), max_bytes, day
+        self.state = "idle"
+        self.listeners: list[Callable[[dict], None]] = []
+        self._lock = threading.Lock()
+        self._log: AuditLog | None = None
+        self._open_day = ""
+
+    @property
+    def path(self) -> Path | None:
+        return None if self._log is None else self._log.path
+
+    def _current(self) -> AuditLog:
+        day = self._day()
+        if self._log is not None and day == self._open_day and self._log.path.stat().st_size < self.max_bytes:
+            return self._log
+        if self._log is not None:
+            self._log.close()
+        files = shift_files(self.log_dir, day)
+        if files and files[-1].stat().st_size < self.max_bytes:
+            path = files[-1]  # a restarted service carries on the shift's last file
+        else:
+            n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0
+            path = self.log_dir / f"cell-{day}-{n:03d}.jsonl"
+        self._log = AuditLog(path)
+        self._open_day = day
+        log.info("audit log: %s", self._log.path)
+        return self._log
+
+    def event(self, kind: str, **fields) -> dict:
+        with self._lock:
+            audit = self._current()
+            audit.state = self.state
+            record = audit.event(kind, **fields)
+        for listener in list(self.listeners):
+            listener(record)
+        return record
+
+    def close(self) -> None:
+        with self._lock:
+            if self._log is not None:
+                self._log.close()
+                self._log = None

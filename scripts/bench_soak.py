@@ -1,0 +1,149 @@
+"""Soak: a simulated shift of at least --picks picks through `run-cell serve`, driven over OPC UA.
+
+Starts `run-cell serve --dry-run --config <shift>` in a subprocess (the built-in simulated
+cell at 960 x 540 to keep frames cheap, the feeder at 6 parts per simulated minute with
+time running 60x: an 8-hour shift in 8 minutes), calls StartContinuous, and samples the
+server process (RSS, threads, open fds, child processes) from /proc while the counters
+rise. At the end: Stop, SIGTERM, and the audit log checked against the counters.
+
+    .venv/bin/python scripts/bench_soak.py [--picks 2000] [--timeout-s 1800]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from asyncua import Client
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cell.audit import read_events  # noqa: E402
+
+SHIFT_TOML = """\
+[camera]
+width_px = 960
+height_px = 540
+[service]
+capture_interval_s = 60.0   # simulated: 1 s of wall time at speed_factor 60
+[sim]
+speed_factor = 60.0
+[sim.feeder]
+parts_per_minute = 6.0
+max_on_table = 25
+"""
+
+
+def proc_figures(pid: int) -> dict:
+    status = Path(f"/proc/{pid}/status").read_text()
+    rss_kb = int(next(line for line in status.splitlines() if line.startswith("VmRSS:")).split()[1])
+    threads = len(os.listdir(f"/proc/{pid}/task"))
+    fds = len(os.listdir(f"/proc/{pid}/fd"))
+    children = sum(len(Path(f"/proc/{pid}/task/{t}/children").read_text().split()) for t in os.listdir(f"/proc/{pid}/task"))
+    return {"rss_mb": rss_kb / 1024, "threads": threads, "fds": fds, "children": children}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
+    async with Client(url, timeout=10) as client:
+        ns = await client.get_namespace_index("urn:pick-cell")
+        cell = await client.nodes.objects.get_child(f"{ns}:Cell")
+
+        async def read(name):
+            return await (await cell.get_child(f"{ns}:{name}")).read_value()
+
+        async def total():
+            return await read("PickedBolts") + await read("PickedNuts")
+
+        out = {"start": proc_figures(pid)}
+        t0 = time.monotonic()
+        await cell.call_method(f"{ns}:StartContinuous")
+        states, last_print = set(), 0
+        while (n := await total()) < picks:
+            states.add(await read("VisionState"))
+            if n >= 100 and "at_100" not in out:
+                out["at_100"] = proc_figures(pid)
+            if time.monotonic() - t0 > timeout_s:
+                raise SystemExit(f"timed out after {timeout_s} s at {n} picks")
+            if n - last_print >= 250:
+                f = proc_figures(pid)
+                print(f"  {n:5d} picks  {time.monotonic() - t0:6.0f} s  RSS {f['rss_mb']:.1f} MB  threads {f['threads']}"
+                      f"  fds {f['fds']}", flush=True)
+                last_print = n
+            await asyncio.sleep(1.0)
+        await cell.call_method(f"{ns}:Stop")
+        while await read("VisionState") != "Ready":
+            await asyncio.sleep(0.2)
+        out["wall_s"] = time.monotonic() - t0
+        out["end"] = proc_figures(pid)
+        out["states"] = states
+        out["counters"] = {name: await read(name) for name in
+                           ("PickedBolts", "PickedNuts", "Misses", "Retries", "Failed", "Unreachable", "UnknownLeft")}
+        out["alarm"] = await read("ActiveAlarm")
+        return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--picks", type=int, default=2000)
+    ap.add_argument("--timeout-s", type=float, default=1800.0)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="soak-") as tmp:
+        tmp = Path(tmp)
+        (tmp / "shift.toml").write_text(SHIFT_TOML)
+        port = free_port()
+        cmd = [sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--config", str(tmp / "shift.toml"),
+               "--log-dir", str(tmp / "logs"), "--opcua-port", str(port)]
+        proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "PYTHONPATH": str(REPO)})
+        try:
+            line = ""
+            while not line.startswith("ready:"):
+                if not select.select([proc.stdout], [], [], 120)[0] or proc.poll() is not None:
+                    raise SystemExit(f"serve did not start: {line}")
+                line = proc.stdout.readline()
+            print(line.strip())
+            r = asyncio.run(drive(f"opc.tcp://127.0.0.1:{port}/cell", proc.pid, args.picks, args.timeout_s))
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            rc = proc.wait(60)
+        events = [e for f in sorted((tmp / "logs").glob("cell-*.jsonl")) for e in read_events(f)]
+        files = len(list((tmp / "logs").glob("cell-*.jsonl")))
+    c = r["counters"]
+    picks = c["PickedBolts"] + c["PickedNuts"]
+    picked_lines = sum(1 for e in events if e["kind"] == "verify" and e["result"] == "picked")
+    faults = sum(1 for e in events if e["kind"] == "fault")
+    s, a, e = r["start"], r["at_100"], r["end"]
+    print(f"picks {picks} ({c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
+          f"({60 * picks / r['wall_s']:.0f} per minute); misses {c['Misses']}, retries {c['Retries']}, "
+          f"failed {c['Failed']}, unreachable {c['Unreachable']}, unknown left {c['UnknownLeft']}")
+    print(f"faults {faults}; vision states seen: {', '.join(sorted(r['states']))}; alarm: {r['alarm'] or 'none'}")
+    print(f"RSS start {s['rss_mb']:.1f} MB, at pick 100 {a['rss_mb']:.1f} MB, end {e['rss_mb']:.1f} MB "
+          f"(growth from pick 100: {100 * (e['rss_mb'] / a['rss_mb'] - 1):+.1f} %)")
+    print(f"threads start {s['threads']}, at pick 100 {a['threads']}, end {e['threads']}; "
+          f"fds start {s['fds']}, at pick 100 {a['fds']}, end {e['fds']}; child processes at end {e['children']}")
+    print(f"audit: {len(events)} lines in {files} file(s); 'picked' lines {picked_lines} vs picks {picks}; "
+          f"serve exit code {rc}")
+    ok = (faults == 0 and picked_lines == picks and rc == 0 and e["threads"] <= a["threads"] and e["fds"] <= a["fds"]
+          and e["rss_mb"] < 1.05 * a["rss_mb"])
+    print("PASS" if ok else "FAIL")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

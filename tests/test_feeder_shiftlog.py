@@ -1,0 +1,129 @@
+"""The simulated feeder (seeded, free spots only, never overlapping, tidy) and the shift's
+rolling audit log (whole lines, by day and size, read back as one shift)."""
+from __future__ import annotations
+
+import json
+
+from cell.feeder import Feeder
+from cell.run_config import FeederConfig
+from cell.service.counters import ShiftCounts
+from cell.service.shiftlog import ShiftLog, read_shift, shift_files
+from cell.simcell import MIN_GAP_MM, _outline_gap_mm
+from cell.summary import counts_from_log
+from drivers.sim.world import Bin, Truth, World
+
+
+def world() -> World:
+    return World([], Truth(0.0, -132.0, 40.0, 0.0), [Bin("bolt", (-200.0, 60.0), 40.0), Bin("nut", (200.0, 60.0), 40.0)])
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_parts_arrive_at_the_rate_on_free_spots_inside_the_area():
+    w, clock = world(), Clock()
+    cfg = FeederConfig(parts_per_minute=30, max_on_table=25, seed=3)
+    feeder = Feeder(w, cfg, clock)
+    clock.t = 40.0  # 20 parts due
+    feeder.tick()
+    specs = [p.spec for p in w.on_table()]
+    assert feeder.dropped + feeder.skipped == 20 and feeder.dropped >= 18
+    kinds = {s.kind for s in specs}
+    assert kinds <= {"bolt", "nut", "washer"} and len(kinds) >= 2
+    x0, y0, x1, y1 = cfg.area_mm
+    for i, a in enumerate(specs):
+        o = a.top_view_outline_mm()
+        assert x0 <= o[:, 0].min() and o[:, 0].max() <= x1 and y0 <= o[:, 1].min() and o[:, 1].max() <= y1
+        for b in specs[i + 1:]:
+            assert _outline_gap_mm(a, b) >= MIN_GAP_MM
+    clock.t = 120.0  # 40 more due, but at most 25 on the table
+    feeder.tick()
+    assert len(w.on_table()) <= 25 and feeder.skipped >= 15
+
+
+def test_the_same_seed_gives_the_same_shift():
+    runs = []
+    for _ in range(2):
+        w, clock = world(), Clock()
+        feeder = Feeder(w, FeederConfig(parts_per_minute=12, seed=7), clock)
+        clock.t = 30.0
+        feeder.tick()
+        runs.append([(p.spec.kind, p.spec.x_mm, p.spec.y_mm) for p in w.on_table()])
+    assert runs[0] == runs[1] and len(runs[0]) == 6
+
+
+def test_binned_parts_leave_the_world_and_vacated_spots_stay_free():
+    w, clock = world(), Clock()
+    feeder = Feeder(w, FeederConfig(parts_per_minute=60, seed=1, washer_share=0.0), clock)
+    clock.t = 5.0
+    feeder.tick()
+    taken = w.on_table()[0]
+    taken.where = "bin:nut"
+    spot = (taken.spec.x_mm, taken.spec.y_mm)
+    clock.t = 60.0
+    feeder.tick()
+    assert taken not in w.parts and sum(feeder.binned.values()) == 1
+    for p in w.on_table():
+        assert min(((x - spot[0]) ** 2 + (y - spot[1]) ** 2) ** 0.5 for x, y in p.spec.top_view_outline_mm()) >= 12.0
+
+
+def test_parts_left_too_long_are_cleared():
+    w, clock = world(), Clock()
+    feeder = Feeder(w, FeederConfig(parts_per_minute=6, clear_after_s=30.0), clock)
+    clock.t = 20.0
+    feeder.tick()
+    assert len(w.on_table()) == 2
+    clock.t = 55.0
+    feeder.tick()  # the two from t = 0-20 s are past 30 s; three new ones arrived
+    assert feeder.cleared == 2 and len(w.on_table()) == 3
+
+
+def test_the_shift_log_rolls_by_size_between_whole_lines(tmp_path):
+    log = ShiftLog(tmp_path, max_bytes=4096, day=lambda: "20261201")
+    for i in range(200):
+        log.event("target", track=i, attempt=1 + i % 2, cls="nut", pad="x" * (i % 50))
+    log.close()
+    files = shift_files(tmp_path, "20261201")
+    assert len(files) > 5
+    for f in files:
+        text = f.read_text()
+        assert text.endswith("\n") and all(json.loads(line) for line in text.splitlines())
+        assert f.stat().st_size < 4096 + 400
+    events = read_shift(tmp_path, "20261201")
+    assert [e["track"] for e in events] == list(range(200))
+
+
+def test_the_shift_log_rolls_at_a_new_day_and_carries_on_its_last_file(tmp_path):
+    day = {"d": "20261201"}
+    log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: day["d"])
+    log.event("a")
+    day["d"] = "20261202"
+    log.event("b")
+    log.close()
+    again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: day["d"])
+    again.event("c")
+    again.close()
+    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["a"]
+    assert [e["kind"] for e in read_shift(tmp_path, "20261202")] == ["b", "c"]
+    assert len(shift_files(tmp_path, "20261202")) == 1
+
+
+def test_shift_counts_agree_with_the_summary_recount():
+    events = [
+        {"kind": "target", "attempt": 1}, {"kind": "verify", "result": "missed", "cls": "bolt"},
+        {"kind": "target", "attempt": 2}, {"kind": "verify", "result": "picked", "cls": "bolt"},
+        {"kind": "target", "attempt": 1}, {"kind": "verify", "result": "picked", "cls": "nut"},
+        {"kind": "unreachable"}, {"kind": "failed"},
+        {"kind": "frame", "detections": [{"pick": False}, {"pick": True}]},
+    ]
+    c = ShiftCounts.from_events(events)
+    ref = counts_from_log(events)
+    assert (c.picked, c.misses, c.retries, c.failed, c.unreachable, c.unknown_left, c.attempts) == (
+        ref["picked"], ref["misses"], ref["retries"], ref["failed"], ref["unreachable"], ref["unknown_left"],
+        ref["attempts"])
+    assert c.counters().picked_bolts == 1 and c.counters().retries == 1

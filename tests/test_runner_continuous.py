@@ -1,0 +1,129 @@
+"""Continuous mode: WAIT instead of DONE, parts that appear get picked, `finish` ends the job
+at a safe point with the arm homed (not released), and a shift's tracks do not pile up."""
+from __future__ import annotations
+
+import threading
+import time
+
+from cell.audit import AuditLog
+from cell.planning import Planner
+from cell.run_config import RunConfig
+from cell.runner import Controls, Runner
+from cell.statemachine import State
+from tests.test_runner import PLANNING, TRUE_FRAME, FakeArm, FakeCamera, FakeTable, fake_locator
+
+ONE_NUT = [("nut", 20.0, 30.0, None)]
+
+
+def continuous_runner(tmp_path, parts=ONE_NUT, interval_s=0.05, run=RunConfig()):
+    table = FakeTable(parts)
+    arm, camera, controls = FakeArm(table), FakeCamera(), Controls()
+    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME), run,
+                    AuditLog(tmp_path / "audit.jsonl"), controls, continuous_interval_s=interval_s)
+    return runner, table, arm, camera, controls
+
+
+def run_in_thread(runner) -> threading.Thread:
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    return t
+
+
+def wait_for(cond, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.01)
+
+
+def test_empty_table_waits_then_picks_what_appears_and_stop_parks_the_arm(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path)
+    thread = run_in_thread(runner)
+    wait_for(lambda: runner.sm.state == State.WAIT and table.bins == [1])
+    table.parts[7] = ("bolt", 100.0, 60.0, 30.0)  # a part arrives
+    wait_for(lambda: 7 in table.bins)
+    controls.request(controls.finish)
+    thread.join(5)
+    assert not thread.is_alive() and runner.sm.state == State.STOPPED
+    assert runner.summary.picked == {"nut": 1, "bolt": 1}
+    names = [c[0] for c in arm.calls]
+    assert names[-2:] == ["home", "disconnect"] and "stop" not in names  # homed, torque kept: ready for the next job
+    assert State.DONE not in [t.target for t in runner.sm.history]
+
+
+def test_waiting_does_not_busy_loop_or_move_the_arm(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.2)
+    thread = run_in_thread(runner)
+    wait_for(lambda: runner.sm.state == State.WAIT)
+    frames, calls = camera.frames, len(arm.calls)
+    time.sleep(1.0)
+    moves = [c for c in arm.calls[calls:] if c[0] not in ("status",)]
+    controls.request(controls.stop)
+    thread.join(5)
+    assert 3 <= camera.frames - frames <= 7  # one frame per 0.2 s interval
+    assert moves == []
+    assert runner.sm.state == State.STOPPED
+
+
+def test_a_request_cuts_the_wait_short(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=30.0)
+    thread = run_in_thread(runner)
+    wait_for(lambda: runner.sm.state == State.WAIT)
+    t0 = time.monotonic()
+    controls.request(controls.finish)
+    thread.join(5)
+    assert time.monotonic() - t0 < 1.0 and runner.sm.state == State.STOPPED
+
+
+def test_halt_while_waiting_releases_the_arm(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[])
+    thread = run_in_thread(runner)
+    wait_for(lambda: runner.sm.state == State.WAIT)
+    controls.request(controls.stop)
+    thread.join(5)
+    assert [c[0] for c in arm.calls[-3:]] == ["home", "stop", "disconnect"]
+
+
+def test_finish_during_a_pick_waits_for_its_verification(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path)
+    runner.sm.listeners.append(lambda t: controls.request(controls.finish) if t.target == State.PICK else None)
+    runner.run()
+    targets = [t.target for t in runner.sm.history]
+    assert targets[-3:] == [State.VERIFY, State.PLAN, State.STOPPED]
+    assert runner.summary.picked == {"nut": 1} and table.bins == [1]
+
+
+def test_finish_while_paused_ends_without_releasing(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[])
+    thread = run_in_thread(runner)
+    wait_for(lambda: runner.sm.state == State.WAIT)
+    controls.request(controls.pause)
+    wait_for(lambda: runner.sm.state == State.PAUSED)
+    controls.request(controls.finish)
+    thread.join(5)
+    assert [t.target for t in runner.sm.history][-2:] == [State.PAUSED, State.STOPPED]
+    assert "stop" not in [c[0] for c in arm.calls]
+
+
+def test_a_shift_forgets_parts_gone_from_the_table(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.01)
+    thread = run_in_thread(runner)
+    for i in range(30):
+        table.parts[100 + i] = ("nut", 20.0 + i % 5 * 30, 30.0, None)
+        wait_for(lambda: 100 + i in table.bins)
+    controls.request(controls.finish)
+    thread.join(5)
+    assert runner.summary.picked == {"nut": 30}
+    assert len(runner.tracks) <= 1
+
+
+def test_the_attempt_limit_counts_from_the_last_pick(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.01,
+                                                             run=RunConfig(max_attempts_total=3))
+    thread = run_in_thread(runner)
+    for i in range(6):  # more picks than the limit, each one successful
+        table.parts[100 + i] = ("nut", 50.0, 30.0 + 20 * i, None)
+        wait_for(lambda: 100 + i in table.bins)
+    controls.request(controls.finish)
+    thread.join(5)
+    assert runner.sm.state == State.STOPPED and runner.summary.attempts == 6
