@@ -19,10 +19,10 @@ from typing import Callable
 import numpy as np
 
 from cell.run_config import FeederConfig
-from cell.simcell import MIN_GAP_MM, _outline_gap_mm
+from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
 from drivers.cameras.base import Camera
-from drivers.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, PartSpec
-from drivers.sim.world import SimPart, World
+from cell.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, PartSpec
+from cell.sim.world import SimPart, World
 
 log = logging.getLogger(__name__)
 

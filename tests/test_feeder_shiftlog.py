@@ -8,9 +8,9 @@ from cell.feeder import Feeder
 from cell.run_config import FeederConfig
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, read_shift, shift_files
-from cell.simcell import MIN_GAP_MM, _outline_gap_mm
+from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
 from cell.summary import counts_from_log
-from drivers.sim.world import Bin, Truth, World
+from cell.sim.world import Bin, Truth, World
 
 
 def world() -> World:

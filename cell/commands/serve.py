@@ -75,7 +75,7 @@ def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitSt
     devices = Devices(camera, arm, calibration, expect_motion, sim)
     if sim is not None:
         from cell.feeder import FedCamera, Feeder, SimClock
-        from drivers.sim.render import render_plate
+        from cell.sim.render import render_plate
 
         feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))
         camera = FedCamera(sim.camera, feeder)

@@ -54,7 +54,7 @@ class Devices:
     arm: Arm
     calibration: Calibration
     expect_motion: bool
-    sim: object | None = None  # cell.simcell.SimCell for the simulated cell
+    sim: object | None = None  # cell.sim.cell.SimCell for the simulated cell
     plate_image: Callable[[], np.ndarray] | None = None  # the simulated cell renders its plate for recalibration
 
 
