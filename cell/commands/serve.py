@@ -102,22 +102,28 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 async def _serve(config: CellConfig, service: LineService) -> int:
-    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down."""
+    """Interfaces up (OPC UA and the operator screen), one ready line, then wait for SIGTERM/SIGINT;
+    the job is halted before they go down."""
     from cell.service.opcua import OpcUaServer
+    from cell.web.server import screen_server
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    screen = screen_server(service, config)  # binds now: a port in use fails before anything starts
     opcua = OpcUaServer(service, config)
     await opcua.start()
     try:
-        print(f"ready: OPC UA {opcua.endpoint} (pid {os.getpid()}; SIGTERM or Ctrl-C stops safely)", flush=True)
+        await asyncio.to_thread(screen.start)
+        print(f"ready: OPC UA {opcua.endpoint}, screen {screen.url} (pid {os.getpid()}; SIGTERM or Ctrl-C "
+              f"stops safely)", flush=True)
         await stop.wait()
         log.info("stop signal: halting the cell")
         await asyncio.to_thread(service.close)
         await asyncio.sleep(0.2)  # let subscribers see the final state
     finally:
+        await asyncio.to_thread(screen.stop)
         await opcua.stop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(sig)

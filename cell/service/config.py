@@ -8,6 +8,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cell.web.config import WebConfig
+
 
 class ServiceConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -29,6 +31,7 @@ class ServiceConfig(BaseModel):
     certificate_dir: Path | None = Field(
         None, description="server certificate and key, made on first start; default: opcua/ beside the calibration"
     )
+    web: WebConfig = Field(WebConfig(), description="[service.web]: the operator screen's own settings")
     audit_max_bytes: int = Field(
         64 * 2**20, ge=4096, description="the shift's audit log rolls to a new file past this size (and each UTC day)"
     )

@@ -38,6 +38,15 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def screen_server(service: LineServiceAPI, config: CellConfig) -> "WebServer":
+    """The screen on `service.host`:`service.http_port`, with the service's user and password if set."""
+    from cell.service.security import credentials_configured, password_ok
+
+    svc = config.service
+    check = (lambda user, password: password_ok(svc, user, password)) if credentials_configured(svc) else None
+    return WebServer(service, config, svc.web, svc.host, svc.http_port, check)
+
+
 class WebServer:
     """Start, address, stop. Stopping ends every open event stream and joins the thread."""
 
