@@ -68,7 +68,10 @@ def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) ->
         poll(page, "window.screenStats && screenStats.states > 0", 20)
         page.get_by_role("button", name="Start continuous", exact=True).click()
         poll(page, f"screenStats.frames >= {frames}", timeout_s)
-        if screenshot is not None:
+        if screenshot is not None:  # at a moment with parts on the table being picked
+            poll(page, "screenStats.lastState.display.key === 'running' && screenStats.lastState.last_picks.length > 3",
+                 timeout_s)
+            page.wait_for_timeout(300)
             screenshot.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot))
             print(f"wrote {screenshot}")
