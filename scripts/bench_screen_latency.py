@@ -14,6 +14,7 @@ Needs the test extras (playwright) and the system Chromium (Debian package `chro
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -58,7 +59,8 @@ def poll(page, expression: str, timeout_s: float):
         time.sleep(0.05)
 
 
-def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) -> list[float]:
+def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) -> list[list[float]]:
+    """Per frame: capture -> shown in the page, and capture -> JPEG ready in the service (ms)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
@@ -75,7 +77,7 @@ def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) ->
             screenshot.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot))
             print(f"wrote {screenshot}")
-        latencies = page.evaluate("screenStats.latenciesMs.slice()")
+        latencies = page.evaluate("[screenStats.latenciesMs.slice(), screenStats.serviceMs.slice()]")
         page.get_by_role("button", name="Stop", exact=True).click()
         page.click("#confirm-yes")
         poll(page, "document.getElementById('state-label').textContent.startsWith('Stopped')", 30)
@@ -96,14 +98,19 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="screen-bench-") as tmp:
         url, stop = start_fake() if args.fake else start_serve(Path(tmp))
         try:
-            latencies = measure(url, args.frames, args.screenshot, args.timeout_s)
+            shown, encoded = measure(url, args.frames, args.screenshot, args.timeout_s)
         finally:
             stop()
-    q = statistics.quantiles(latencies, n=20)
     source = "fake service, 1920 x 1080 frames" if args.fake else "run-cell serve --dry-run"
-    print(f"capture -> shown in Chromium, {len(latencies)} frames ({source}): median {statistics.median(latencies):.0f} ms, "
-          f"p95 {q[18]:.0f} ms, max {max(latencies):.0f} ms")
+    print(f"{len(shown)} frames ({source}), {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}:")
+    print(f"  capture -> shown in Chromium: {_figures(shown)}")
+    print(f"  of which capture -> JPEG ready in the service (locate, annotate, encode): {_figures(encoded)}")
     return 0
+
+
+def _figures(ms: list[float]) -> str:
+    return (f"median {statistics.median(ms):.0f} ms, p95 {statistics.quantiles(ms, n=20)[18]:.0f} ms, "
+            f"max {max(ms):.0f} ms")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ const CONFIRM_COMMANDS = new Set(["Stop", "Halt"]);
 const BLOCKED_WHILE_RECALIBRATING = new Set(["StartSingleJob", "StartContinuous", "Resume"]);
 
 // What the page measured, for the operator (frame-meta) and for the tests and benchmark.
-window.screenStats = { frames: 0, lastSeq: -1, latenciesMs: [], states: 0, lastState: null };
+window.screenStats = { frames: 0, lastSeq: -1, latenciesMs: [], serviceMs: [], states: 0, lastState: null };
 
 let csrf = null;
 let canControl = false;
@@ -126,7 +126,8 @@ async function showFrame(f) {
   stats.frames += 1;
   stats.lastSeq = f.seq;
   stats.latenciesMs.push(latency);
-  if (stats.latenciesMs.length > 1000) stats.latenciesMs.shift();
+  stats.serviceMs.push(f.encoded_wall_ms - f.capture_wall_ms);
+  if (stats.latenciesMs.length > 1000) { stats.latenciesMs.shift(); stats.serviceMs.shift(); }
   $("frame-seq").textContent = f.seq;
   $("frame-latency").textContent = Math.round(latency);
 }
