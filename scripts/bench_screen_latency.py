@@ -69,14 +69,14 @@ def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) ->
         page.goto(url)
         poll(page, "window.screenStats && screenStats.states > 0", 20)
         page.get_by_role("button", name="Start continuous", exact=True).click()
-        poll(page, f"screenStats.frames >= {frames}", timeout_s)
-        if screenshot is not None:  # at a moment with parts on the table being picked
-            poll(page, "screenStats.lastState.display.key === 'running' && screenStats.lastState.last_picks.length > 3",
+        if screenshot is not None:  # early, while the table is still full of parts being picked
+            poll(page, "screenStats.lastState.display.key === 'running' && screenStats.lastState.last_picks.length >= 2",
                  timeout_s)
-            page.wait_for_timeout(300)
             screenshot.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot))
             print(f"wrote {screenshot}")
+            page.evaluate("screenStats.frames = 0; screenStats.latenciesMs = []; screenStats.serviceMs = []")
+        poll(page, f"screenStats.frames >= {frames}", timeout_s)
         latencies = page.evaluate("[screenStats.latenciesMs.slice(), screenStats.serviceMs.slice()]")
         page.get_by_role("button", name="Stop", exact=True).click()
         page.click("#confirm-yes")

@@ -16,6 +16,7 @@ from cell.errors import ConfigError
 from cell.web.config import WebConfig
 from cell.web.server import WebServer
 from tests.fake_service import FakeLineService
+from tests.serve_process import free_port
 
 
 @pytest.fixture
@@ -110,3 +111,38 @@ def test_port_in_use_is_a_clear_error(service):
 def test_non_loopback_without_password_refused_before_binding(service):
     with pytest.raises(ConfigError, match="without a password"):
         WebServer(service, CellConfig(), WebConfig(), "0.0.0.0", 0)
+
+
+@pytest.mark.parametrize("where", ["hash", "env"])
+def test_screen_uses_the_services_user_and_password(service, monkeypatch, where):
+    from cell.service.security import hash_password
+    from cell.web.server import screen_server
+
+    config = CellConfig()
+    config.service.http_port = free_port()
+    config.service.user = "operator"
+    if where == "hash":
+        config.service.password_hash = hash_password("line-4", iterations=1000)
+    else:
+        config.service.password_env = "CELL_TEST_SCREEN_PW"
+        monkeypatch.setenv("CELL_TEST_SCREEN_PW", "line-4")
+    srv = screen_server(service, config)
+    srv.start()
+    try:
+        with httpx.Client(base_url=srv.url, timeout=10) as c:
+            assert c.get("api/state").status_code == 401
+            assert c.post("api/login", json={"user": "operator", "password": "line-5"}).status_code == 401
+            token = c.post("api/login", json={"user": "operator", "password": "line-4"}).json()["csrf"]
+            assert c.get("api/state").status_code == 200
+            assert c.post("api/command/StartSingleJob", headers={"x-csrf-token": token}).status_code == 200
+    finally:
+        srv.stop()
+
+
+def test_screen_beyond_loopback_without_credentials_is_refused(service):
+    from cell.web.server import screen_server
+
+    config = CellConfig()
+    config.service.host = "0.0.0.0"
+    with pytest.raises(ConfigError, match="beyond loopback"):
+        screen_server(service, config)
