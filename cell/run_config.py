@@ -92,7 +92,8 @@ class FeederConfig(Strict):
     washer_share: float = Field(0.10, ge=0, le=1, description="fraction that are washers (the cell must leave them)")
     seed: int = Field(1, ge=0)
     area_mm: tuple[float, float, float, float] = Field(
-        (15.0, 10.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm)"
+        (15.0, 25.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm); "
+                                                "the default keeps clear of the arm's base (reach_min_mm)"
     )
     max_on_table: int = Field(40, ge=1, le=500, description="a part due when this many lie on the table is not dropped")
     clear_after_s: float = Field(
@@ -147,8 +148,8 @@ class SimConfig(Strict):
                                           "the emulator moves this many times faster than the arm would; 1 = real time"
     )
     speed_factor: float = Field(
-        1.0, gt=0, le=10000, description="simulated time runs this many times faster than the wall clock (the feeder, "
-                                         "the capture interval, the mock arm's realtime motion): rehearse a shift in minutes"
+        1.0, gt=0, le=10000, description="run-cell serve: simulated time runs this many times faster than the wall "
+                                         "clock (the feeder, the capture interval): rehearse a shift in minutes"
     )
     feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(

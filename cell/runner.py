@@ -20,6 +20,7 @@ import itertools
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
@@ -97,6 +98,8 @@ class Runner:
         self._attempt_mark = 0  # continuous mode: attempts counted against the limit since the last pick or wait
         self._track_ids = itertools.count(1)
         self.sm = StateMachine([self._on_transition])
+        if continuous_interval_s is not None:  # a shift's transitions live in the audit log, not in memory
+            self.sm.history = deque(maxlen=1000)
         self.summary = Summary()
         self.tracks: list[Track] = []
         self.frame: np.ndarray | None = None

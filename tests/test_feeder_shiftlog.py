@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 
-from cell.feeder import Feeder
 from cell.run_config import FeederConfig
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, read_shift, shift_files
 from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
-from cell.summary import counts_from_log
+from cell.sim.feeder import Feeder
 from cell.sim.world import Bin, Truth, World
+from cell.summary import counts_from_log
 
 
 def world() -> World:
@@ -127,3 +127,16 @@ def test_shift_counts_agree_with_the_summary_recount():
         ref["picked"], ref["misses"], ref["retries"], ref["failed"], ref["unreachable"], ref["unknown_left"],
         ref["attempts"])
     assert c.counters().picked_bolts == 1 and c.counters().retries == 1
+
+
+def test_a_torn_last_line_is_skipped_when_the_shift_is_read_back(tmp_path):
+    log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")
+    log.event("verify", result="picked", cls="nut")
+    log.close()
+    with open(shift_files(tmp_path, "20261201")[-1], "a") as f:
+        f.write('{"seq":2,"kind":"verify","result":"pick')  # the writer killed mid-line
+    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify"]
+    again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")  # the restarted service carries on
+    again.event("service_start")
+    again.close()
+    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify", "service_start"]

@@ -134,9 +134,9 @@ def test_the_node_tree_by_browsenames(served):
         assert all(types[c] == ua.VariantType.UInt32 for c in COUNTERS + ["Heartbeat"])
         assert types["LastPickTableMm"] == ua.VariantType.Double and types["LastPickTime"] == ua.VariantType.DateTime
         assert await cell.read("CalibrationCvRmsMm") > 0 and await cell.read("CalibrationModel")
-        h0 = await cell.read("Heartbeat")
-        await asyncio.sleep(2.2)
-        assert 2 <= await cell.read("Heartbeat") - h0 <= 3
+        h0 = await cell.read("Heartbeat")  # published within half a second of each change
+        await asyncio.sleep(3.0)
+        assert 2 <= await cell.read("Heartbeat") - h0 <= 4
 
     with_cell(served.url, body)
 
@@ -144,9 +144,13 @@ def test_the_node_tree_by_browsenames(served):
 class Changes:
     def __init__(self):
         self.values: dict[str, list] = {}
+        self.events: list = []
 
     def datachange_notification(self, node, val, data):
         self.values.setdefault(node.nodeid.Identifier, []).append(val)
+
+    def event_notification(self, event):
+        self.events.append(event.get_event_props_as_fields_dict())
 
 
 def test_start_continuous_subscribe_and_see_picks_rise_pause_resume_stop(served):
@@ -154,6 +158,8 @@ def test_start_continuous_subscribe_and_see_picks_rise_pause_resume_stop(served)
         changes = Changes()
         sub = await cell.client.create_subscription(100, changes)
         await sub.subscribe_data_change([await cell.var(n) for n in ("PickedBolts", "PickedNuts", "CellState")])
+        pick_type = await cell.client.nodes.base_event_type.get_child(f"{cell.ns}:PickEventType")
+        await sub.subscribe_events(cell.node, pick_type)
         await cell.call("StartContinuous")
         assert await cell.read("VisionState") == "ContinuousExecution"
         end = time.monotonic() + 40
@@ -161,6 +167,9 @@ def test_start_continuous_subscribe_and_see_picks_rise_pause_resume_stop(served)
             assert time.monotonic() < end, f"picks did not rise: {changes.values}"
             await asyncio.sleep(0.1)
         assert await cell.read("LastPickOutcome") == "picked" and len(await cell.read("LastPickRobotMm")) == 3
+        first = changes.events[0]  # each pick is also an event from Cell
+        assert first["PartClass"].Value in ("bolt", "nut") and first["Outcome"].Value == "picked"
+        assert len(first["RobotMm"].Value) == 3 and "picked at table" in first["Message"].Value.Text
         await cell.call("Pause")
         await cell.wait("CellState", lambda s: s == "PAUSED")
         held = await cell.read("PickedNuts") + await cell.read("PickedBolts")

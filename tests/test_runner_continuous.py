@@ -127,3 +127,12 @@ def test_the_attempt_limit_counts_from_the_last_pick(tmp_path):
     controls.request(controls.finish)
     thread.join(5)
     assert runner.sm.state == State.STOPPED and runner.summary.attempts == 6
+
+
+def test_a_shift_keeps_a_bounded_transition_history(tmp_path):
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.0005)
+    thread = run_in_thread(runner)
+    wait_for(lambda: camera.frames > 400)  # > 1200 transitions: capture, locate, plan, wait
+    controls.request(controls.finish)
+    thread.join(5)
+    assert len(runner.sm.history) == 1000 and runner.sm.history[-1].target == State.STOPPED

@@ -7,6 +7,7 @@ import contextlib
 import os
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -62,7 +63,8 @@ def test_commands_outside_the_table_are_refused_and_change_nothing(tmp_path):
 
 
 def test_continuous_picks_pauses_resumes_and_stops_into_ready(tmp_path):
-    with running(small_config(tmp_path, feeder=CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0}))) as service:
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
         kinds = []
         service.subscribe(lambda e: kinds.append(e.kind))
         service.command(Command.START_CONTINUOUS)
@@ -155,3 +157,24 @@ def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
     assert open_fds() - before_fds == set()
     files = shift_files(tmp_path / "logs", read_shift.__defaults__[0] or time.strftime("%Y%m%d", time.gmtime()))
     assert read_events(files[-1])[-1]["kind"] == "service_stop"
+
+
+def test_plate_image_and_a_new_calibration_only_while_still(tmp_path):
+    with running(small_config(tmp_path)) as service:
+        seen = []
+        service.subscribe(lambda e: seen.append(e) if e.kind == "calibration" else None)
+        plate = service.capture_plate_image()  # Ready: the simulated cell renders its plate
+        assert plate.shape == (540, 960, 3)
+        cal = service.devices.calibration
+        service.command(Command.START_CONTINUOUS)
+        with pytest.raises(InvalidState, match="capture_plate_image is not allowed in ContinuousExecution"):
+            service.capture_plate_image()
+        info = service.snapshot().calibration
+        with pytest.raises(InvalidState):
+            service.install_calibration(cal, info)
+        service.command(Command.PAUSE)
+        new = replace(info, model="homography", source_image="plate-2.png")
+        service.install_calibration(cal, new)  # paused: allowed
+        assert service.snapshot().calibration == new and seen[-1].snapshot.calibration == new
+        service.command(Command.STOP)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")

@@ -13,14 +13,18 @@ import asyncio
 import logging
 import math
 import socket
+from collections import deque
 from datetime import datetime, timezone
 from pathlib import Path
 
 from asyncua import Server, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.permission_rules import User, UserRole
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from cell.config import CellConfig
-from cell.service.api import Command, InvalidState, LineServiceAPI, ServiceEvent, Snapshot
+from cell.errors import ConfigError
+from cell.service.api import Command, InvalidState, LineServiceAPI, PickRecord, ServiceEvent, Snapshot
 from cell.service.security import credentials_configured, password_ok
 
 log = logging.getLogger(__name__)
@@ -69,6 +73,12 @@ def _values(s: Snapshot) -> dict:
     }
 
 
+# The PickEventType's own fields (besides BaseEventType's Message, Severity, Time ...).
+PICK_EVENT_FIELDS = [("TrackId", _T.UInt32), ("PartClass", _T.String), ("TableMm", _T.Double),
+                     ("RobotMm", _T.Double), ("AngleDeg", _T.Double), ("Outcome", _T.String)]
+_PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
+
+
 def _finite(v: float) -> float:
     return float(v) if math.isfinite(v) else 0.0
 
@@ -96,8 +106,14 @@ class OpcUaServer:
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
+        self._picks: deque[PickRecord] = deque(maxlen=_PICKS_QUEUED)
+        self._pick_events = None
         self._task: asyncio.Task | None = None
         self._unsubscribe = None
+
+    @property
+    def ready_text(self) -> str:
+        return f"OPC UA {self.endpoint}"
 
     async def start(self) -> None:
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
@@ -123,23 +139,24 @@ class OpcUaServer:
         for command in Command:
             await cell.add_method(ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns),
                                   self._method(command), [], [])
+        etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
+        self._pick_events = await s.get_event_generator(etype, cell)
         loop = asyncio.get_running_loop()
         self._unsubscribe = self.service.subscribe(lambda e: self._on_event(loop, e))
+        quiet = logging.getLogger("asyncua.server.server")
+        quiet.setLevel(logging.CRITICAL)  # its traceback for a taken port; we say it in one line
         try:
             await s.start()
         except OSError as e:
-            from cell.errors import ConfigError
-
             raise ConfigError(f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
                               hint="another program holds the port: choose another with --opcua-port") from None
+        finally:
+            quiet.setLevel(logging.WARNING)
         self._task = asyncio.create_task(self._publish())
         log.info("OPC UA server on %s (%s)", self.endpoint, "Basic256Sha256 SignAndEncrypt, user" if self.secure
                  else "loopback, no security")
 
     async def _secure(self) -> None:
-        from asyncua.crypto.cert_gen import setup_self_signed_certificate
-        from cryptography.x509.oid import ExtendedKeyUsageOID
-
         self.cert_dir.mkdir(parents=True, exist_ok=True)
         key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
         await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(),
@@ -167,6 +184,8 @@ class OpcUaServer:
 
     def _on_event(self, loop: asyncio.AbstractEventLoop, event: ServiceEvent) -> None:
         """From the cell's thread: only wake the publisher (frames carry nothing OPC UA shows)."""
+        if event.kind == "pick":
+            self._picks.append(event.pick)  # deque.append is atomic; the loop drains it
         if event.kind != "frame" and not loop.is_closed():
             loop.call_soon_threadsafe(self._dirty.set)
 
@@ -178,12 +197,25 @@ class OpcUaServer:
             except asyncio.TimeoutError:
                 pass
             self._dirty.clear()
+            while self._picks:
+                await self._fire(self._picks.popleft())
             for name, value in _values(self.service.snapshot()).items():
                 if self._written.get(name) != value:
                     vtype, array = VARIABLES[name]
                     await self.server.write_attribute_value(
                         self.nodes[name], ua.DataValue(ua.Variant(value, vtype, is_array=array or None)))
                     self._written[name] = value
+
+    async def _fire(self, p: PickRecord) -> None:
+        """One pick as a PickEventType event from Cell."""
+        ev = self._pick_events.event
+        ev.Message = ua.LocalizedText(f"part {p.track_id} {p.cls} {p.outcome} at table "
+                                      f"({p.table_mm[0]:.1f}, {p.table_mm[1]:.1f}) mm")
+        ev.Severity = 100 if p.outcome in ("picked", "rehearsed") else 500
+        ev.TrackId, ev.PartClass, ev.Outcome = ua.Variant(p.track_id, _T.UInt32), p.cls, p.outcome
+        ev.TableMm, ev.RobotMm = [float(v) for v in p.table_mm], [float(v) for v in p.robot_mm]
+        ev.AngleDeg = float(p.angle_deg) if p.angle_deg is not None else 0.0
+        await self._pick_events.trigger(p.time_utc)
 
     async def stop(self) -> None:
         if self._unsubscribe is not None:

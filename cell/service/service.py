@@ -34,7 +34,7 @@ from cell.runner import Controls, Runner
 from cell.service.api import (Alarm, CalibrationInfo, Command, FrameView, InvalidState, PickRecord, ServiceEvent,
                               Snapshot, VisionState, allowed)
 from cell.service.counters import ShiftCounts
-from cell.service.shiftlog import ShiftLog, read_shift
+from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.statemachine import State
 from drivers.arm.base import Arm
 from drivers.cameras.base import Camera
@@ -95,7 +95,7 @@ class LineService:
         self._halt_requested = False
         self._controls: Controls | None = None
         self._runner: Runner | None = None
-        self._counts = ShiftCounts.from_events(read_shift(config.run.log_dir))
+        self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_KEPT)
         self._pick_times: deque[float] = deque(maxlen=_RATE_WINDOW)
         self._last_target: dict | None = None
@@ -118,6 +118,7 @@ class LineService:
                          capture_interval_s=self.capture_interval_s)
         self._worker.start()
         self._set_state(V.READY, "service started")
+        self._publish("state")
 
     def close(self, timeout_s: float | None = None) -> None:
         """Halt any job (the safe stop), end the worker and write the last line; idempotent."""
@@ -144,6 +145,7 @@ class LineService:
             self.audit.event("command", command=command.value, vision_state=self._vstate.value)
             log.info("command %s in %s", command.value, self._vstate.value)
             getattr(self, "_cmd_" + command.name.lower())()
+        self._publish("state")  # outside the lock: a listener never runs while the service is held
 
     def snapshot(self) -> Snapshot:
         with self._lock:
@@ -209,11 +211,9 @@ class LineService:
 
     def _cmd_pause(self) -> None:
         self._controls.request(self._controls.pause)
-        self._publish("state")
 
     def _cmd_resume(self) -> None:
         self._controls.request(self._controls.pause, on=False)
-        self._publish("state")
 
     def _cmd_halt(self) -> None:
         if self._controls is None:  # between jobs the arm is already parked and at rest
@@ -233,19 +233,17 @@ class LineService:
             self._run_job(state, controls)
 
     def _run_job(self, state: VisionState, controls: Controls) -> None:
-        cfg = self.config
-        self._job_camera = _Locked(self._camera, self._device_lock)
         sim = self.devices.sim
-        runner = Runner(
-            self._job_camera, self.devices.arm,
-            lambda frame: self._locate(frame, self._calibration), self._planner, cfg.run, self.audit, controls,
-            self.devices.expect_motion, progress=lambda line: log.info("%s", line),
-            sim_motion_s=None if sim is None else sim.motion_time_s,
-            continuous_interval_s=self.capture_interval_s if state == V.CONTINUOUS_EXECUTION else None,
-        )
-        self._runner = runner
+        self._job_camera = _Locked(self._camera, self._device_lock)
         try:
-            summary = runner.run()
+            self._runner = Runner(
+                self._job_camera, self.devices.arm,
+                lambda frame: self._locate(frame, self._calibration), self._planner, self.config.run, self.audit,
+                controls, self.devices.expect_motion, progress=lambda line: log.info("%s", line),
+                sim_motion_s=None if sim is None else sim.motion_time_s,
+                continuous_interval_s=self.capture_interval_s if state == V.CONTINUOUS_EXECUTION else None,
+            )
+            summary = self._runner.run()
             outcome, reason = summary.outcome, summary.reason
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
             log.exception("job ended by an internal error")
@@ -256,11 +254,11 @@ class LineService:
                 what, hint = _split_hint(reason)
                 self._alarm = Alarm(what, hint, datetime.now(timezone.utc))
                 self._set_state(V.ERROR, reason)
-                self._publish("alarm")
             elif self._halt_requested:
                 self._set_state(V.HALTED, reason)
             else:
                 self._set_state(V.READY, reason)
+        self._publish("alarm" if outcome == "fault" else "state")
 
     def _on_audit(self, e: dict) -> None:
         """The runner's events (worker thread): state, counters, picks, frames, alarms."""
@@ -312,13 +310,13 @@ class LineService:
                 raise InvalidState(_StillCommand(what), self._vstate, paused)
 
     def _set_state(self, state: VisionState, reason: str) -> None:
+        """Under the lock; the caller publishes once it has let go of it."""
         with self._lock:
             if state == self._vstate:
                 return
             self.audit.event("vision_state", source=self._vstate.value, target=state.value, reason=reason)
             log.info("vision state %s -> %s: %s", self._vstate.value, state.value, reason)
             self._vstate = state
-        self._publish("state")
 
     def _publish(self, kind: str, **kw) -> None:
         event = ServiceEvent(kind, self.snapshot(), **kw)

@@ -7,14 +7,15 @@ a restart. Listeners hear every event as it is written (the service's view of th
 """
 from __future__ import annotations
 
+import json
 import logging
 import re
 import threading
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
-from cell.audit import AuditLog, read_events
+from cell.audit import AuditLog
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +32,30 @@ def shift_files(log_dir: Path, day: str) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
+def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict]:
+    """Every complete event of the day's shift, in order, one at a time (a day may hold gigabytes);
+    a torn line (a writer killed mid-line) is skipped."""
+    for path in shift_files(log_dir, day or _today()):
+        with open(path, encoding="utf-8") as f:
+            for line in f:
+                try:
+                    yield json.loads(line)
+                except json.JSONDecodeError:
+                    log.warning("%s: skipping a torn line: %.60s", path, line)
+
+
 def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
-    """Every complete event of the day's shift, in order."""
-    return [e for p in shift_files(log_dir, day or _today()) for e in read_events(p)]
+    return list(iter_shift(log_dir, day))
+
+
+def _end_torn_line(path: Path) -> None:
+    """A writer killed mid-line left no newline: end that line, so the next event starts its own."""
+    with open(path, "rb+") as f:
+        if f.seek(0, 2) == 0:
+            return
+        f.seek(-1, 2)
+        if f.read(1) != b"\n":
+            f.write(b"\n")
 
 
 class ShiftLog:
@@ -60,6 +82,7 @@ class ShiftLog:
         files = shift_files(self.log_dir, day)
         if files and files[-1].stat().st_size < self.max_bytes:
             path = files[-1]  # a restarted service carries on the shift's last file
+            _end_torn_line(path)
         else:
             n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0
             path = self.log_dir / f"cell-{day}-{n:03d}.jsonl"

@@ -5,6 +5,7 @@ machine does not have is a one-line error at start, not a log line in a thread.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import socket
 import threading
@@ -45,6 +46,26 @@ def screen_server(service: LineServiceAPI, config: CellConfig) -> "WebServer":
     svc = config.service
     check = (lambda user, password: password_ok(svc, user, password)) if credentials_configured(svc) else None
     return WebServer(service, config, svc.web, svc.host, svc.http_port, check)
+
+
+class ScreenInterface:
+    """The screen as one of `run-cell serve`'s interfaces: start() and stop() coroutines, ready_text."""
+
+    def __init__(self, service: LineServiceAPI, config: CellConfig):
+        self.service, self.config = service, config
+        self.server: WebServer | None = None
+
+    async def start(self) -> None:
+        self.server = screen_server(self.service, self.config)  # binds: a port in use is a ConfigError here
+        await asyncio.to_thread(self.server.start)
+
+    async def stop(self) -> None:
+        if self.server is not None:
+            await asyncio.to_thread(self.server.stop)
+
+    @property
+    def ready_text(self) -> str:
+        return f"screen {self.server.url}"
 
 
 class WebServer:

@@ -20,9 +20,9 @@ import numpy as np
 
 from cell.run_config import FeederConfig
 from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
-from drivers.cameras.base import Camera
 from cell.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, PartSpec
 from cell.sim.world import SimPart, World
+from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,8 @@ class Feeder:
     def tick(self) -> None:
         """Before a frame: tidy the world, then drop every part that has arrived since the last tick."""
         now = self.sim_time_s()
-        vacated = [xy for pid, xy in self._last_seen.items() if pid not in self._positions()]
+        here = self._positions()
+        vacated = [xy for pid, xy in self._last_seen.items() if pid not in here]
         self._tidy(now)
         arrived = int(self.cfg.parts_per_minute * (now - self.t_start) / 60.0)
         for _ in range(arrived - self.due):
