@@ -36,10 +36,10 @@ class Serve:
     """`run-cell serve ...` in a subprocess; ready when it prints its `ready:` line."""
 
     def __init__(self, tmp: Path, *args: str, env: dict | None = None):
-        self.port = free_port()
+        self.port, self.http_port = free_port(), free_port()
         self.log_dir = tmp / "logs"
         cmd = [sys.executable, "-m", "cell.cli", "serve", "--log-dir", str(self.log_dir),
-               "--opcua-port", str(self.port), *args]
+               "--opcua-port", str(self.port), "--http-port", str(self.http_port), *args]
         self.proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                      env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
         self.url = f"opc.tcp://127.0.0.1:{self.port}/cell"
@@ -122,7 +122,7 @@ def served(tmp_path_factory):
 
 
 def test_ready_line_names_the_endpoint(served):
-    assert f"ready: OPC UA {served.url} " in served.output
+    assert f"ready: OPC UA {served.url}; screen http://127.0.0.1:{served.http_port}/ " in served.output
 
 
 def test_the_node_tree_by_browsenames(served):
