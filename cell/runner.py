@@ -95,7 +95,7 @@ class Runner:
         self.truth = truth  # the simulated world's account, logged before the summary
         self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
         self.continuous_interval_s = continuous_interval_s  # None: clear the table once and finish
-        self._attempt_mark = 0  # continuous mode: attempts counted against the limit since the last pick or wait
+        self._attempt_mark = 0  # continuous mode: the limit counts attempts since the last pick or wait
         self._track_ids = itertools.count(1)
         self.sm = StateMachine([self._on_transition])
         if continuous_interval_s is not None:  # a shift's transitions live in the audit log, not in memory
@@ -276,7 +276,8 @@ class Runner:
             self.summary.rehearsed += 1
         elif not still:
             track.status, result = "picked", "picked"
-            self._attempt_mark = self.summary.attempts
+            if self.continuous_interval_s is not None:  # a shift's limit counts attempts since the last pick
+                self._attempt_mark = self.summary.attempts
             self.summary.picked[track.cls] = self.summary.picked.get(track.cls, 0) + 1
         else:
             result = "missed"
@@ -295,8 +296,9 @@ class Runner:
         return S.PLAN, reason
 
     def _plan(self):
-        if self.summary.attempts - self._attempt_mark >= self.cfg.max_attempts_total:
-            return S.FAULT, f"safety stop: {self.summary.attempts} pick attempts (run.max_attempts_total)"
+        if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
+            since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
+            return S.FAULT, f"safety stop: {n} pick attempts{since} (run.max_attempts_total)"
         candidates, seen = [], []
         for o in self.result.objects:
             if not o.pick:

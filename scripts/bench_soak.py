@@ -2,9 +2,9 @@
 
 Starts `run-cell serve --dry-run --config <shift>` in a subprocess (the built-in simulated
 cell at 960 x 540 to keep frames cheap, the feeder at 6 parts per simulated minute with
-time running 60x: an 8-hour shift in 8 minutes), calls StartContinuous, and samples the
-server process (RSS, threads, open fds, child processes) from /proc while the counters
-rise. At the end: Stop, SIGTERM, and the audit log checked against the counters.
+time running 60x: 360 parts a minute, more than the cell picks, so it never idles), calls
+StartContinuous, and samples the server process (RSS, threads, open fds, child processes)
+from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log checked against the counters.
 
     .venv/bin/python scripts/bench_soak.py [--picks 2000] [--timeout-s 1800]
 """

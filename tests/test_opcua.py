@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import pytest
@@ -134,6 +135,9 @@ def test_the_node_tree_by_browsenames(served):
         assert all(types[c] == ua.VariantType.UInt32 for c in COUNTERS + ["Heartbeat"])
         assert types["LastPickTableMm"] == ua.VariantType.Double and types["LastPickTime"] == ua.VariantType.DateTime
         assert await cell.read("CalibrationCvRmsMm") > 0 and await cell.read("CalibrationModel")
+        stamp = (await (await cell.var("Heartbeat")).read_data_value()).SourceTimestamp
+        age_s = (datetime.now(timezone.utc) - stamp.replace(tzinfo=timezone.utc)).total_seconds()
+        assert -5 < age_s < 5  # values carry their source timestamp
         h0 = await cell.read("Heartbeat")  # published within half a second of each change
         await asyncio.sleep(3.0)
         assert 2 <= await cell.read("Heartbeat") - h0 <= 4
@@ -315,9 +319,13 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
                 client.set_user("plc")
                 client.set_password(password)
             async with client:
-                return await (await Cell(client).open()).read("VisionState")
+                cell = await Cell(client).open()
+                await cell.call("Halt")  # the user may command the cell, not only read it
+                halted = await cell.read("VisionState")
+                await cell.call("Reset")
+                return halted, await cell.read("VisionState")
 
-        assert asyncio.run(asyncio.wait_for(attempt("correct horse"), 30)) == "Ready"
+        assert asyncio.run(asyncio.wait_for(attempt("correct horse"), 30)) == ("Halted", "Ready")
         with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
             asyncio.run(asyncio.wait_for(attempt("wrong"), 30))
         with pytest.raises(ua.UaStatusCodeError, match="BadIdentityTokenRejected"):  # anonymous

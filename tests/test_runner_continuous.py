@@ -136,3 +136,17 @@ def test_a_shift_keeps_a_bounded_transition_history(tmp_path):
     controls.request(controls.finish)
     thread.join(5)
     assert len(runner.sm.history) == 1000 and runner.sm.history[-1].target == State.STOPPED
+
+
+def test_endless_misses_still_hit_the_safety_limit(tmp_path):
+    from cell.planning import TableToRobot
+
+    table = FakeTable([("nut", 20.0, 30.0, None)])
+    shifted = TableToRobot(0.0, TRUE_FRAME.tx_mm - 3.0, TRUE_FRAME.ty_mm, 0.0)  # every grip misses
+    arm, camera = FakeArm(table, shifted), FakeCamera()
+    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME),
+                    RunConfig(max_retries=10, max_attempts_total=4), AuditLog(tmp_path / "audit.jsonl"),
+                    Controls(), continuous_interval_s=0.01)
+    summary = runner.run()
+    assert runner.sm.state == State.FAULT and summary.attempts == 4
+    assert "4 pick attempts since the last pick" in summary.reason

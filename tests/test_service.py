@@ -148,6 +148,7 @@ def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
         from cell.config import load_config
 
         cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "sim-grbl.toml")
+        cfg.camera.width_px, cfg.camera.height_px = 960, 540
         cfg.run.log_dir = tmp_path / "logs"
     before_threads, before_fds = {t.ident for t in threading.enumerate()}, open_fds()
     with running(cfg) as service:
@@ -178,3 +179,14 @@ def test_plate_image_and_a_new_calibration_only_while_still(tmp_path):
         assert service.snapshot().calibration == new and seen[-1].snapshot.calibration == new
         service.command(Command.STOP)
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
+
+
+def test_counters_start_again_with_the_next_days_shift(tmp_path):
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == V.READY and picked(service) == 17, what="the job")
+        today = service._shift_day
+        service._on_audit({"kind": "unreachable", "t_utc": "2999-01-01T00:00:00.001+00:00"})  # the first event after midnight
+        c = service.snapshot().counters
+        assert (c.unreachable, c.picked_nuts, c.picked_bolts) == (1, 0, 0)
+        assert today != service._shift_day

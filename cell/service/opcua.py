@@ -199,11 +199,13 @@ class OpcUaServer:
             self._dirty.clear()
             while self._picks:
                 await self._fire(self._picks.popleft())
+            now = datetime.now(timezone.utc)
             for name, value in _values(self.service.snapshot()).items():
                 if self._written.get(name) != value:
                     vtype, array = VARIABLES[name]
+                    variant = ua.Variant(value, vtype, is_array=array or None)
                     await self.server.write_attribute_value(
-                        self.nodes[name], ua.DataValue(ua.Variant(value, vtype, is_array=array or None)))
+                        self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now))
                     self._written[name] = value
 
     async def _fire(self, p: PickRecord) -> None:

@@ -95,7 +95,8 @@ class LineService:
         self._halt_requested = False
         self._controls: Controls | None = None
         self._runner: Runner | None = None
-        self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))
+        self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))  # the day's shift so far
+        self._shift_day = datetime.now(timezone.utc).date().isoformat()
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_KEPT)
         self._pick_times: deque[float] = deque(maxlen=_RATE_WINDOW)
         self._last_target: dict | None = None
@@ -273,7 +274,11 @@ class LineService:
             self._frame_event(e)
         if kind in ("verify", "failed"):
             self._pick_event(e)
-        if self._counts.apply(e):
+        with self._lock:
+            if e["t_utc"][:10] != self._shift_day:  # 00:00 UTC: the log rolls to a new day's files, a new shift
+                self._shift_day, self._counts = e["t_utc"][:10], ShiftCounts()
+            changed = self._counts.apply(e)
+        if changed:
             self._publish("counters")
 
     def _frame_event(self, e: dict) -> None:
