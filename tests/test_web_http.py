@@ -267,3 +267,16 @@ def test_oversized_upload_refused_before_it_is_read(service, config):
                    headers={"x-csrf-token": token})
         assert r.status_code == 413 and "at most 1024 KiB" in r.json()["error"]
     assert not config.calibration.active_path.exists()
+
+
+def test_upload_header_sizes_for_png_and_jpeg():
+    from cell.web.recalibration import decode_upload, image_size_from_header
+
+    image = np.zeros((1080, 1920, 3), np.uint8)
+    for ext in (".png", ".jpg"):
+        ok, buf = cv2.imencode(ext, image)
+        assert image_size_from_header(buf.tobytes()) == (1920, 1080)
+        assert decode_upload(buf.tobytes(), CellConfig()).shape == (1080, 1920, 3)
+    ok, progressive = cv2.imencode(".jpg", image[:480, :640], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    assert image_size_from_header(progressive.tobytes()) == (640, 480)
+    assert image_size_from_header(b"GIF89a....") is None
