@@ -1,10 +1,12 @@
 # Two commands for a newcomer: `make demo` and `make test`. Each builds .venv itself.
+# `make test` runs everything (what CI runs) on both cores; `make check` leaves out the slow
+# end-to-end runs for the inner loop; `make lint` is ruff's check and format check.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test check lint bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,7 +20,14 @@ demo: $(STAMP)
 	$(VENV)/bin/run-cell --dry-run
 
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2
+
+check: $(STAMP)
+	$(PY) -m pytest -n 2 -m "not slow"
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 
 bench: $(STAMP)
 	$(PY) scripts/bench_calibration.py

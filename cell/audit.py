@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +49,7 @@ class AuditLog:
         self._seq += 1
         record = {
             "seq": self._seq,
-            "t_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+            "t_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
             "t_run_s": round(time.monotonic() - self._t0, 4),
             "kind": kind,
             "state": self.state,
@@ -63,7 +63,7 @@ class AuditLog:
         if not self._file.closed:
             self._file.close()
 
-    def __enter__(self) -> "AuditLog":
+    def __enter__(self) -> AuditLog:
         return self
 
     def __exit__(self, *exc) -> None:

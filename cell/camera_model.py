@@ -60,7 +60,7 @@ class CameraModel:
         p1: float = 0.0,
         p2: float = 0.0,
         principal_offset_px: tuple[float, float] = (0.0, 0.0),
-    ) -> "CameraModel":
+    ) -> CameraModel:
         """A camera whose optical axis meets the table at `look_at_table_mm`.
 
         The distance is chosen so that the centre of the image sees `mm_per_px`; tilt turns
@@ -145,7 +145,7 @@ class CameraModel:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CameraModel":
+    def from_dict(cls, d: dict) -> CameraModel:
         return cls(
             int(d["width_px"]),
             int(d["height_px"]),

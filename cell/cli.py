@@ -17,6 +17,7 @@ from cell.errors import REPORTED_ERRORS, exit_code
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
     "cell.commands.calibration",
+    "cell.calibration.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.run",

@@ -9,20 +9,18 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
-from cell.vision.config import PartsConfig
+from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
+from drivers.cameras.config import CameraConfig
+from drivers.config import Strict
 
 Corner = Literal["top-left", "top-right", "bottom-left", "bottom-right"]
 ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
 class PlateConfig(Strict):
@@ -38,7 +36,7 @@ class PlateConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _circles_do_not_touch(self) -> "PlateConfig":
+    def _circles_do_not_touch(self) -> PlateConfig:
         if self.diameter_mm >= min(self.pitch_x_mm, self.pitch_y_mm):
             raise ValueError(
                 f"plate.diameter_mm ({self.diameter_mm} mm) must be smaller than both pitches "
@@ -60,7 +58,7 @@ class PaperDetectionConfig(Strict):
     max_area_px: float = Field(2000, gt=0)
 
     @model_validator(mode="after")
-    def _area_order(self) -> "PaperDetectionConfig":
+    def _area_order(self) -> PaperDetectionConfig:
         if self.min_area_px >= self.max_area_px:
             raise ValueError(
                 f"detection.paper.min_area_px ({self.min_area_px} px) must be below "
@@ -72,7 +70,7 @@ class PaperDetectionConfig(Strict):
 class DetectionConfig(Strict):
     """How circle centres are found on the plate image."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: Preset = "default"
     paper: PaperDetectionConfig = PaperDetectionConfig()
     min_diameter_ratio: float = Field(
         0.6, gt=0, lt=1, description="smallest blob accepted, as a fraction of the lattice's circle diameter"
@@ -100,19 +98,6 @@ class CalibrationConfig(Strict):
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
-
-
-class CameraConfig(Strict):
-    """Where frames come from."""
-
-    source: str = Field("sim", description="'sim', a device index, a URL, a video file or an image folder")
-    width_px: int = Field(1920, ge=16, le=20000)
-    height_px: int = Field(1080, ge=16, le=20000)
-    timeout_s: float = Field(5.0, gt=0, le=120)
-    focus: float | None = Field(None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)")
-    exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
-    warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
-    loop: bool = Field(False, description="video file or image folder: start again at the end")
 
 
 class CellConfig(Strict):

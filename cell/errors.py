@@ -35,6 +35,8 @@ class PlateNotFound(CellError):
 class CalibrationRejected(CellError):
     """A fit was made but is not good enough to replace the active calibration."""
 
+    exit_code = 3
+
 
 # What the CLI reports as one line with a documented exit code, and the runner treats as a
 # fault rather than a bug: the application's errors and the drivers' (which cannot subclass

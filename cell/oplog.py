@@ -22,3 +22,11 @@ def log_to_file(path: str | Path) -> Path:
     if root.level > logging.INFO or root.level == logging.NOTSET:
         root.setLevel(logging.INFO)
     return path
+
+
+def quiet_terminal(level: int) -> None:
+    """Raise the terminal's log handlers to `level`: the operator's file keeps every line,
+    the terminal only what a command does not already say in its own one-line message."""
+    for h in logging.getLogger().handlers:
+        if type(h) is logging.StreamHandler:
+            h.setLevel(level)

@@ -36,7 +36,7 @@ class TableToRobot:
     scale: float = 1.0
 
     @classmethod
-    def from_offset(cls, cfg: PlanningConfig) -> "TableToRobot":
+    def from_offset(cls, cfg: PlanningConfig) -> TableToRobot:
         return cls(0.0, cfg.offset_x_mm, cfg.offset_y_mm, cfg.table_z_mm)
 
     def _matrix(self) -> np.ndarray:
@@ -152,7 +152,7 @@ class Planner:
         if part.cls not in ("bolt", "nut"):
             raise Unreachable(f"class {part.cls!r} is not picked")
         plan = self.cfg.for_class(part.cls)
-        table_xy = part.grasp_mm or part.world_mm
+        table_xy = part.grasp_mm or part.table_mm
         rx, ry = self.frame.to_robot(table_xy)[0]
         z = self.frame.table_z_mm
         angle = None
@@ -181,7 +181,7 @@ class Planner:
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point lies outside the configured workspace or reach, or None."""
         ws = self.cfg.workspace
-        for axis, v in zip("xyz", (x_mm, y_mm, z_mm)):
+        for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
             lo, hi = getattr(ws, f"{axis}_min_mm"), getattr(ws, f"{axis}_max_mm")
             if not (math.isfinite(v) and lo <= v <= hi):
                 return f"robot {axis} = {v:.1f} mm is outside the workspace [{lo:g}, {hi:g}] mm"
@@ -195,8 +195,8 @@ class Planner:
         if self.cfg.pick_order == "as-found" or not parts:
             return list(parts)
         if self.cfg.pick_order == "rows":
-            return sorted(parts, key=lambda p: (round(p.world_mm[1], 1), p.world_mm[0]))
+            return sorted(parts, key=lambda p: (round(p.table_mm[1], 1), p.table_mm[0]))
         here = np.asarray(gripper_robot_xy if gripper_robot_xy is not None else (0.0, 0.0))
-        robot = self.frame.to_robot([p.world_mm for p in parts])
+        robot = self.frame.to_robot([p.table_mm for p in parts])
         dist = np.hypot(*(robot - here).T)
         return [parts[i] for i in np.argsort(dist, kind="stable")]

@@ -7,13 +7,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-
-class Strict(BaseModel):
-    """As cell.config.Strict (which imports this module, so it cannot be imported here)."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+from drivers.arm.config import Workspace
+from drivers.config import Strict
 
 
 class ClassPlan(Strict):
@@ -27,8 +24,9 @@ class ClassPlan(Strict):
     bin_robot_mm: tuple[float, float, float] = Field(description="where the gripper opens over the bin, robot frame")
 
 
-class RobotWorkspace(Strict):
-    """Where the planner lets the tool go, robot frame; checked before anything moves."""
+class RobotWorkspace(Workspace):
+    """Where the planner lets the tool go, robot frame: the arm's workspace box (ordered
+    there) plus a reach ring about the base axis; checked before anything moves."""
 
     x_min_mm: float = -300.0
     x_max_mm: float = 300.0
@@ -40,11 +38,9 @@ class RobotWorkspace(Strict):
     reach_max_mm: float = Field(380.0, gt=0, description="farthest the tool may reach from the base axis (XY)")
 
     @model_validator(mode="after")
-    def _ordered(self) -> "RobotWorkspace":
-        for lo, hi in (("x_min_mm", "x_max_mm"), ("y_min_mm", "y_max_mm"), ("z_min_mm", "z_max_mm"),
-                       ("reach_min_mm", "reach_max_mm")):
-            if getattr(self, lo) >= getattr(self, hi):
-                raise ValueError(f"planning.workspace.{lo} ({getattr(self, lo)}) must be below {hi} ({getattr(self, hi)})")
+    def _reach_ordered(self) -> RobotWorkspace:
+        if self.reach_min_mm >= self.reach_max_mm:
+            raise ValueError(f"reach_min_mm ({self.reach_min_mm:g} mm) must be below reach_max_mm ({self.reach_max_mm:g} mm)")
         return self
 
 
@@ -102,7 +98,7 @@ class FeederConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _some_mix(self) -> "FeederConfig":
+    def _some_mix(self) -> FeederConfig:
         if self.bolt_share + self.nut_share + self.washer_share <= 0:
             raise ValueError("sim.feeder: bolt_share + nut_share + washer_share must be above 0")
         x0, y0, x1, y1 = self.area_mm
@@ -140,9 +136,9 @@ class SimConfig(Strict):
     )
     bolt_angle_tolerance_deg: float = Field(5.0, gt=0, le=90)
     bin_half_size_mm: float = Field(40.0, gt=0, le=500, description="a part released within this of a bin lands in it")
-    speed_mm_s: float = Field(150.0, gt=0, description="arm.kind mock (the simulated arm): tool speed")
-    gripper_s: float = Field(0.4, ge=0, description="arm.kind mock: time to open or close the gripper")
-    realtime: bool = Field(False, description="arm.kind mock: sleep for the simulated motion time")
+    speed_mm_s: float = Field(150.0, gt=0, description="arm.kind sim (the simulated arm): tool speed")
+    gripper_s: float = Field(0.4, ge=0, description="arm.kind sim: time to open or close the gripper")
+    realtime: bool = Field(False, description="arm.kind sim: sleep for the simulated motion time")
     emulator_speed_scale: float = Field(
         50.0, gt=0, le=10000, description="arm.kind serial/dynamixel (the real driver against an emulated arm): "
                                           "the emulator moves this many times faster than the arm would; 1 = real time"

@@ -5,9 +5,9 @@ come in through their interfaces (Camera, Arm, a locate function), so the same l
 the line, the dry run with a mock arm, and the simulated cell. Failures become FAULT,
 a stop request or Ctrl-C becomes STOPPED; both first make the arm safe.
 
-Parts are tracked across frames by position: a detection within verify_radius_mm of a
-tracked part is that part. Verify judges the part just placed on the next frame: still
-there is a miss, retried up to max_retries, then the part is marked failed and skipped.
+Parts are tracked across frames by position (cell.tracking). Verify judges the part just
+placed on the next frame: still there is a miss, retried up to max_retries, then the part
+is marked failed and skipped.
 
 Continuous mode (the line service): with nothing to pick, PLAN goes to WAIT instead of
 DONE, and the cell captures again after the interval; only a stop ends the job. A
@@ -16,13 +16,11 @@ verified) with the arm homed and powered, ready for the next job.
 """
 from __future__ import annotations
 
-import itertools
 import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -32,6 +30,7 @@ from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
+from cell.tracking import PartStatus, Track, Tracker
 from cell.vision.types import LocatedPart, LocateResult
 from drivers.arm.base import Arm
 from drivers.arm.errors import OutOfReach
@@ -42,6 +41,7 @@ log = logging.getLogger(__name__)
 S = State
 PAUSABLE = frozenset({S.CAPTURE, S.LOCATE, S.VERIFY, S.PLAN, S.WAIT})
 EXIT_DONE, EXIT_INCOMPLETE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 130
+Step = tuple[State, str]  # what a state handler returns: the next state and why
 
 
 class Controls:
@@ -59,18 +59,14 @@ class Controls:
         self.wake.set()
 
 
-@dataclass
-class Track:
-    """One part followed across frames."""
-
-    id: int
-    cls: str
-    table_mm: tuple[float, float]
-    status: str = "pending"  # pending | picked | failed | unreachable | rehearsed
-    attempts: int = 0
-
-
 class Runner:
+    """One run of the cell, from connecting the devices to the summary.
+
+    It owns the state machine, the summary, the part tracker, the last frame and its
+    detections, the pick in progress (target and track) and whether the gripper holds a
+    part; the devices, planner, config and audit log are lent to it by the caller.
+    """
+
     def __init__(
         self,
         camera: Camera,
@@ -96,12 +92,11 @@ class Runner:
         self.sim_motion_s = sim_motion_s  # a simulated arm's motion time so far, reported apart from wall time
         self.continuous_interval_s = continuous_interval_s  # None: clear the table once and finish
         self._attempt_mark = 0  # continuous mode: the limit counts attempts since the last pick or wait
-        self._track_ids = itertools.count(1)
         self.sm = StateMachine([self._on_transition])
         if continuous_interval_s is not None:  # a shift's transitions live in the audit log, not in memory
             self.sm.history = deque(maxlen=1000)
         self.summary = Summary()
-        self.tracks: list[Track] = []
+        self.tracker = Tracker(cfg.verify_radius_mm)
         self.frame: np.ndarray | None = None
         self.result: LocateResult | None = None
         self.target: Target | None = None
@@ -224,7 +219,7 @@ class Runner:
         self.holding = False
 
     # ---- state handlers -------------------------------------------------------------
-    def _idle(self):
+    def _idle(self) -> Step:
         self.camera.connect()
         self._arm("connect")
         problems = self.planner.bin_problems()
@@ -237,12 +232,12 @@ class Runner:
             raise ConfigError("bins out of reach: " + "; ".join(problems))
         return S.HOME, f"camera {self.camera.source} and arm {self.arm.port} connected"
 
-    def _home(self):
+    def _home(self) -> Step:
         self._arm("home")
         self._arm("open_gripper")
         return S.CAPTURE, "arm homed, gripper open"
 
-    def _capture(self):
+    def _capture(self) -> Step:
         t0 = time.perf_counter()
         try:
             self.frame = self.camera.capture()
@@ -251,7 +246,7 @@ class Runner:
         self.summary.frames += 1
         return S.LOCATE, f"frame {self.summary.frames}"
 
-    def _locate(self):
+    def _locate(self) -> Step:
         t0 = time.perf_counter()
         self.result = self.locate(self.frame)
         self.summary.locate_s += time.perf_counter() - t0
@@ -266,16 +261,15 @@ class Runner:
             return S.VERIFY, f"{why}; checking part {self.track.id}"
         return S.PLAN, why
 
-    def _verify(self):
+    def _verify(self) -> Step:
         track, target = self.track, self.target
         self.track = None
-        still = [o for o in self.result.objects
-                 if np.hypot(o.world_mm[0] - track.table_mm[0], o.world_mm[1] - track.table_mm[1]) <= self.cfg.verify_radius_mm]
+        still = self.tracker.near(track, self.result.objects)
         if not self.expect_motion:
-            track.status, result = "rehearsed", "rehearsed"
+            track.status, result = PartStatus.REHEARSED, "rehearsed"
             self.summary.rehearsed += 1
         elif not still:
-            track.status, result = "picked", "picked"
+            track.status, result = PartStatus.PICKED, "picked"
             if self.continuous_interval_s is not None:  # a shift's limit counts attempts since the last pick
                 self._attempt_mark = self.summary.attempts
             self.summary.picked[track.cls] = self.summary.picked.get(track.cls, 0) + 1
@@ -283,10 +277,10 @@ class Runner:
             result = "missed"
             self.summary.misses += 1
         self.audit.event("verify", track=track.id, cls=track.cls, attempt=track.attempts, result=result,
-                         table_mm=track.table_mm, still_at_mm=[o.world_mm for o in still])
+                         table_mm=track.table_mm, still_at_mm=[o.table_mm for o in still])
         reason = f"part {track.id} {result}"
         if result == "missed" and track.attempts > self.cfg.max_retries:
-            track.status = "failed"
+            track.status = PartStatus.FAILED
             self.summary.failed += 1
             self.audit.event("failed", track=track.id, cls=track.cls, attempts=track.attempts)
             reason += f", failed after {track.attempts} attempts"
@@ -295,68 +289,61 @@ class Runner:
         self.progress(self._pick_line(target, track, result))
         return S.PLAN, reason
 
-    def _plan(self):
+    def _plan(self) -> Step:
         if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
             since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
             return S.FAULT, f"safety stop: {n} pick attempts{since} (run.max_attempts_total)"
-        candidates, seen = [], []
-        for o in self.result.objects:
-            if not o.pick:
-                continue
-            track = self._track_for(o)
-            seen.append(track)
-            if track.status == "pending":
-                candidates.append((o, track))
-        if self.continuous_interval_s is not None:  # forget parts gone from the table: a shift leaks nothing
-            self.tracks = [t for t in self.tracks if any(t is s for s in seen)]
-        by_id = {id(o): t for o, t in candidates}
-        status = self.arm.status()
-        here = (status.pose.x_mm, status.pose.y_mm) if status.pose is not None else None
-        for part in self.planner.order([o for o, _ in candidates], here):
-            track = by_id[id(part)]
-            try:
-                target = self.planner.target(part)
-                for point in target.pick_points():
-                    self.arm.check_target(*point, target.jaw_angle_deg)
-                for point in target.place_points():  # as _place moves: a 4-axis arm's jaws turn with its base
-                    self.arm.check_target(*point)
-            except (Unreachable, OutOfReach) as e:
-                track.status = "unreachable"
-                self.summary.unreachable += 1
-                self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.world_mm, reason=str(e))
-                self.progress(f"part {track.id} {part.cls} at table ({part.world_mm[0]:.1f}, {part.world_mm[1]:.1f}) mm: "
-                              f"unreachable, skipped: {e}")
-                continue
-            track.attempts += 1
-            self.summary.attempts += 1
-            self.summary.retries += track.attempts > 1
-            self.target, self.track = target, track
-            self.audit.event("target", track=track.id, cls=target.cls, attempt=track.attempts,
-                             table_mm=target.table_mm, robot_mm=target.robot_mm, approach_z_mm=target.approach_z_mm,
-                             jaw_angle_deg=target.jaw_angle_deg, bin_robot_mm=target.bin_robot_mm)
-            return S.PICK, f"part {track.id} ({target.cls}), attempt {track.attempts}"
-        left = {st: sum(t.status == st for t in self.tracks) for st in ("failed", "unreachable")}
+        for part, track in self._choose():
+            target = self._reachable(part, track)
+            if target is not None:
+                self._start_attempt(track, target)
+                return S.PICK, f"part {track.id} ({target.cls}), attempt {track.attempts}"
+        failed, unreachable = self.tracker.count(PartStatus.FAILED), self.tracker.count(PartStatus.UNREACHABLE)
         if self.continuous_interval_s is not None:
             self._attempt_mark = self.summary.attempts
-            return S.WAIT, f"nothing to pick ({left['failed']} failed, {left['unreachable']} unreachable): waiting for parts"
-        return S.DONE, f"no pickable part left ({left['failed']} failed, {left['unreachable']} unreachable)"
+            return S.WAIT, f"nothing to pick ({failed} failed, {unreachable} unreachable): waiting for parts"
+        return S.DONE, f"no pickable part left ({failed} failed, {unreachable} unreachable)"
 
-    def _track_for(self, part: LocatedPart) -> Track:
-        """The tracked part this detection is (by position), or a new track."""
-        best, best_d = None, self.cfg.verify_radius_mm
-        for t in self.tracks:
-            if t.status == "picked":
-                continue
-            d = float(np.hypot(part.world_mm[0] - t.table_mm[0], part.world_mm[1] - t.table_mm[1]))
-            if d <= best_d:
-                best, best_d = t, d
-        if best is None:
-            best = Track(next(self._track_ids), part.cls, part.world_mm)
-            self.tracks.append(best)
-        best.table_mm = tuple(part.world_mm)
-        return best
+    def _choose(self) -> list[tuple[LocatedPart, Track]]:
+        """The last frame's pickable parts still pending, in the planner's order from where the arm is."""
+        pickable = [o for o in self.result.objects if o.pick]
+        seen = [self.tracker.track_for(o) for o in pickable]
+        pending = {id(o): (o, t) for o, t in zip(pickable, seen, strict=True) if t.status is PartStatus.PENDING}
+        if self.continuous_interval_s is not None:  # forget parts gone from the table: a shift leaks nothing
+            self.tracker.keep_only(seen)
+        status = self.arm.status()
+        here = (status.pose.x_mm, status.pose.y_mm) if status.pose is not None else None
+        return [pending[id(p)] for p in self.planner.order([o for o, _ in pending.values()], here)]
 
-    def _pick(self):
+    def _reachable(self, part: LocatedPart, track: Track) -> Target | None:
+        """The part's target if the planner and the arm accept every point of it; else the
+        part is marked unreachable (before any motion) and None returned."""
+        try:
+            target = self.planner.target(part)
+            for point in target.pick_points():
+                self.arm.check_target(*point, target.jaw_angle_deg)
+            for point in target.place_points():  # as _place moves: a 4-axis arm's jaws turn with its base
+                self.arm.check_target(*point)
+            return target
+        except (Unreachable, OutOfReach) as e:
+            track.status = PartStatus.UNREACHABLE
+            self.summary.unreachable += 1
+            self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
+            self.progress(f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "
+                          f"unreachable, skipped: {e}")
+            return None
+
+    def _start_attempt(self, track: Track, target: Target) -> None:
+        """Count the attempt and make it the pick in progress."""
+        track.attempts += 1
+        self.summary.attempts += 1
+        self.summary.retries += track.attempts > 1
+        self.target, self.track = target, track
+        self.audit.event("target", track=track.id, cls=target.cls, attempt=track.attempts,
+                         table_mm=target.table_mm, robot_mm=target.robot_mm, approach_z_mm=target.approach_z_mm,
+                         jaw_angle_deg=target.jaw_angle_deg, bin_robot_mm=target.bin_robot_mm)
+
+    def _pick(self) -> Step:
         t = self.target
         x, y, z = t.robot_mm
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
@@ -366,7 +353,7 @@ class Runner:
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
         return S.PLACE, f"part {self.track.id} gripped at robot ({x:.1f}, {y:.1f}, {z:.1f}) mm"
 
-    def _place(self):
+    def _place(self) -> Step:
         t = self.target
         bx, by, bz = t.bin_robot_mm
         self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
@@ -375,7 +362,7 @@ class Runner:
         self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
         return S.CAPTURE, f"part {self.track.id} released over the {t.cls} bin"
 
-    def _paused(self):
+    def _paused(self) -> Step:
         self.progress("paused at a safe point")
         t0 = time.perf_counter()
         c = self.controls
@@ -386,7 +373,7 @@ class Runner:
             return S.STOPPED, "stop requested while paused"
         return S.CAPTURE, "resumed: a fresh frame, the table may have changed"
 
-    def _wait(self):
+    def _wait(self) -> Step:
         """Sleep one capture interval, cut short by any operator request; the arm does not move."""
         self.controls.wake.wait(self.continuous_interval_s)
         self.controls.wake.clear()
@@ -402,6 +389,6 @@ class Runner:
 
 
 def _detection(o: LocatedPart) -> dict:
-    return {"id": o.id, "cls": o.cls, "pick": o.pick, "table_mm": [round(v, 3) for v in o.world_mm],
+    return {"id": o.id, "cls": o.cls, "pick": o.pick, "table_mm": [round(v, 3) for v in o.table_mm],
             "pixel": [round(v, 2) for v in o.pixel], "angle_deg": None if o.angle_deg is None else round(o.angle_deg, 2),
             "reason": o.reason}

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import ast
 import inspect
+import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable
 
 
 class State(Enum):
@@ -135,7 +136,7 @@ def _state_docs() -> dict[State, str]:
     tree = ast.parse(inspect.getsource(State))
     body = tree.body[0].body
     docs = {}
-    for stmt, nxt in zip(body, body[1:]):
+    for stmt, nxt in itertools.pairwise(body):
         if isinstance(stmt, ast.Assign) and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
             docs[State[stmt.targets[0].id]] = nxt.value.value
     return docs

@@ -6,8 +6,8 @@ badly jogged circle must not silently tilt every target.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

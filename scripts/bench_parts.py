@@ -63,7 +63,7 @@ def score(result, parts) -> dict:
     truth = np.array([p.footprint_centre_mm for p in parts])
     out = {"confusion": Counter(), "centre": [], "angle": [], "head": [], "wrong": [], "found": len(result.objects)}
     for obj in result.objects:
-        d = np.hypot(*(truth - np.array(obj.world_mm)).T)
+        d = np.hypot(*(truth - np.array(obj.table_mm)).T)
         part = parts[int(d.argmin())]
         expected = part.kind if part.kind in ("nut", "bolt") else "unknown"
         out["confusion"][(part.kind, obj.cls)] += 1

@@ -6,15 +6,9 @@ import pytest
 
 from cell.cli import main
 from drivers.sim.dxl_emulator import DxlBusEmulator
-from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
-
-@pytest.fixture
-def grbl():
-    emu = GrblEmulator(speed_scale=20)
-    with serve_pty(emu) as path:
-        yield emu, path
+pytestmark = pytest.mark.timeout(60)  # opens a pty with emulated firmware
 
 
 def test_jog_serial_at_grbl_defaults_ends_at_the_commanded_position(grbl, capsys):
@@ -91,7 +85,7 @@ def test_real_arm_without_port_is_a_config_error(capsys):
     "toml, message",
     [
         ('[arm]\nkind = "serial"\n[arm.serial]\nbaud = -5\n', "arm.serial.baud: Input should be greater than or equal to 300"),
-        ('[arm]\nkind = "robot"\n', "arm.kind: Input should be 'serial', 'dynamixel' or 'mock'"),
+        ('[arm]\nkind = "robot"\n', "arm.kind: Input should be 'serial', 'dynamixel', 'mock' or 'sim'"),
         ('[arm.serial]\nbaudrate = 9600\n', "arm.serial.baudrate: Extra inputs are not permitted"),
         ('[arm.serial.commands]\nfeed = "G1 X{x}"\n', "arm.serial.commands.feed: unknown placeholder {x}"),
         ('[arm.dynamixel]\ngripper_id = 12\n', "must be distinct"),

@@ -6,9 +6,12 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from cell.audit import AuditLog, read_events
 from cell.summary import Summary, counts_from_log
+
+pytestmark = pytest.mark.timeout(60)  # runs a subprocess
 
 
 def test_each_event_is_one_flushed_json_line_with_state(tmp_path):

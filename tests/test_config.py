@@ -1,10 +1,19 @@
 """Config files: every shipped TOML validates; mistakes are named with key and unit."""
+import argparse
 from pathlib import Path
+from typing import get_args
 
 import pytest
 
+from cell.cli import build_parser
 from cell.config import load_config
 from cell.errors import ConfigError
+from cell.sim.cell import sim_arm_kind
+from cell.vision.config import Preset
+from drivers.arm.config import ArmConfig, ArmKind
+from drivers.arm.factory import make_arm
+from drivers.arm.mock import MockArm
+from drivers.errors import ConfigError as DriverConfigError
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))
 
@@ -40,3 +49,19 @@ def test_config_errors_name_the_key(tmp_path, text, message):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "none.toml")
+
+
+def test_sim_names_the_simulated_arm_and_mock_is_its_old_spelling_only_there():
+    assert sim_arm_kind(ArmConfig(kind="sim")) == sim_arm_kind(ArmConfig(kind="mock")) == "sim"
+    assert sim_arm_kind(ArmConfig(kind="dynamixel")) == "dynamixel"
+    assert isinstance(make_arm(ArmConfig(kind="mock")), MockArm)
+    with pytest.raises(DriverConfigError, match="needs camera.source 'sim'"):
+        make_arm(ArmConfig(kind="sim"))
+
+
+def test_cli_choices_are_the_configs_literals():
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    arm = next(a for a in build_parser()._actions if a.dest == "arm")
+    assert tuple(arm.choices) == get_args(ArmKind) == ("serial", "dynamixel", "mock", "sim")
+    assert next(a for a in sub["jog"]._actions if a.dest == "arm").choices == get_args(ArmKind)
+    assert next(a for a in sub["locate"]._actions if a.dest == "preset").choices == get_args(Preset)

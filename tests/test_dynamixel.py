@@ -13,6 +13,8 @@ from drivers.arm.kinematics import FourAxisKinematics
 from drivers.sim.dxl_emulator import SYNC_WRITE, DxlBusEmulator, packet
 from drivers.sim.pty_port import serve_pty
 
+pytestmark = pytest.mark.timeout(60)  # opens a pty with the emulated servo bus
+
 CFG = DynamixelArmConfig(move_timeout_s=2.0, poll_interval_s=0.01)
 KIN = FourAxisKinematics(CFG)
 
@@ -50,7 +52,7 @@ def test_move_sends_one_sync_write_and_arrives(bus):
         assert torques(emu) == [True] * 5
         arm.move_to(200.0, 50.0, 30.0)
         goals = KIN.to_ticks(KIN.inverse(200.0, 50.0, 30.0))
-        params = bytes([116, 0, 4, 0]) + b"".join(bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals))
+        params = bytes([116, 0, 4, 0]) + b"".join(bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals, strict=True))
         assert packet(0xFE, SYNC_WRITE, params) in emu.packets_received
         wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == goals

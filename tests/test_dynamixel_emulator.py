@@ -2,7 +2,18 @@
 import pytest
 
 from drivers.sim.dxl_emulator import (
-    PING, READ, REBOOT, STATUS, SYNC_READ, SYNC_WRITE, WRITE, DxlBusEmulator, crc16, packet, stuff, unstuff,
+    PING,
+    READ,
+    REBOOT,
+    STATUS,
+    SYNC_READ,
+    SYNC_WRITE,
+    WRITE,
+    DxlBusEmulator,
+    crc16,
+    packet,
+    stuff,
+    unstuff,
 )
 
 

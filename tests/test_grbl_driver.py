@@ -11,19 +11,14 @@ from drivers.arm.serial_line import SerialLine
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
+pytestmark = pytest.mark.timeout(60)  # opens a pty with the emulated GRBL
+
 FAST = dict(command_timeout_s=0.5, motion_timeout_s=3.0, connect_timeout_s=0.5,
             reconnect_timeout_s=2.0, poll_interval_s=0.02, speed_mm_s=100.0)
 
 
 def make_arm(path: str, **overrides) -> SerialGcodeArm:
     return SerialGcodeArm(SerialLine(path, 115200), SerialArmConfig(**{**FAST, **overrides}))
-
-
-@pytest.fixture
-def grbl():
-    emu = GrblEmulator(speed_scale=20)
-    with serve_pty(emu) as path:
-        yield emu, path
 
 
 def assert_at(emu, x, y, z):

@@ -10,13 +10,15 @@ import socket
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
 from asyncua import Client, ua
 
 from cell.audit import read_events
+
+pytestmark = pytest.mark.timeout(240)  # runs run-cell serve as a subprocess
 
 REPO = Path(__file__).resolve().parents[1]
 NS = "urn:pick-cell"
@@ -81,7 +83,7 @@ class Cell:
     def __init__(self, client: Client):
         self.client = client
 
-    async def open(self) -> "Cell":
+    async def open(self) -> Cell:
         self.ns = await self.client.get_namespace_index(NS)
         self.node = await self.client.nodes.objects.get_child(f"{self.ns}:Cell")
         return self
@@ -113,39 +115,9 @@ def with_cell(url: str, body, timeout_s: float = 60.0):
     return asyncio.run(asyncio.wait_for(go(), timeout_s))
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """The built-in simulated shift: `run-cell serve --dry-run`, no config."""
-    serve = Serve(tmp_path_factory.mktemp("serve"), "--dry-run")
-    serve.wait_ready()
-    yield serve
-    serve.stop()
-
-
-def test_ready_line_names_the_endpoint(served):
-    assert f"ready: OPC UA {served.url}; screen http://127.0.0.1:{served.http_port}/ " in served.output
-
-
-def test_the_node_tree_by_browsenames(served):
-    async def body(cell):
-        names = {(await n.read_browse_name()).Name for n in await cell.node.get_children()}
-        assert set(VARIABLES) | set(METHODS) <= names
-        assert await cell.read("VisionState") == "Ready"
-        types = {name: (await (await cell.var(name)).read_data_type_as_variant_type()) for name in VARIABLES}
-        assert all(types[c] == ua.VariantType.UInt32 for c in COUNTERS + ["Heartbeat"])
-        assert types["LastPickTableMm"] == ua.VariantType.Double and types["LastPickTime"] == ua.VariantType.DateTime
-        assert await cell.read("CalibrationCvRmsMm") > 0 and await cell.read("CalibrationModel")
-        stamp = (await (await cell.var("Heartbeat")).read_data_value()).SourceTimestamp
-        age_s = (datetime.now(timezone.utc) - stamp.replace(tzinfo=timezone.utc)).total_seconds()
-        assert -5 < age_s < 5  # values carry their source timestamp
-        h0 = await cell.read("Heartbeat")  # published within half a second of each change
-        await asyncio.sleep(3.0)
-        assert 2 <= await cell.read("Heartbeat") - h0 <= 4
-
-    with_cell(served.url, body)
-
-
 class Changes:
+    """A subscription's handler: data changes by node name, and events."""
+
     def __init__(self):
         self.values: dict[str, list] = {}
         self.events: list = []
@@ -157,86 +129,91 @@ class Changes:
         self.events.append(event.get_event_props_as_fields_dict())
 
 
-def test_start_continuous_subscribe_and_see_picks_rise_pause_resume_stop(served):
-    async def body(cell):
-        changes = Changes()
-        sub = await cell.client.create_subscription(100, changes)
-        await sub.subscribe_data_change([await cell.var(n) for n in ("PickedBolts", "PickedNuts", "CellState")])
-        pick_type = await cell.client.nodes.base_event_type.get_child(f"{cell.ns}:PickEventType")
-        await sub.subscribe_events(cell.node, pick_type)
-        await cell.call("StartContinuous")
-        assert await cell.read("VisionState") == "ContinuousExecution"
-        end = time.monotonic() + 40
-        while sum(changes.values.get(n, [0])[-1] for n in ("PickedBolts", "PickedNuts")) < 3:
-            assert time.monotonic() < end, f"picks did not rise: {changes.values}"
-            await asyncio.sleep(0.1)
-        assert await cell.read("LastPickOutcome") == "picked" and len(await cell.read("LastPickRobotMm")) == 3
-        first = changes.events[0]  # each pick is also an event from Cell
-        assert first["PartClass"].Value in ("bolt", "nut") and first["Outcome"].Value == "picked"
-        assert len(first["RobotMm"].Value) == 3 and "picked at table" in first["Message"].Value.Text
-        await cell.call("Pause")
-        await cell.wait("CellState", lambda s: s == "PAUSED")
-        held = await cell.read("PickedNuts") + await cell.read("PickedBolts")
-        await asyncio.sleep(1.0)
-        assert await cell.read("PickedNuts") + await cell.read("PickedBolts") == held
-        await cell.call("Resume")
-        await cell.wait("CellState", lambda s: s != "PAUSED")
-        await cell.call("Stop")
-        await cell.wait("VisionState", lambda s: s == "Ready")
-        assert await cell.read("CellState") == "STOPPED"
-        assert "PAUSED" in changes.values["CellState"]
-        await sub.delete()
-
-    with_cell(served.url, body)
+async def the_node_tree_by_browsenames(cell: Cell):
+    names = {(await n.read_browse_name()).Name for n in await cell.node.get_children()}
+    assert set(VARIABLES) | set(METHODS) <= names
+    assert await cell.read("VisionState") == "Ready"
+    types = {name: (await (await cell.var(name)).read_data_type_as_variant_type()) for name in VARIABLES}
+    assert all(types[c] == ua.VariantType.UInt32 for c in COUNTERS + ["Heartbeat"])
+    assert types["LastPickTableMm"] == ua.VariantType.Double and types["LastPickTime"] == ua.VariantType.DateTime
+    assert await cell.read("CalibrationCvRmsMm") > 0 and await cell.read("CalibrationModel")
+    stamp = (await (await cell.var("Heartbeat")).read_data_value()).SourceTimestamp
+    age_s = (datetime.now(UTC) - stamp.replace(tzinfo=UTC)).total_seconds()
+    assert -5 < age_s < 5  # values carry their source timestamp
+    h0 = await cell.read("Heartbeat")  # published within half a second of each change
+    await asyncio.sleep(3.0)
+    assert 2 <= await cell.read("Heartbeat") - h0 <= 4
 
 
-def test_a_method_in_the_wrong_state_is_bad_invalid_state_and_changes_nothing(served):
-    async def body(cell):
-        for method in ("Reset", "Pause", "Resume", "Stop"):
-            with pytest.raises(ua.UaStatusCodeError) as e:
-                await cell.call(method)
-            assert e.value.code == ua.StatusCodes.BadInvalidState
-        assert await cell.read("VisionState") == "Ready"
+async def continuous_picks_rise_pause_resume_stop(cell: Cell):
+    changes = Changes()
+    sub = await cell.client.create_subscription(100, changes)
+    await sub.subscribe_data_change([await cell.var(n) for n in ("PickedBolts", "PickedNuts", "CellState")])
+    pick_type = await cell.client.nodes.base_event_type.get_child(f"{cell.ns}:PickEventType")
+    await sub.subscribe_events(cell.node, pick_type)
+    before = await cell.read("PickedBolts") + await cell.read("PickedNuts")
+    await cell.call("StartContinuous")
+    assert await cell.read("VisionState") == "ContinuousExecution"
+    end = time.monotonic() + 40
+    while sum(changes.values.get(n, [0])[-1] for n in ("PickedBolts", "PickedNuts")) < before + 3:
+        assert time.monotonic() < end, f"picks did not rise: {changes.values}"
+        await asyncio.sleep(0.1)
+    assert await cell.read("LastPickOutcome") == "picked" and len(await cell.read("LastPickRobotMm")) == 3
+    first = changes.events[0]  # each pick is also an event from Cell
+    assert first["PartClass"].Value in ("bolt", "nut") and first["Outcome"].Value == "picked"
+    assert len(first["RobotMm"].Value) == 3 and "picked at table" in first["Message"].Value.Text
+    await cell.call("Pause")
+    await cell.wait("CellState", lambda s: s == "PAUSED")
+    held = await cell.read("PickedNuts") + await cell.read("PickedBolts")
+    await asyncio.sleep(1.0)
+    assert await cell.read("PickedNuts") + await cell.read("PickedBolts") == held
+    await cell.call("Resume")
+    await cell.wait("CellState", lambda s: s != "PAUSED")
+    await cell.call("Stop")
+    await cell.wait("VisionState", lambda s: s == "Ready")
+    assert await cell.read("CellState") == "STOPPED"
+    assert "PAUSED" in changes.values["CellState"]
+    await sub.delete()
+
+
+async def wrong_states_are_bad_invalid_state(cell: Cell):
+    for method in ("Reset", "Pause", "Resume", "Stop"):
         with pytest.raises(ua.UaStatusCodeError) as e:
-            await cell.call("StartSingleJob", ua.Variant("rm -rf /", ua.VariantType.String))
-        assert e.value.code == ua.StatusCodes.BadTooManyArguments
-        await cell.call("StartContinuous")
-        for method in ("StartSingleJob", "StartContinuous", "Reset", "Resume"):
-            with pytest.raises(ua.UaStatusCodeError) as e:
-                await cell.call(method)
-            assert e.value.code == ua.StatusCodes.BadInvalidState
-        assert await cell.read("VisionState") == "ContinuousExecution"
-        with pytest.raises(ua.UaStatusCodeError):  # clients only read
-            await (await cell.var("VisionState")).write_value("Ready")
-        await cell.call("Stop")
-        await cell.wait("VisionState", lambda s: s == "Ready")
-
-    with_cell(served.url, body)
-
-
-def test_halt_then_reset(served):
-    async def body(cell):
-        await cell.call("StartContinuous")
-        await cell.wait("CellState", lambda s: s in ("PICK", "PLACE", "CAPTURE", "WAIT"))
-        await cell.call("Halt")
-        await cell.wait("VisionState", lambda s: s == "Halted")
-        with pytest.raises(ua.UaStatusCodeError) as e:
-            await cell.call("StartContinuous")
+            await cell.call(method)
         assert e.value.code == ua.StatusCodes.BadInvalidState
-        await cell.call("Reset")
-        assert await cell.read("VisionState") == "Ready"
+    assert await cell.read("VisionState") == "Ready"
+    with pytest.raises(ua.UaStatusCodeError) as e:
+        await cell.call("StartSingleJob", ua.Variant("rm -rf /", ua.VariantType.String))
+    assert e.value.code == ua.StatusCodes.BadTooManyArguments
+    await cell.call("StartContinuous")
+    for method in ("StartSingleJob", "StartContinuous", "Reset", "Resume"):
+        with pytest.raises(ua.UaStatusCodeError) as e:
+            await cell.call(method)
+        assert e.value.code == ua.StatusCodes.BadInvalidState
+    assert await cell.read("VisionState") == "ContinuousExecution"
+    with pytest.raises(ua.UaStatusCodeError):  # clients only read
+        await (await cell.var("VisionState")).write_value("Ready")
+    await cell.call("Stop")
+    await cell.wait("VisionState", lambda s: s == "Ready")
 
-    with_cell(served.url, body)
 
-
-def test_garbage_and_a_client_vanishing_mid_session_leave_the_cell_running(served):
-    async def start(cell):
+async def halt_then_reset(cell: Cell):
+    await cell.call("StartContinuous")
+    await cell.wait("CellState", lambda s: s in ("PICK", "PLACE", "CAPTURE", "WAIT"))
+    await cell.call("Halt")
+    await cell.wait("VisionState", lambda s: s == "Halted")
+    with pytest.raises(ua.UaStatusCodeError) as e:
         await cell.call("StartContinuous")
+    assert e.value.code == ua.StatusCodes.BadInvalidState
+    await cell.call("Reset")
+    assert await cell.read("VisionState") == "Ready"
 
-    with_cell(served.url, start)
-    with socket.create_connection(("127.0.0.1", served.port), timeout=5) as s:
+
+def garbage_and_a_vanishing_client_leave_the_cell_running(serve: Serve):
+    with_cell(serve.url, lambda cell: cell.call("StartContinuous"))
+    with socket.create_connection(("127.0.0.1", serve.port), timeout=5) as s:
         s.sendall(b"HELF\x00\x00\x00\x10garbage-garbage!" * 4)
-    client = Client(served.url, timeout=5)
+    client = Client(serve.url, timeout=5)
 
     async def vanish():  # a session opened, then the connection cut without a goodbye
         await client.connect()
@@ -249,18 +226,28 @@ def test_garbage_and_a_client_vanishing_mid_session_leave_the_cell_running(serve
         await cell.call("Stop")
         await cell.wait("VisionState", lambda s: s == "Ready")
 
-    with_cell(served.url, check)
-    assert served.proc.poll() is None
+    with_cell(serve.url, check)
+    assert serve.proc.poll() is None
 
 
-def test_sigterm_halts_and_exits_cleanly(tmp_path_factory, served):
-    with_cell(served.url, lambda cell: cell.call("StartContinuous"))
-    time.sleep(1.0)
-    t0 = time.monotonic()
-    assert served.stop() == 0
-    assert time.monotonic() - t0 < 20
-    assert "stopped: cell halted safely" in served.output
-    events = [e for f in sorted(served.log_dir.glob("cell-*.jsonl")) for e in read_events(f)]
+def test_a_plc_drives_the_built_in_shift(tmp_path):
+    """`run-cell serve --dry-run`, no config: one server and the whole conversation in order
+    (the steps share its state, so they are one test, whichever worker runs it)."""
+    serve = Serve(tmp_path, "--dry-run")
+    try:
+        assert f"ready: OPC UA {serve.url}; screen http://127.0.0.1:{serve.http_port}/ " in serve.wait_ready()
+        for step in (the_node_tree_by_browsenames, continuous_picks_rise_pause_resume_stop,
+                     wrong_states_are_bad_invalid_state, halt_then_reset):
+            with_cell(serve.url, step)
+        garbage_and_a_vanishing_client_leave_the_cell_running(serve)
+        with_cell(serve.url, lambda cell: cell.call("StartContinuous"))
+        time.sleep(1.0)
+        t0 = time.monotonic()
+    finally:
+        rc = serve.stop()
+    assert rc == 0 and time.monotonic() - t0 < 20  # SIGTERM: the job halted, the process gone
+    assert "stopped: cell halted safely" in serve.output
+    events = [e for f in sorted(serve.log_dir.glob("cell-*.jsonl")) for e in read_events(f)]
     assert events[-1]["kind"] == "service_stop"
     assert [e["target"] for e in events if e["kind"] == "vision_state"][-1] == "Halted"
 
@@ -273,6 +260,7 @@ def test_beyond_loopback_without_credentials_is_refused(tmp_path):
     assert "beyond loopback" in out and "service.user" in out and "Traceback" not in out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arm", ["serial", "dynamixel"])
 def test_emulated_arms_pick_through_the_service(tmp_path, arm):
     serve = Serve(tmp_path, "--dry-run", "--arm", arm)
@@ -292,6 +280,7 @@ def test_emulated_arms_pick_through_the_service(tmp_path, arm):
     assert "Traceback" not in serve.output
 
 
+@pytest.mark.slow
 def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_path):
     """host 0.0.0.0 with a user and a password from the environment: Basic256Sha256 SignAndEncrypt only,
     a certificate made on first start, the right password in, a wrong one and an unencrypted client out."""

@@ -41,9 +41,9 @@ def test_quadratic_fitted_to_table2_matches_the_paper():
     world = np.array([[float(r["X_mm"]), float(r["Y_mm"])] for r in rows])
     fitted = PolynomialMap.fit(px, world, 2)
     s = error_stats(fitted(px), world)
-    assert max(abs(s["max_pos_x_mm"]), abs(s["max_neg_x_mm"]), abs(s["max_pos_y_mm"]), abs(s["max_neg_y_mm"])) <= 0.76
-    assert abs(s["rms_x_mm"] - 0.22) <= 0.02
-    assert abs(s["rms_y_mm"] - 0.34) <= 0.02
+    assert max(abs(s.max_pos_x_mm), abs(s.max_neg_x_mm), abs(s.max_pos_y_mm), abs(s.max_neg_y_mm)) <= 0.76
+    assert abs(s.rms_x_mm - 0.22) <= 0.02
+    assert abs(s.rms_y_mm - 0.34) <= 0.02
 
 
 def test_eq5_rounding_costs_more_than_the_fit_itself():

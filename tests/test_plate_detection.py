@@ -34,6 +34,7 @@ def polygon_opacity(camera, polygon_mm):
     return canvas / 255.0
 
 
+@pytest.mark.slow
 def test_paper_preset_numbers_all_156_as_the_paper_does():
     cam = default_camera()
     pts = find_points_paper(render_plate(cam, PLATE), CONFIG)
@@ -44,12 +45,14 @@ def test_paper_preset_numbers_all_156_as_the_paper_does():
     assert np.abs(pts.pixel - truth_px(cam, pts)).max() < 1.2
 
 
+@pytest.mark.slow
 def test_paper_preset_fails_without_every_circle():
     image = render_plate(default_camera(), PLATE, omit={(4, 4)})
     with pytest.raises(PlateNotFound, match="found 155 circles"):
         find_points_paper(image, CONFIG)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("roll_deg", [-30.0, 0.0, 30.0])
 def test_default_numbers_rotated_tilted_plates(roll_deg):
     cam = wide_camera(roll_deg=roll_deg, tilt_deg=10.0, k1=-0.1, k2=0.04)
@@ -59,6 +62,7 @@ def test_default_numbers_rotated_tilted_plates(roll_deg):
     assert err < 0.15, f"centre off its true position by {err:.3f} px"
 
 
+@pytest.mark.slow
 def test_default_survives_missing_circles_strays_and_a_screw():
     cam = wide_camera(roll_deg=12.0, tilt_deg=6.0)
     omit = {(0, 0), (3, 2), (4, 2), (12, 11), (7, 5), (8, 9)}
@@ -74,6 +78,7 @@ def test_default_survives_missing_circles_strays_and_a_screw():
     assert np.abs(pts.pixel - truth_px(cam, pts)).max() < 0.15
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("exposure,gradient", [(0.45, 0.15), (1.25, 0.15), (1.0, 0.7)])
 def test_default_adapts_to_exposure_and_uneven_backlight(exposure, gradient):
     cam = default_camera()
@@ -83,18 +88,21 @@ def test_default_adapts_to_exposure_and_uneven_backlight(exposure, gradient):
     assert np.abs(pts.pixel - truth_px(cam, pts)).max() < 0.2
 
 
+@pytest.mark.slow
 def test_a_missing_row_is_reported_not_guessed():
     omit = {(c, 11) for c in range(PLATE.columns)}
     with pytest.raises(PlateNotFound, match=r"found 143 blobs, 143 fit a 13 x 11 lattice.*1 row\(s\) missing"):
         find_points(render_plate(default_camera(), PLATE, omit=omit), CONFIG)
 
 
+@pytest.mark.slow
 def test_plate_partly_out_of_view_fails_with_what_was_seen():
     cam = CameraModel.looking_down(1280, 720, 0.26, (60, 40))  # sees only the top-left part
     with pytest.raises(PlateNotFound, match="expected 13 x 12"):
         find_points(render_plate(cam, PLATE), CONFIG)
 
 
+@pytest.mark.slow
 def test_config_grid_that_does_not_match_the_plate_fails():
     cfg = CONFIG.model_copy(deep=True)
     cfg.plate.columns, cfg.plate.rows = 7, 7

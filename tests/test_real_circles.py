@@ -53,4 +53,4 @@ def test_numbering_and_centres_agree_with_opencv(reference, name):
     # One grid symmetry maps our (col, row) onto OpenCV's for every dot.
     ours = [((n - 1) % 7, (n - 1) // 7) for n in pts.number]
     theirs = [tuple(ref_cr[j]) for j in nearest]
-    assert any(all(sym(*o) == t for o, t in zip(ours, theirs)) for sym in SYMMETRIES)
+    assert any(all(sym(*o) == t for o, t in zip(ours, theirs, strict=True)) for sym in SYMMETRIES)

@@ -1,4 +1,5 @@
-"""scripts/recalibrate.py and `run-cell map`, driven as operators and other tools call them."""
+"""scripts/recalibrate.py, `run-cell recalibrate` and `run-cell map`, driven as operators and other tools call them."""
+import argparse
 import json
 import subprocess
 import sys
@@ -8,9 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
+from cell.calibration.recalibrate import build_parser as script_parser
 from cell.camera_model import CameraModel
+from cell.cli import build_parser as cli_parser
 from cell.config import CellConfig
 from cell.sim.render import render_plate
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]  # the CLIs run as subprocesses, end to end
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "recalibrate.py"
@@ -212,3 +217,27 @@ def test_capture_from_the_simulated_camera(work, tmp_path):
     r = run(SCRIPT, "--out", out, "--log", work / "cell.log", "--quiet")
     assert r.returncode == 0, r.stderr
     assert json.loads(out.read_text())["statistics"]["cross_validated"]["rms_mm"] < 0.015
+
+
+def test_run_cell_recalibrate_is_the_script_s_command(work, tmp_path):
+    out = tmp_path / "active.json"
+    args = ("--image", work / "plate.png", "--out", out, "--config", work / "cell.toml", "--log", work / "cell.log")
+    r = run_cell("recalibrate", *args, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "cross-validated" in r.stdout and f"active calibration replaced: {out}" in r.stdout
+    assert json.loads(out.read_text())["schema"] == "pick-cell/calibration"
+    strict = tmp_path / "strict.toml"
+    strict.write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n[calibration]\nmax_cv_rms_mm = 0.05\n")
+    before = out.read_bytes()
+    r = run_cell("recalibrate", *args[:4], "--config", strict, "--model", "quadratic", "--log", work / "cell.log")
+    assert r.returncode == 3 and out.read_bytes() == before, r.stdout + r.stderr
+    assert r.stderr.startswith("run-cell recalibrate: error: ") and r.stderr.count("\n") == 1
+    assert "max_cv_rms_mm" in r.stderr and "left unchanged" in r.stderr
+
+
+def test_the_script_and_the_sub_command_take_the_same_options():
+    def options(parser):
+        return sorted((a.dest, tuple(a.option_strings), a.choices, a.default) for a in parser._actions)
+    sub = next(a for a in cli_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["recalibrate"]
+    assert options(script_parser()) == options(sub)
+    assert "--report-dir" in sub.format_help() and "--quiet" in sub.format_help()

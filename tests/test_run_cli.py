@@ -3,18 +3,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from cell.audit import read_events
+import pytest
+
 from cell.cli import main
 from cell.summary import counts_from_log
+from tests.helpers import REPO, audit_of, ctrl_c_after_first_pick
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def audit_of(log_dir: Path) -> list[dict]:
-    (path,) = log_dir.glob("run-*.jsonl")
-    return read_events(path)
+pytestmark = pytest.mark.timeout(240)  # whole runs; the Ctrl-C test runs run-cell as a subprocess
 
 
+@pytest.mark.slow
 def test_dry_run_clears_the_papers_table_and_agrees_with_its_log(tmp_path, capsys):
     assert main(["--dry-run", "--log-dir", str(tmp_path)]) == 0
     out = capsys.readouterr().out
@@ -30,6 +28,7 @@ def test_dry_run_clears_the_papers_table_and_agrees_with_its_log(tmp_path, capsy
     assert len((tmp_path).glob("run-*.log").__next__().read_text()) > 0
 
 
+@pytest.mark.slow
 def test_a_wrong_offset_misses_retries_and_fails(tmp_path, capsys):
     code = main(["--dry-run", "--offset-x-mm", "3", "--log-dir", str(tmp_path)])
     out = capsys.readouterr().out
@@ -51,9 +50,10 @@ def test_a_missing_config_is_a_one_line_error_and_a_fault_in_the_log(tmp_path, c
 
 
 def test_no_config_and_no_dry_run_is_refused(capsys):
+    import argparse
+
     from cell.commands.run import run_cell
     from cell.errors import ConfigError
-    import argparse
 
     try:
         run_cell(argparse.Namespace(run_config=None, dry_run=False))
@@ -203,6 +203,7 @@ log_dir = "{tmp_path / 'logs'}"
     return cfg
 
 
+@pytest.mark.slow
 def test_dry_run_of_a_line_config_rehearses_every_pick_with_the_mock_arm(tmp_path, capsys):
     assert main(["--config", str(line_config(tmp_path)), "--dry-run"]) == 0
     out = capsys.readouterr().out
@@ -219,22 +220,14 @@ def test_a_bin_out_of_reach_is_a_fault_before_anything_moves(tmp_path, capsys):
     assert [e["command"] for e in events if e["kind"] == "arm"] == ["connect"]
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
-    import signal
-    import subprocess
-    import sys
 
     cfg = tmp_path / "rt.toml"
     cfg.write_text(f'[sim]\nrealtime = true\nperfect_calibration = true\nspeed_mm_s = 500.0\n'
                    f'[run]\nlog_dir = "{tmp_path / "logs"}"\n')
-    proc = subprocess.Popen([sys.executable, "-m", "cell.cli", "--config", str(cfg)], cwd=REPO,
-                            stdout=subprocess.PIPE, text=True)
-    for line in proc.stdout:
-        if line.startswith("pick  1:"):
-            break
-    proc.send_signal(signal.SIGINT)
-    rest = proc.stdout.read()
-    assert proc.wait(timeout=60) == 130
+    code, rest = ctrl_c_after_first_pick("--config", str(cfg))
+    assert code == 130
     assert "STOPPED: Ctrl-C" in rest
     events = audit_of(tmp_path / "logs")
     steps = [e["step"] for e in events if e["kind"] == "safe_step" and e["ok"]]
@@ -242,6 +235,7 @@ def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
     assert events[-1]["kind"] == "run_end" and events[-1]["state"] == "stopped"
 
 
+@pytest.mark.slow
 def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
     cfg = tmp_path / "bumped.toml"
     cfg.write_text(f'[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\n'
@@ -251,6 +245,7 @@ def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
     assert c["misses"] > 0 and c["failed"] > 0
 
 
+@pytest.mark.slow
 def test_a_rotated_robot_frame_needs_teach_and_then_clears_the_table(tmp_path, capsys):
     """The table sits 2 degrees rotated in the robot frame: the paper's fixed offset misses
     the far parts; a frame taught from four jogged circles picks everything."""

@@ -5,20 +5,24 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
+
 from cell.audit import AuditLog
 from cell.planning import Planner
 from cell.run_config import RunConfig
 from cell.runner import Controls, Runner
 from cell.statemachine import State
-from tests.test_runner import PLANNING, TRUE_FRAME, FakeArm, FakeCamera, FakeTable, fake_locator
+from tests.doubles import PLANNING, TRUE_FRAME, FakeArm, FakeCamera, FakeTable, fake_locator
+
+pytestmark = pytest.mark.timeout(60)  # the runner in a thread: a stuck wait must not hang the suite
 
 ONE_NUT = [("nut", 20.0, 30.0, None)]
 
 
-def continuous_runner(tmp_path, parts=ONE_NUT, interval_s=0.05, run=RunConfig()):
+def continuous_runner(tmp_path, parts=ONE_NUT, interval_s=0.05, run: RunConfig | None = None):
     table = FakeTable(parts)
     arm, camera, controls = FakeArm(table), FakeCamera(), Controls()
-    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME), run,
+    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME), run or RunConfig(),
                     AuditLog(tmp_path / "audit.jsonl"), controls, continuous_interval_s=interval_s)
     return runner, table, arm, camera, controls
 
@@ -114,7 +118,7 @@ def test_a_shift_forgets_parts_gone_from_the_table(tmp_path):
     controls.request(controls.finish)
     thread.join(5)
     assert runner.summary.picked == {"nut": 30}
-    assert len(runner.tracks) <= 1
+    assert len(runner.tracker.tracks) <= 1
 
 
 def test_the_attempt_limit_counts_from_the_last_pick(tmp_path):

@@ -19,6 +19,8 @@ from cell.service.api import Command, InvalidState, VisionState
 from cell.service.shiftlog import read_shift, shift_files
 from cell.summary import counts_from_log
 
+pytestmark = pytest.mark.timeout(120)  # the simulated cell in-process; one case opens a pty with emulated GRBL
+
 V = VisionState
 
 

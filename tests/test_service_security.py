@@ -12,6 +12,8 @@ from cell.errors import ConfigError
 from cell.service.config import ServiceConfig, is_loopback
 from cell.service.security import check_exposure, hash_password, password_ok
 
+pytestmark = pytest.mark.timeout(60)  # two cases run run-cell serve as a subprocess
+
 REPO = Path(__file__).resolve().parents[1]
 
 

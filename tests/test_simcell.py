@@ -85,6 +85,7 @@ def test_paper_layout_has_the_papers_parts_and_a_washer_none_touching():
     assert min(gaps) > 3.0
 
 
+@pytest.mark.slow
 def test_square_to_base_layout_lays_every_bolt_across_the_line_from_the_base_none_touching():
     base = (144.0, -40.0)  # an arm's base axis in the table frame
     parts = paper_layout(base_table_mm=base)

@@ -4,29 +4,22 @@ on a pseudo-terminal. The world changes only through the emulator's gripper even
 from __future__ import annotations
 
 import math
-import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
 
-from cell.audit import read_events
 from cell.cli import main
 from cell.config import load_config
 from cell.summary import counts_from_log
 from drivers.arm.kinematics import FourAxisKinematics
+from tests.helpers import REPO, audit_of, ctrl_c_after_first_pick
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.timeout(240)  # whole runs on a pty; one as a subprocess
+
 CONFIGS = {"serial": REPO / "configs" / "sim-grbl.toml", "dynamixel": REPO / "configs" / "sim-dynamixel.toml"}
 DRIVERS = {"serial": ("SerialGcodeArm", "ttyGRBL"), "dynamixel": ("DynamixelArm", "ttyDXL")}
 CLEARED = {"bin:bolt": {"bolt": 9}, "bin:nut": {"nut": 8}, "table": {"washer": 1}}
-
-
-def audit_of(log_dir: Path) -> list[dict]:
-    (path,) = log_dir.glob("run-*.jsonl")
-    return read_events(path)
 
 
 def port_of(events: list[dict]) -> Path:
@@ -80,11 +73,12 @@ def dxl_motion_s(events: list[dict]) -> float:
             gripper = goal
             continue
         goal = home if m == "home" else kin.to_ticks(kin.inverse(*m[:3]))
-        total += max(abs(a - b) for a, b in zip(goal, joints)) / speed
+        total += max(abs(a - b) for a, b in zip(goal, joints, strict=True)) / speed
         joints = goal
     return total
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["serial", "dynamixel"])
 def test_the_pick_job_completes_through_the_real_driver_and_the_emulated_arm(kind, tmp_path, capsys):
     assert main(["--dry-run", "--arm", kind, "--log-dir", str(tmp_path)]) == 0
@@ -113,6 +107,7 @@ def test_the_pick_job_completes_through_the_real_driver_and_the_emulated_arm(kin
     assert_emulator_gone(events)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind,reason,safe", [
     ("serial", "AlarmResponse: arm alarm 1: hard limit", "stopped (!)"),
     ("dynamixel", "HardwareFault: servo hardware error (servo 15: overload error)", "torque released"),
@@ -139,15 +134,10 @@ def test_a_fault_mid_job_ends_in_fault_with_the_arm_stopped(kind, reason, safe, 
     assert_emulator_gone(events)
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_emulated_arm_safely_and_removes_its_pty(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "cell.cli", "--dry-run", "--arm", "dynamixel",
-                             "--log-dir", str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE, text=True)
-    for line in proc.stdout:
-        if line.startswith("pick  1:"):
-            break
-    proc.send_signal(signal.SIGINT)
-    rest = proc.stdout.read()
-    assert proc.wait(timeout=60) == 130
+    code, rest = ctrl_c_after_first_pick("--dry-run", "--arm", "dynamixel", "--log-dir", str(tmp_path))
+    assert code == 130
     assert "STOPPED: Ctrl-C" in rest
     events = audit_of(tmp_path)
     steps = [e["step"] for e in events if e["kind"] == "safe_step" and e["ok"]]

@@ -59,4 +59,4 @@ def test_fixed_reference_height_and_missing_camera_pose():
     assert any("no camera pose" in w for w in result.warnings)
     # Mapped on the table plane, the nut lands farther from the camera's foot.
     foot = cam.center_table_mm[:2]
-    assert np.hypot(*(np.array(result.objects[0].world_mm) - foot)) > np.hypot(*(np.array(obj.world_mm) - foot))
+    assert np.hypot(*(np.array(result.objects[0].table_mm) - foot)) > np.hypot(*(np.array(obj.table_mm) - foot))

@@ -33,7 +33,7 @@ def match(result, parts):
     truth = np.array([p.footprint_centre_mm for p in parts])
     pairs = []
     for obj in result.objects:
-        d = np.hypot(*(truth - np.array(obj.world_mm)).T)
+        d = np.hypot(*(truth - np.array(obj.table_mm)).T)
         pairs.append((parts[int(d.argmin())], obj, float(d.min())))
     return pairs
 
@@ -169,7 +169,7 @@ def test_random_drawings_never_crash_and_give_valid_records():
             for obj in result.objects:
                 assert obj.cls in ("nut", "bolt", "unknown") and obj.reason
                 assert obj.pick == (obj.cls != "unknown")
-                assert np.all(np.isfinite(obj.world_mm))
+                assert np.all(np.isfinite(obj.table_mm))
 
 
 @pytest.mark.parametrize(
@@ -185,4 +185,4 @@ def test_random_drawings_never_crash_and_give_valid_records():
 def test_smallest_and_largest_parts_at_the_corners_of_the_field(camera, calibration, part):
     result = locate(render_scene(camera, [part]), calibration, PartsConfig())
     assert [o.cls for o in result.objects] == [part.kind], [o.reason for o in result.objects]
-    assert np.hypot(*(np.array(result.objects[0].world_mm) - part.footprint_centre_mm)) <= 0.7
+    assert np.hypot(*(np.array(result.objects[0].table_mm) - part.footprint_centre_mm)) <= 0.7

@@ -20,7 +20,11 @@ from tests.browser import launch, why_no_browser
 from tests.fake_service import FakeLineService
 from tests.serve_process import ServeProcess
 
-pytestmark = pytest.mark.skipif(why_no_browser() is not None, reason=str(why_no_browser()))
+pytestmark = [
+    pytest.mark.skipif(why_no_browser() is not None, reason=str(why_no_browser())),
+    pytest.mark.slow,  # a browser and `run-cell serve` in a subprocess
+    pytest.mark.timeout(180),
+]
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
 TIMEOUT_MS = 10_000

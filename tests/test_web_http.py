@@ -188,6 +188,7 @@ def test_recalibration_refused_while_running(client, service, config):
     assert not config.calibration.active_path.exists()
 
 
+@pytest.mark.slow  # fits a rendered plate
 def test_recalibrate_from_camera_accept_installs_through_the_gate(client, service, config):
     client.post("/api/command/StartContinuous")
     client.post("/api/command/Pause")
@@ -208,6 +209,7 @@ def test_recalibrate_from_camera_accept_installs_through_the_gate(client, servic
     assert client.post("/api/command/Resume").status_code == 200
 
 
+@pytest.mark.slow  # fits a rendered plate
 def test_recalibration_reject_leaves_everything(client, service, config):
     report = client.post("/api/recalibration/upload", content=png_bytes(plate_image())).json()
     assert report["passes"] and report["source"].startswith("uploaded image sha256")
@@ -216,6 +218,7 @@ def test_recalibration_reject_leaves_everything(client, service, config):
     assert client.get(f"/api/recalibration/{report['id']}/plate.jpg").status_code == 404
 
 
+@pytest.mark.slow  # fits a rendered plate
 def test_a_fit_over_the_limits_is_refused_by_the_same_gate(client, service, config):
     config.calibration.max_cv_rms_mm = 0.0001
     config.calibration.active_path.parent.mkdir(parents=True)

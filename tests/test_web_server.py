@@ -18,6 +18,8 @@ from cell.web.server import WebServer
 from tests.fake_service import FakeLineService
 from tests.serve_process import free_port
 
+pytestmark = pytest.mark.timeout(60)  # real sockets and threads: never hang the suite
+
 
 @pytest.fixture
 def service():

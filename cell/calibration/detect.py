@@ -141,7 +141,7 @@ def detect_blobs(
     contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     h, w = gray.shape
     blobs = []
-    outer = [c for c, hier in zip(contours, hierarchy[0] if hierarchy is not None else []) if hier[3] < 0]
+    outer = [c for c, hier in zip(contours, hierarchy[0] if hierarchy is not None else [], strict=True) if hier[3] < 0]
     for c in outer:
         cx, cy, area, ratio, solidity = _blob_shape(c)
         if area < min_area_px or ratio < min_axis_ratio or solidity < min_solidity:

@@ -22,7 +22,7 @@ class Normaliser:
     scale_px: float
 
     @classmethod
-    def fit(cls, pixels: np.ndarray) -> "Normaliser":
+    def fit(cls, pixels: np.ndarray) -> Normaliser:
         c = pixels.mean(axis=0)
         s = float(np.abs(pixels - c).max()) or 1.0
         return cls((float(c[0]), float(c[1])), s)
@@ -34,7 +34,7 @@ class Normaliser:
         return {"centre_px": list(self.centre_px), "scale_px": self.scale_px}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Normaliser":
+    def from_dict(cls, d: dict) -> Normaliser:
         return cls(tuple(map(float, d["centre_px"])), float(d["scale_px"]))
 
 
@@ -70,7 +70,7 @@ class PolynomialMap:
         return np.column_stack([x**i * y**j for i, j in exponents])
 
     @classmethod
-    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray, degree: int) -> "PolynomialMap":
+    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray, degree: int) -> PolynomialMap:
         norm = Normaliser.fit(pixels)
         A = cls._design(norm.apply(pixels), monomial_exponents(degree))
         coef, *_ = np.linalg.lstsq(A, table_mm, rcond=None)
@@ -90,7 +90,7 @@ class PolynomialMap:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PolynomialMap":
+    def from_dict(cls, d: dict) -> PolynomialMap:
         degree = int(d["degree"])
         n = len(monomial_exponents(degree))
         cx, cy = np.asarray(d["X"], dtype=np.float64), np.asarray(d["Y"], dtype=np.float64)
@@ -109,7 +109,7 @@ class HomographyMap:
         self.H = np.asarray(H, dtype=np.float64).reshape(3, 3)
 
     @classmethod
-    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray) -> "HomographyMap":
+    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray) -> HomographyMap:
         norm = Normaliser.fit(pixels)
         H, _ = cv2.findHomography(norm.apply(pixels), table_mm, 0)
         if H is None:
@@ -125,7 +125,7 @@ class HomographyMap:
         return {"normaliser": self.norm.to_dict(), "H": self.H.tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "HomographyMap":
+    def from_dict(cls, d: dict) -> HomographyMap:
         return cls(Normaliser.from_dict(d["normaliser"]), np.asarray(d["H"], dtype=np.float64))
 
 
@@ -138,7 +138,7 @@ class CameraMap:
         self.camera = camera
 
     @classmethod
-    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray, image_size: tuple[int, int]) -> "CameraMap":
+    def fit(cls, pixels: np.ndarray, table_mm: np.ndarray, image_size: tuple[int, int]) -> CameraMap:
         return cls(fit_camera(pixels, table_mm, image_size))
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray:
@@ -148,7 +148,7 @@ class CameraMap:
         return self.camera.to_dict()
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CameraMap":
+    def from_dict(cls, d: dict) -> CameraMap:
         return cls(CameraModel.from_dict(d))
 
 

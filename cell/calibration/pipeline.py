@@ -4,8 +4,8 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
-from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -37,8 +37,8 @@ class PlatePoints:
 class ModelScore:
     name: str
     degree: int
-    fit: dict  # statistics on the fitted points
-    cv: dict  # statistics on points left out of the fit
+    fit: ErrorStats  # on the fitted points
+    cv: ErrorStats  # on points left out of the fit
 
     @property
     def label(self) -> str:
@@ -130,23 +130,40 @@ def _local_pitch_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np
     return np.sqrt(np.abs(np.linalg.det(J)))
 
 
-def error_stats(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """Deviation = original - calibrated (the paper's Table III sign)."""
+@dataclass(frozen=True)
+class ErrorStats:
+    """Deviation = original - calibrated (the paper's Table III sign), over a set of points."""
+
+    rms_x_mm: float
+    rms_y_mm: float
+    rms_mm: float
+    max_mm: float
+    max_pos_x_mm: float
+    max_neg_x_mm: float
+    max_pos_y_mm: float
+    max_neg_y_mm: float
+
+    def to_dict(self) -> dict:
+        """As stored in a calibration file's `statistics`."""
+        return asdict(self)
+
+
+def error_stats(predicted: np.ndarray, truth: np.ndarray) -> ErrorStats:
     dev = truth - predicted
     r = np.hypot(dev[:, 0], dev[:, 1])
-    return {
-        "rms_x_mm": float(np.sqrt(np.mean(dev[:, 0] ** 2))),
-        "rms_y_mm": float(np.sqrt(np.mean(dev[:, 1] ** 2))),
-        "rms_mm": float(np.sqrt(np.mean(r**2))),
-        "max_mm": float(r.max()),
-        "max_pos_x_mm": float(dev[:, 0].max()),
-        "max_neg_x_mm": float(dev[:, 0].min()),
-        "max_pos_y_mm": float(dev[:, 1].max()),
-        "max_neg_y_mm": float(dev[:, 1].min()),
-    }
+    return ErrorStats(
+        rms_x_mm=float(np.sqrt(np.mean(dev[:, 0] ** 2))),
+        rms_y_mm=float(np.sqrt(np.mean(dev[:, 1] ** 2))),
+        rms_mm=float(np.sqrt(np.mean(r**2))),
+        max_mm=float(r.max()),
+        max_pos_x_mm=float(dev[:, 0].max()),
+        max_neg_x_mm=float(dev[:, 0].min()),
+        max_pos_y_mm=float(dev[:, 1].max()),
+        max_neg_y_mm=float(dev[:, 1].min()),
+    )
 
 
-def cross_validate(name: str, degree: int, pts: PlatePoints, image_size, folds: int) -> dict:
+def cross_validate(name: str, degree: int, pts: PlatePoints, image_size, folds: int) -> ErrorStats:
     """K-fold: every point predicted by a model fitted without it."""
     n = len(pts.pixel)
     folds = min(folds, n)
@@ -188,10 +205,10 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         scores.append(ModelScore(name, degree, fit_stats, cv))
     if not scores:
         raise PlateNotFound(f"only {len(pts.pixel)} plate points: too few to fit {want}")
-    chosen = min(scores, key=lambda s: s.cv["rms_mm"])
-    others = ", ".join(f"{s.label} {s.cv['rms_mm']:.4f}" for s in scores if s is not chosen)
+    chosen = min(scores, key=lambda s: s.cv.rms_mm)
+    others = ", ".join(f"{s.label} {s.cv.rms_mm:.4f}" for s in scores if s is not chosen)
     why = (
-        f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv['rms_mm']:.4f} mm"
+        f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv.rms_mm:.4f} mm"
         + (f" (others: {others} mm)" if others else " (the only model asked for)")
     )
     final = fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
@@ -215,8 +232,8 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
             "points_missing": pts.missing,
         },
         image_sha256=hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest(),
-        created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        statistics={"fit": chosen.fit, "cross_validated": chosen.cv, "why": why},
+        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+        statistics={"fit": chosen.fit.to_dict(), "cross_validated": chosen.cv.to_dict(), "why": why},
     )
     timings = {"detect_number_ms": 1e3 * (t1 - t0), "fit_cv_ms": 1e3 * (t2 - t1), "total_ms": 1e3 * (t2 - t0)}
     return CalibrationResult(cal, pts, final(pts.pixel), scores, chosen, why, timings)

@@ -11,34 +11,54 @@ import shutil
 import sys
 from datetime import datetime
 from pathlib import Path
+from typing import get_args
 
 from cell.calibration.pipeline import calibrate
 from cell.calibration.report import summary_text, write_report
-from cell.config import load_config
-from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError
+from cell.config import ModelName, load_config
+from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, exit_code
 from cell.imageio import read_image
-from cell.oplog import log_to_file
+from cell.oplog import log_to_file, quiet_terminal
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
+from cell.vision.config import Preset
 from drivers.cameras.factory import make_camera
 
 log = logging.getLogger(__name__)
+DESCRIPTION = "Fit a new pixel -> table calibration from a plate image and make it active."
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="recalibrate.py",
-        description="Fit a new pixel -> table calibration from a plate image and make it active.",
-    )
+    """scripts/recalibrate.py's own parser; `run-cell recalibrate` takes the same options."""
+    p = argparse.ArgumentParser(prog="recalibrate.py", description=DESCRIPTION)
+    add_arguments(p)
+    return p
+
+
+def register(sub) -> None:
+    """`run-cell recalibrate`: the same command as scripts/recalibrate.py."""
+    p = sub.add_parser("recalibrate", help="fit a new calibration from a plate image and make it active",
+                       description=DESCRIPTION)
+    add_arguments(p)
+    p.set_defaults(func=cmd_recalibrate)
+
+
+def cmd_recalibrate(args: argparse.Namespace) -> int:
+    """As the script: the report on stdout, a failure as run-cell's one line (details in --log)."""
+    if not args.verbose:
+        quiet_terminal(logging.CRITICAL)
+    return recalibrate(args)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image", type=Path, help="plate image (default: capture from the configured camera)")
     p.add_argument("--out", type=Path, help="calibration file to replace (default: calibration.active_path)")
     p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
-    p.add_argument("--model", choices=["auto", "quadratic", "homography", "polynomial", "camera"])
-    p.add_argument("--preset", choices=["default", "paper"], help="detector preset (overrides the config)")
+    p.add_argument("--model", choices=get_args(ModelName))
+    p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
     p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")
-    return p
 
 
 def capture_plate(config):
@@ -65,10 +85,10 @@ def check_image_size(image, config, source: str) -> None:
 def gate_failure(result, limits) -> str | None:
     """Why a fit fails the configured limits (calibration.max_cv_*), or None when it passes."""
     cv = result.chosen.cv
-    if cv["rms_mm"] <= limits.max_cv_rms_mm and cv["max_mm"] <= limits.max_cv_error_mm:
+    if cv.rms_mm <= limits.max_cv_rms_mm and cv.max_mm <= limits.max_cv_error_mm:
         return None
     return (
-        f"cross-validated error RMS {cv['rms_mm']:.4f} mm / max {cv['max_mm']:.4f} mm exceeds "
+        f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
         f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm {limits.max_cv_error_mm} mm"
     )
 
@@ -97,8 +117,8 @@ def replace_active(result, config, out: Path | None = None) -> tuple[Path, Path 
         "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
         target,
         result.chosen.label,
-        cv["rms_mm"],
-        cv["max_mm"],
+        cv.rms_mm,
+        cv.max_mm,
         f"; previous kept as {backup}" if backup else "",
     )
     return target, backup
@@ -120,20 +140,31 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def recalibrate(args: argparse.Namespace) -> int:
+    """Run with the operator log open; a failure is logged there, then raised for the caller
+    to print as one line (exit 2, or 3 for a fit over the limits)."""
     try:
         log_to_file(args.log)
     except OSError as e:
-        print(f"recalibrate: error: cannot open log {args.log}: {e}", file=sys.stderr)
-        return 2
+        raise InputError(f"cannot open log {args.log}: {e}") from None
     try:
         return run(args)
     except CalibrationRejected as e:
         log.error("recalibration refused: %s", e)
-        print(f"recalibrate: refused: {e}", file=sys.stderr)
-        return 3
+        raise
     except REPORTED_ERRORS as e:
         log.error("recalibration failed: %s", e)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    """scripts/recalibrate.py: its messages start with `recalibrate:`."""
+    args = build_parser().parse_args(argv)
+    try:
+        return recalibrate(args)
+    except CalibrationRejected as e:
+        print(f"recalibrate: refused: {e}", file=sys.stderr)
+        return e.exit_code
+    except REPORTED_ERRORS as e:
         print(f"recalibrate: error: {e}", file=sys.stderr)
-        return 2
+        return exit_code(e)

@@ -18,7 +18,7 @@ def table3_rows(result: CalibrationResult) -> list[dict]:
     """Calibrated X/Y, original X/Y, deviation = original - calibrated, per point."""
     rows = []
     for num, px, cal, orig in zip(
-        result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm
+        result.points.number, result.points.pixel, result.calibrated_mm, result.points.table_mm, strict=True
     ):
         rows.append(
             {
@@ -67,18 +67,18 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     for s in result.scores:
         mark = "*" if s is result.chosen else " "
         lines.append(
-            f"{mark}{s.label:<23}{s.fit['rms_x_mm']:>11.4f}{s.fit['rms_y_mm']:>11.4f}"
-            f"{s.fit['max_mm']:>9.4f}{s.cv['rms_mm']:>9.4f}{s.cv['max_mm']:>9.4f}"
+            f"{mark}{s.label:<23}{s.fit.rms_x_mm:>11.4f}{s.fit.rms_y_mm:>11.4f}"
+            f"{s.fit.max_mm:>9.4f}{s.cv.rms_mm:>9.4f}{s.cv.max_mm:>9.4f}"
         )
     lines += [
         "",
         "deviation (original - calibrated), chosen model:",
-        f"  fitted points:     max +dX {fit['max_pos_x_mm']:+.4f}  max -dX {fit['max_neg_x_mm']:+.4f}  "
-        f"max +dY {fit['max_pos_y_mm']:+.4f}  max -dY {fit['max_neg_y_mm']:+.4f}  "
-        f"RMS X {fit['rms_x_mm']:.4f}  RMS Y {fit['rms_y_mm']:.4f}",
-        f"  cross-validated:   max +dX {cv['max_pos_x_mm']:+.4f}  max -dX {cv['max_neg_x_mm']:+.4f}  "
-        f"max +dY {cv['max_pos_y_mm']:+.4f}  max -dY {cv['max_neg_y_mm']:+.4f}  "
-        f"RMS X {cv['rms_x_mm']:.4f}  RMS Y {cv['rms_y_mm']:.4f}",
+        f"  fitted points:     max +dX {fit.max_pos_x_mm:+.4f}  max -dX {fit.max_neg_x_mm:+.4f}  "
+        f"max +dY {fit.max_pos_y_mm:+.4f}  max -dY {fit.max_neg_y_mm:+.4f}  "
+        f"RMS X {fit.rms_x_mm:.4f}  RMS Y {fit.rms_y_mm:.4f}",
+        f"  cross-validated:   max +dX {cv.max_pos_x_mm:+.4f}  max -dX {cv.max_neg_x_mm:+.4f}  "
+        f"max +dY {cv.max_pos_y_mm:+.4f}  max -dY {cv.max_neg_y_mm:+.4f}  "
+        f"RMS X {cv.rms_x_mm:.4f}  RMS Y {cv.rms_y_mm:.4f}",
         "  (trust the cross-validated line: each point there was predicted by a fit made without it)",
     ]
     if cal.camera is not None:
@@ -104,7 +104,7 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
     """Every centre marked and numbered (the paper's Fig. 4)."""
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     scale = max(0.35, out.shape[1] / 3000)
-    for num, (x, y) in zip(result.points.number, result.points.pixel):
+    for num, (x, y) in zip(result.points.number, result.points.pixel, strict=True):
         c = (int(round(x)), int(round(y)))
         cv2.drawMarker(out, c, (0, 0, 255), cv2.MARKER_CROSS, 12, 1, cv2.LINE_AA)
         cv2.putText(out, str(num), (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 160, 0), 1, cv2.LINE_AA)

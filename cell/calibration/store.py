@@ -79,7 +79,7 @@ class Calibration:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, source: str = "calibration") -> "Calibration":
+    def from_dict(cls, d: dict, source: str = "calibration") -> Calibration:
         if not isinstance(d, dict) or d.get("schema") != SCHEMA:
             raise InputError(f"{source}: not a calibration file (schema is not {SCHEMA!r})")
         if d.get("version") != SCHEMA_VERSION:
@@ -111,7 +111,7 @@ class Calibration:
         write_json_atomic(path, self.to_dict())
 
     @classmethod
-    def load(cls, path: str | Path) -> "Calibration":
+    def load(cls, path: str | Path) -> Calibration:
         path = Path(path)
         try:
             text = path.read_text(encoding="utf-8")

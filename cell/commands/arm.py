@@ -4,12 +4,14 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import get_args
 
 from serial.tools import list_ports
 
 from cell.config import load_config
 from cell.errors import InputError
 from drivers.arm.base import Arm
+from drivers.arm.config import ArmKind
 from drivers.arm.factory import make_arm, with_overrides
 
 log = logging.getLogger(__name__)
@@ -35,7 +37,7 @@ def register(sub) -> None:
 def add_arm_arguments(p: argparse.ArgumentParser) -> None:
     # SUPPRESS: the same options given before the sub-command (`run-cell --arm serial jog ...`) still count.
     p.add_argument("--config", type=Path, default=argparse.SUPPRESS, help="cell config TOML (default: built-in)")
-    p.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS, help="override arm.kind")
+    p.add_argument("--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS, help="override arm.kind")
     p.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (device path or pyserial URL)")
 
 

@@ -78,7 +78,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     table = cal.pixel_to_table_mm(pixels) if len(pixels) else np.zeros((0, 2))
     rows = [
         {"x_px": float(p[0]), "y_px": float(p[1]), "X_mm": float(t[0]), "Y_mm": float(t[1])}
-        for p, t in zip(pixels, table)
+        for p, t in zip(pixels, table, strict=True)
     ]
     if args.json:
         print(json.dumps(rows))

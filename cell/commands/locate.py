@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import get_args
 
 import cv2
 import numpy as np
@@ -11,6 +12,7 @@ import numpy as np
 from cell.calibration.store import Calibration
 from cell.config import load_config
 from cell.errors import InputError
+from cell.vision.config import Preset
 from cell.vision.locate import PixelScale, locate
 from cell.vision.types import LocateResult
 
@@ -26,7 +28,7 @@ def register(sub) -> None:
         "--mm-per-px", type=float, help="a plain scale for an uncalibrated image (no height correction)"
     )
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
-    p.add_argument("--preset", choices=["default", "paper"], help="override parts.preset")
+    p.add_argument("--preset", choices=get_args(Preset), help="override parts.preset")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled")
     p.set_defaults(func=cmd_locate)
@@ -78,7 +80,7 @@ def to_json(result: LocateResult) -> dict:
                 "class": p.cls,
                 "reason": p.reason,
                 "pixel": _round(p.pixel),
-                "world_mm": _round(p.world_mm),
+                "world_mm": _round(p.table_mm),  # the documented key tools read (table mm)
                 "angle_deg": None if p.angle_deg is None else round(p.angle_deg, 2),
                 "pick": p.pick,
                 "grasp_mm": _round(p.grasp_mm),
@@ -103,7 +105,7 @@ def format_table(result: LocateResult) -> str:
         angle = "" if p.angle_deg is None else f"{p.angle_deg:.1f}"
         lines.append(
             f"{p.id:>4}  {p.cls.capitalize():<8}{p.pixel[0]:>9.1f}{p.pixel[1]:>9.1f}"
-            f"{p.world_mm[0]:>10.3f}{p.world_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
+            f"{p.table_mm[0]:>10.3f}{p.table_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
         )
     return "\n".join(lines)
 

@@ -7,8 +7,9 @@ import contextlib
 import logging
 import os
 import signal
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import get_args
 
 from cell.audit import AuditLog
 from cell.calibration.store import Calibration
@@ -18,10 +19,11 @@ from cell.oplog import log_to_file
 from cell.planning import Planner, save_taught, table_to_robot
 from cell.run_config import RunConfig
 from cell.runner import Controls, Runner
-from cell.sim.cell import sim_cell
+from cell.sim.cell import sim_arm_kind, sim_cell
 from cell.statemachine import markdown, mermaid
 from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
 from cell.vision.locate import locate
+from drivers.arm.config import ArmKind, DeviceKind
 from drivers.arm.factory import make_arm, with_overrides
 from drivers.cameras.factory import make_camera
 
@@ -40,7 +42,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--dry-run", action="store_true",
                    help="rehearse: a mock arm that records and checks every command and moves nothing; "
                         "with no --config, the built-in simulated cell")
-    g.add_argument("--arm", choices=["serial", "dynamixel", "mock"],
+    g.add_argument("--arm", choices=get_args(ArmKind),
                    help="override arm.kind; with the simulated camera, serial|dynamixel drives the real driver "
                         "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
                         "configs/sim-grbl.toml or configs/sim-dynamixel.toml)")
@@ -59,7 +61,7 @@ def register(sub) -> None:
     t.add_argument("--circles", nargs="+", type=int, metavar="CIRCLE",
                    help="jog the configured arm onto each of these circles now and record its pose")
     # SUPPRESS: the same options given before `teach` (run-cell's own --arm/--port) still count.
-    t.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS,
+    t.add_argument("--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS,
                    help="override arm.kind (with --circles)")
     t.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (with --circles)")
     t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
@@ -91,7 +93,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
                 raise InputError(f"--point {circle} {x} {y}: expected a circle number and two numbers") from None
             points.append(TaughtPoint(n, circle_table_mm(n, config), (rx, ry)))
     fit, residuals = fit_points(points, config)
-    for p, r in zip(points, residuals):
+    for p, r in zip(points, residuals, strict=True):
         print(f"circle {p.circle:3d}: table ({p.table_mm[0]:7.2f}, {p.table_mm[1]:7.2f}) mm -> "
               f"robot ({p.robot_mm[0]:7.2f}, {p.robot_mm[1]:7.2f}) mm, residual {r:.3f} mm")
     print(f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
@@ -122,14 +124,14 @@ def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack)
     """(camera, arm, calibration, expect_motion, sim cell or None); what must be shut down
     after the run (an emulated arm) goes on `resources`."""
     if config.camera.source == "sim":
-        if config.arm.kind != "mock" and config.arm.port:
+        if sim_arm_kind(config.arm) != "sim" and config.arm.port:
             log.warning("camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
                         config.arm.kind, config.arm.port)
         sim = resources.enter_context(sim_cell(config))
         return sim.camera, sim.arm, sim.calibration, True, sim
     calibration = Calibration.load(config.calibration.active_path)
     arm_cfg = config.arm
-    if dry_run and arm_cfg.kind != "mock":  # the mock checks every command as the real driver would
+    if dry_run and arm_cfg.kind in get_args(DeviceKind):  # the mock checks every command as the real driver would
         arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
     return make_camera(config.camera), make_arm(arm_cfg), calibration, not dry_run, None
 
@@ -139,7 +141,7 @@ def run_cell(args: argparse.Namespace) -> int:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
     if args.run_config is None and args.arm in SIM_CONFIGS:
         args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     try:
         config = _apply_overrides(load_config(args.run_config), args)
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault

@@ -10,8 +10,9 @@ import logging
 import os
 import signal
 import socket
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import get_args
 
 from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices
 from cell.config import CellConfig, load_config
@@ -23,6 +24,7 @@ from cell.service.shiftlog import ShiftLog
 from cell.sim.feeder import FedCamera, Feeder, SimClock
 from cell.sim.render import render_plate
 from cell.vision.locate import locate
+from drivers.arm.config import ArmKind
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +35,7 @@ def register(sub) -> None:
     p.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
     p.add_argument("--dry-run", action="store_true", default=argparse.SUPPRESS,
                    help="a mock arm over the config's camera; with no --config, the built-in simulated shift")
-    p.add_argument("--arm", choices=["serial", "dynamixel", "mock"], default=argparse.SUPPRESS,
+    p.add_argument("--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS,
                    help="override arm.kind (with --dry-run and no --config: the emulated arm's sim config)")
     p.add_argument("--log-dir", type=Path, default=argparse.SUPPRESS, help="override run.log_dir")
     p.add_argument("--opcua-port", type=int, help="override service.opcua_port")
@@ -88,7 +90,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     check_exposure(config.service)
     _check_port_free(config.service.host, config.service.opcua_port, "--opcua-port")
     _check_port_free(config.service.host, config.service.http_port, "--http-port")
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d")
+    stamp = datetime.now(UTC).strftime("%Y%m%d")
     if not args.verbose:
         for h in logging.getLogger().handlers:
             if type(h) is logging.StreamHandler:

@@ -10,10 +10,11 @@ and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from enum import Enum
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 

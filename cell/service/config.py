@@ -6,14 +6,13 @@ import ipaddress
 import socket
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from cell.web.config import WebConfig
+from drivers.config import Strict
 
 
-class ServiceConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
+class ServiceConfig(Strict):
     host: str = Field("127.0.0.1", description="address both interfaces listen on; beyond loopback needs security")
     opcua_port: int = Field(4840, ge=1, le=65535)
     opcua_path: str = Field("cell", pattern=r"^[A-Za-z0-9_-]{1,32}$", description="endpoint path: opc.tcp://HOST:PORT/PATH")

@@ -2,7 +2,7 @@
 cell.summary.counts_from_log, so reading the shift's log back after a restart gives them again."""
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 from cell.service.api import Counters
 
@@ -34,7 +34,7 @@ class ShiftCounts:
         return False
 
     @classmethod
-    def from_events(cls, events: Iterable[dict]) -> "ShiftCounts":
+    def from_events(cls, events: Iterable[dict]) -> ShiftCounts:
         counts = cls()
         for e in events:
             counts.apply(e)

@@ -14,7 +14,7 @@ import logging
 import math
 import socket
 from collections import deque
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from asyncua import Server, ua
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 NAMESPACE = "urn:pick-cell"
 APP_URI = "urn:pick-cell:server"
 _T = ua.VariantType
-_EPOCH = datetime(1601, 1, 1, tzinfo=timezone.utc)  # OPC UA's "no time"
+_EPOCH = datetime(1601, 1, 1, tzinfo=UTC)  # OPC UA's "no time"
 
 # BrowseName -> (type, array?) ; the values come from a Snapshot in _values().
 VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
@@ -194,12 +194,12 @@ class OpcUaServer:
         while True:
             try:
                 await asyncio.wait_for(self._dirty.wait(), timeout=0.5)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
             self._dirty.clear()
             while self._picks:
                 await self._fire(self._picks.popleft())
-            now = datetime.now(timezone.utc)
+            now = datetime.now(UTC)
             for name, value in _values(self.service.snapshot()).items():
                 if self._written.get(name) != value:
                     vtype, array = VARIABLES[name]

@@ -19,20 +19,29 @@ import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timezone
-from typing import Callable
+from datetime import UTC, datetime
 
 import numpy as np
 
 from cell.calibration.store import Calibration
 from cell.commands.locate import annotate
 from cell.config import CellConfig
-from cell.errors import CellError
 from cell.planning import Planner, table_to_robot
 from cell.runner import Controls, Runner
-from cell.service.api import (Alarm, CalibrationInfo, Command, FrameView, InvalidState, PickRecord, ServiceEvent,
-                              Snapshot, VisionState, allowed)
+from cell.service.api import (
+    Alarm,
+    CalibrationInfo,
+    Command,
+    FrameView,
+    InvalidState,
+    PickRecord,
+    ServiceEvent,
+    Snapshot,
+    VisionState,
+    allowed,
+)
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.statemachine import State
@@ -96,7 +105,7 @@ class LineService:
         self._controls: Controls | None = None
         self._runner: Runner | None = None
         self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))  # the day's shift so far
-        self._shift_day = datetime.now(timezone.utc).date().isoformat()
+        self._shift_day = datetime.now(UTC).date().isoformat()
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_KEPT)
         self._pick_times: deque[float] = deque(maxlen=_RATE_WINDOW)
         self._last_target: dict | None = None
@@ -253,7 +262,7 @@ class LineService:
             self._controls = self._runner = None
             if outcome == "fault":
                 what, hint = _split_hint(reason)
-                self._alarm = Alarm(what, hint, datetime.now(timezone.utc))
+                self._alarm = Alarm(what, hint, datetime.now(UTC))
                 self._set_state(V.ERROR, reason)
             elif self._halt_requested:
                 self._set_state(V.HALTED, reason)

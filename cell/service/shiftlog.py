@@ -11,9 +11,9 @@ import json
 import logging
 import re
 import threading
-from datetime import datetime, timezone
+from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Callable, Iterator
 
 from cell.audit import AuditLog
 
@@ -23,7 +23,7 @@ _NAME = re.compile(r"^cell-(\d{8})-(\d{3})\.jsonl$")
 
 
 def _today() -> str:
-    return datetime.now(timezone.utc).strftime("%Y%m%d")
+    return datetime.now(UTC).strftime("%Y%m%d")
 
 
 def shift_files(log_dir: Path, day: str) -> list[Path]:

@@ -222,7 +222,7 @@ def _distort(camera: CameraModel, ideal_px: np.ndarray) -> np.ndarray:
 
 def _densify(poly: np.ndarray, step_px: float = 1.0) -> np.ndarray:
     out = []
-    for p, q in zip(poly, np.roll(poly, -1, axis=0)):
+    for p, q in zip(poly, np.roll(poly, -1, axis=0), strict=True):
         n = max(1, int(math.ceil(np.hypot(*(q - p)) / step_px)))
         t = np.arange(n)[:, None] / n
         out.append(p + t * (q - p))

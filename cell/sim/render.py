@@ -7,6 +7,7 @@ keeps sub-pixel truth without supersampling the whole frame.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -102,6 +103,23 @@ def plate_centres_mm(plate: PlateGeometry, omit: set[tuple[int, int]] = frozense
     return np.array(pts, dtype=np.float64).reshape(-1, 2)
 
 
+@functools.lru_cache(maxsize=2)
+def backlight(h: int, w: int, vignetting: float, gradient: float, angle_deg: float) -> np.ndarray:
+    """Relative backlight reaching each pixel (vignetting times the backlight's gradient).
+
+    The same for every frame of a camera, so computed once (read-only; two sizes kept).
+    """
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    ru = (u - w / 2) / (w / 2)
+    rv = (v - h / 2) / (w / 2)
+    r2 = (ru**2 + rv**2) / (1 + (h / w) ** 2)
+    light = 1.0 - vignetting * r2
+    a = np.deg2rad(angle_deg)
+    light *= 1.0 + gradient * 0.5 * (np.cos(a) * ru + np.sin(a) * rv * w / h)
+    light.flags.writeable = False
+    return light
+
+
 def expose(
     camera: CameraModel,
     opacity: np.ndarray,
@@ -112,13 +130,7 @@ def expose(
     """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque)."""
     rng = rng or np.random.default_rng(0)
     h, w = opacity.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    ru = (u - w / 2) / (w / 2)
-    rv = (v - h / 2) / (w / 2)
-    r2 = (ru**2 + rv**2) / (1 + (h / w) ** 2)
-    light = 1.0 - optics.vignetting * r2
-    a = np.deg2rad(optics.backlight_angle_deg)
-    light *= 1.0 + optics.backlight_gradient * 0.5 * (np.cos(a) * ru + np.sin(a) * rv * w / h)
+    light = backlight(h, w, optics.vignetting, optics.backlight_gradient, optics.backlight_angle_deg)
     signal = optics.dark_level + (optics.bright_level - optics.dark_level) * light * (1 - opacity)
     signal *= exposure
     if optics.blur_sigma_px > 0:

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
+from drivers.config import Strict
 
-class Strict(BaseModel):
-    """As cell.config.Strict (which imports this module, so it cannot be imported here)."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+Preset = Literal["default", "paper"]  # "paper": the published thresholds (section III-D)
 
 
 def _ordered(name: str, pair: tuple[float, float]) -> None:
@@ -58,7 +56,7 @@ class NutConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _pairs(self) -> "NutConfig":
+    def _pairs(self) -> NutConfig:
         _ordered("parts.nut.across_flats_mm", self.across_flats_mm)
         _ordered("parts.nut.hole_ratio", self.hole_ratio)
         return self
@@ -84,7 +82,7 @@ class BoltConfig(Strict):
     )
 
     @model_validator(mode="after")
-    def _pairs(self) -> "BoltConfig":
+    def _pairs(self) -> BoltConfig:
         for name in ("shaft_mm", "head_width_mm", "length_mm"):
             _ordered(f"parts.bolt.{name}", getattr(self, name))
         return self
@@ -93,7 +91,7 @@ class BoltConfig(Strict):
 class PartsConfig(Strict):
     """How parts are found, told apart and located."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: Preset = "default"
     height_correction: bool | None = Field(
         None, description="map centroids at the part's reference height; None: on, except in the paper preset"
     )

@@ -84,7 +84,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes):
+    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct)
         part.outline_px = blob.outer
@@ -172,7 +172,7 @@ def _place(feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsCon
         cls=verdict.cls,
         reason=verdict.reason,
         pixel=(float(centre[0]), float(centre[1])),
-        world_mm=(float(world[0]), float(world[1])),
+        table_mm=(float(world[0]), float(world[1])),
         angle_deg=angle,
         pick=verdict.cls in (BOLT, NUT),
         grasp_mm=None if grasp is None else (float(grasp[0]), float(grasp[1])),

@@ -15,7 +15,7 @@ class LocatedPart:
     cls: PartClass
     reason: str  # why this class (and, for unknown, why it is not picked)
     pixel: tuple[float, float]  # sub-pixel centroid of the outline, image px
-    world_mm: tuple[float, float]  # footprint centre on the table (height-corrected), table mm
+    table_mm: tuple[float, float]  # footprint centre on the table (height-corrected), table mm
     angle_deg: float | None  # bolts: axis angle in table coordinates, 0-180; else None
     pick: bool
     grasp_mm: tuple[float, float] | None = None  # where the jaws close, table mm

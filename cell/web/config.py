@@ -3,13 +3,13 @@
 `password_env`) are the line service's, shared with OPC UA."""
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from drivers.config import Strict
 
 
-class WebConfig(BaseModel):
+class WebConfig(Strict):
     """Who may watch, how long a login lasts, upload and frame limits."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     view_without_password: bool = Field(
         False, description="with a password: let anyone who reaches the screen watch (controls still need it)"

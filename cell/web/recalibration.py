@@ -49,11 +49,11 @@ class Report:
             "why": r.why,
             "points": int(len(r.points.pixel)),
             "missing": [int(m) for m in r.points.missing],
-            "fit_rms_mm": round(float(np.hypot(fit["rms_x_mm"], fit["rms_y_mm"])), 4),
-            "fit_max_mm": round(fit["max_mm"], 4),
-            "cv_rms_mm": round(cv["rms_mm"], 4),
-            "cv_max_mm": round(cv["max_mm"], 4),
-            "models": [{"model": s.label, "cv_rms_mm": round(s.cv["rms_mm"], 4), "cv_max_mm": round(s.cv["max_mm"], 4)}
+            "fit_rms_mm": round(fit.rms_mm, 4),
+            "fit_max_mm": round(fit.max_mm, 4),
+            "cv_rms_mm": round(cv.rms_mm, 4),
+            "cv_max_mm": round(cv.max_mm, 4),
+            "models": [{"model": s.label, "cv_rms_mm": round(s.cv.rms_mm, 4), "cv_max_mm": round(s.cv.max_mm, 4)}
                        for s in r.scores],
             "passes": self.gate_failure is None,
             "gate_failure": self.gate_failure,
@@ -162,7 +162,7 @@ class RecalibrationDesk:
             report = self.report(report_id)
             path, backup = replace_active(report.result, self.config)  # CalibrationRejected: file untouched
             cal, cv = report.result.calibration, report.result.chosen.cv
-            info = CalibrationInfo(cal.model_name, cv["rms_mm"], cv["max_mm"], _created(cal.created_utc), report.source)
+            info = CalibrationInfo(cal.model_name, cv.rms_mm, cv.max_mm, _created(cal.created_utc), report.source)
             self.service.install_calibration(cal, info)
             self.active_pictures = {"plate.jpg": report.plate_jpeg, "deviation.png": report.deviation_png}
             self.active_time = info.time_utc

@@ -9,6 +9,7 @@ from typing import Literal
 
 from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach
 from drivers.arm.kinematics import Pose
+from drivers.device import Device
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,7 @@ class ArmStatus:
     detail: str = ""
 
 
-class Arm(abc.ABC):
+class Arm(Device):
     """One arm. Coordinates are the robot base frame in mm; angle_deg turns the gripper about z.
 
     Every method raises an ArmError subclass on failure, after leaving the arm safe (motion
@@ -33,17 +34,6 @@ class Arm(abc.ABC):
     """
 
     port: str
-
-    @abc.abstractmethod
-    def connect(self) -> None: ...
-
-    @abc.abstractmethod
-    def disconnect(self) -> None:
-        """Close the port; never raises."""
-
-    @property
-    @abc.abstractmethod
-    def is_connected(self) -> bool: ...
 
     @abc.abstractmethod
     def home(self) -> None:
@@ -76,10 +66,6 @@ class Arm(abc.ABC):
     @abc.abstractmethod
     def status(self) -> ArmStatus: ...
 
-    def __enter__(self) -> "Arm":
-        self.connect()
-        return self
-
     @contextlib.contextmanager
     def _guard(self, command: str):
         """Leave the arm safe when `command` fails with an ArmError, then let the error through.
@@ -97,7 +83,7 @@ class Arm(abc.ABC):
             log.info("arm on %s, %s: %s", self.port, command, e)
             raise
 
-    def _link_lost(self) -> None:
+    def _link_lost(self) -> None:  # noqa: B027 - an optional hook, empty unless the driver reconnects
         """The port is gone: forget it so the next command reconnects (drivers that reconnect)."""
 
     def _leave_safe(self, error: ArmError) -> None:

@@ -9,18 +9,15 @@ import math
 import string
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
+
+from drivers.config import Strict
 
 # Placeholders each serial command template may use, with sample values for validation.
 TEMPLATE_FIELDS = {"x_mm": 1.0, "y_mm": 2.0, "z_mm": 3.0, "angle_deg": 4.0, "feed_mm_min": 600.0}
 
 
-class _Strict(BaseModel):
-    # Same rules as cell.config.Strict (not imported: cell.config imports this module).
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-
-class Workspace(_Strict):
+class Workspace(Strict):
     """Box, in the robot base frame, that targets must lie in; checked before anything is sent."""
 
     x_min_mm: float = 0.0
@@ -31,7 +28,7 @@ class Workspace(_Strict):
     z_max_mm: float = 200.0
 
     @model_validator(mode="after")
-    def _ordered(self) -> "Workspace":
+    def _ordered(self) -> Workspace:
         for axis in "xyz":
             lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
             if lo >= hi:
@@ -40,14 +37,14 @@ class Workspace(_Strict):
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point is outside the box, or None if inside."""
-        for axis, v in zip("xyz", (x_mm, y_mm, z_mm)):
+        for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
             lo, hi = getattr(self, f"{axis}_min_mm"), getattr(self, f"{axis}_max_mm")
             if not math.isfinite(v) or not lo <= v <= hi:
                 return f"{axis} = {v:g} mm is outside the workspace [{lo:g}, {hi:g}] mm"
         return None
 
 
-class SerialCommands(_Strict):
+class SerialCommands(Strict):
     """G-code templates, so GRBL, Marlin, uArm or custom firmware fit by configuration.
 
     Placeholders: {x_mm} {y_mm} {z_mm} {angle_deg} {feed_mm_min}. An empty string means the
@@ -99,7 +96,7 @@ def _check_template(template: str) -> None:
         raise ValueError(f"bad template {template!r}: {e}") from None
 
 
-class SerialArmConfig(_Strict):
+class SerialArmConfig(Strict):
     """A G-code arm on a serial line; GRBL 1.1 at its defaults unless told otherwise."""
 
     baud: int = Field(115200, ge=300, le=4_000_000)
@@ -119,7 +116,7 @@ class SerialArmConfig(_Strict):
     commands: SerialCommands = SerialCommands()
 
     @model_validator(mode="after")
-    def _consistent(self) -> "SerialArmConfig":
+    def _consistent(self) -> SerialArmConfig:
         if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
             raise ValueError(f"home_position_mm: {why}")
         if not self.commands.wait and not self.status_query:
@@ -127,7 +124,7 @@ class SerialArmConfig(_Strict):
         return self
 
 
-class Geometry(_Strict):
+class Geometry(Strict):
     """A 4-axis arm (base yaw, shoulder, elbow, wrist pitch), gripper pointing down.
 
     Defaults: ROBOTIS OpenManipulator-X. Base frame: origin at the base, x forward, z up.
@@ -142,7 +139,7 @@ class Geometry(_Strict):
     min_radius_mm: float = Field(60.0, ge=0, le=2000, description="closest the tool may come to the yaw axis")
 
 
-class DynamixelArmConfig(_Strict):
+class DynamixelArmConfig(Strict):
     """Dynamixel Protocol 2.0 servos on one bus; defaults as on an OpenManipulator-X."""
 
     baud: int = Field(1_000_000, ge=9600, le=4_500_000)
@@ -171,19 +168,19 @@ class DynamixelArmConfig(_Strict):
     )
 
     @model_validator(mode="after")
-    def _consistent(self) -> "DynamixelArmConfig":
+    def _consistent(self) -> DynamixelArmConfig:
         ids = [*self.joint_ids, self.gripper_id]
         if len(set(ids)) != len(ids):
             raise ValueError(f"joint_ids {list(self.joint_ids)} and gripper_id {self.gripper_id} must be distinct")
         for i in self.joint_ids:
             if not 0 <= i <= 252:
                 raise ValueError(f"joint_ids: {i} is not a servo id (0-252)")
-        for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg), start=1):
+        for j, (lo, hi) in enumerate(zip(self.joint_min_deg, self.joint_max_deg, strict=True), start=1):
             if lo >= hi:
                 raise ValueError(f"joint {j}: joint_min_deg ({lo:g} deg) must be below joint_max_deg ({hi:g} deg)")
             if lo < -180 or hi > 180:
                 raise ValueError(f"joint {j}: joint_min_deg/joint_max_deg must lie within -180..180 deg (one servo turn)")
-        for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg), start=1):
+        for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg, strict=True), start=1):
             if d not in (1, -1):
                 raise ValueError(f"joint_directions: joint {j} is {d}, must be 1 or -1")
             if not self.joint_min_deg[j - 1] <= h <= self.joint_max_deg[j - 1]:
@@ -193,13 +190,18 @@ class DynamixelArmConfig(_Strict):
         return self
 
 
-class ArmConfig(_Strict):
+DeviceKind = Literal["serial", "dynamixel"]  # the arms with a driver
+# mock: records and checks every command, moves nothing; sim: the simulated cell's arm (cell.sim).
+ArmKind = Literal["serial", "dynamixel", "mock", "sim"]
+
+
+class ArmConfig(Strict):
     """Which arm the cell drives and where it is plugged in."""
 
-    kind: Literal["serial", "dynamixel", "mock"] = Field(
-        "mock", description="'mock' records and validates commands and moves nothing"
+    kind: ArmKind = Field(
+        "mock", description="'mock' records and validates commands and moves nothing; 'sim': the simulated cell's arm"
     )
-    mock_of: Literal["serial", "dynamixel"] = Field("serial", description="whose limits the mock arm checks")
+    mock_of: DeviceKind = Field("serial", description="whose limits the mock arm checks")
     port: str = Field("", description="device path or pyserial URL (socket://, spy://); see `run-cell ports`")
     serial: SerialArmConfig = SerialArmConfig()
     dynamixel: DynamixelArmConfig = DynamixelArmConfig()

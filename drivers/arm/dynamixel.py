@@ -218,10 +218,10 @@ class DynamixelArm(Arm):
     def _move_joints(self, goals: list[int], wait: bool, what: str) -> None:
         with self._guard(what):
             self._ready()
-            self._sync_write(ADDR_GOAL_POSITION, 4, {i: _le(t) for i, t in zip(self.cfg.joint_ids, goals)}, what)
+            self._sync_write(ADDR_GOAL_POSITION, 4, {i: _le(t) for i, t in zip(self.cfg.joint_ids, goals, strict=True)}, what)
             self._state = "moving"
             if wait:
-                self._wait_arrival(dict(zip(self.cfg.joint_ids, goals)), what)
+                self._wait_arrival(dict(zip(self.cfg.joint_ids, goals, strict=True)), what)
 
     def _gripper(self, ticks: int, closed: bool) -> None:
         what = "close gripper" if closed else "open gripper"

@@ -22,6 +22,9 @@ def make_arm(cfg: ArmConfig) -> Arm:
     """An unconnected arm for the config; use it as `with make_arm(cfg) as arm:`."""
     if cfg.kind == "mock":
         return MockArm(cfg)
+    if cfg.kind == "sim":
+        raise ConfigError("arm.kind 'sim' is the simulated cell's arm: it needs camera.source 'sim'",
+                          hint="use arm.kind 'mock' to check commands without moving, or 'serial'/'dynamixel'")
     if not cfg.port:
         raise ConfigError(
             f"arm.port is empty but arm.kind is {cfg.kind!r}",

@@ -112,7 +112,7 @@ class FourAxisKinematics:
 
     def limit_violation(self, joints_rad) -> str:
         """Which joint leaves its limits, or '' if none."""
-        for j, (q, lo, hi) in enumerate(zip(joints_rad, self.min_rad, self.max_rad), start=1):
+        for j, (q, lo, hi) in enumerate(zip(joints_rad, self.min_rad, self.max_rad, strict=True), start=1):
             if not lo - 1e-9 <= q <= hi + 1e-9:
                 return (
                     f"joint {j} at {math.degrees(q):.1f} deg, outside its limits "
@@ -124,12 +124,12 @@ class FourAxisKinematics:
         """Servo goal positions (2048 ticks = 0 rad by default)."""
         return [
             int(round(self.cfg.zero_ticks + d * q * TICKS_PER_RAD))
-            for q, d in zip(joints_rad, self.cfg.joint_directions)
+            for q, d in zip(joints_rad, self.cfg.joint_directions, strict=True)
         ]
 
     def from_ticks(self, ticks) -> tuple[float, float, float, float]:
         return tuple(
-            (t - self.cfg.zero_ticks) / TICKS_PER_RAD * d for t, d in zip(ticks, self.cfg.joint_directions)
+            (t - self.cfg.zero_ticks) / TICKS_PER_RAD * d for t, d in zip(ticks, self.cfg.joint_directions, strict=True)
         )
 
 

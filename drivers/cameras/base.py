@@ -11,27 +11,17 @@ import logging
 import numpy as np
 
 from drivers.cameras.errors import CameraError
+from drivers.device import Device
 
 log = logging.getLogger(__name__)
 
 
-class Camera(abc.ABC):
+class Camera(Device):
     """One frame source of a fixed size; `with camera:` connects and always disconnects."""
 
     source: str
     width_px: int
     height_px: int
-
-    @abc.abstractmethod
-    def connect(self) -> None: ...
-
-    @abc.abstractmethod
-    def disconnect(self) -> None:
-        """Release the device; never raises."""
-
-    @property
-    @abc.abstractmethod
-    def is_connected(self) -> bool: ...
 
     @abc.abstractmethod
     def _grab(self) -> np.ndarray | None:
@@ -57,10 +47,3 @@ class Camera(abc.ABC):
                 source=self.source, hint="set camera.width_px/height_px to a mode the camera supports",
             )
         return frame
-
-    def __enter__(self) -> "Camera":
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        self.disconnect()

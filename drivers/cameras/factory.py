@@ -4,14 +4,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from drivers.cameras.base import Camera
+from drivers.cameras.config import CameraConfig
 from drivers.cameras.errors import CameraError
 from drivers.cameras.folder import FolderCamera
 from drivers.cameras.opencv import OpenCVCamera
 from drivers.cameras.video import VideoFileCamera
 
 
-def make_camera(cfg) -> Camera:
-    """A Camera for cfg (a CameraConfig); 'sim' is built by the simulated cell, not here."""
+def make_camera(cfg: CameraConfig) -> Camera:
+    """A Camera for the config; 'sim' is built by the simulated cell, not here."""
     source = cfg.source.strip()
     if source == "sim":
         raise CameraError("the simulated camera comes with the simulated cell", source=source)

@@ -153,7 +153,7 @@ class DxlBusEmulator(EmulatedDevice):
         self.speed_scale = speed_scale
         ids = ids or (*self.arm.joint_ids, self.arm.gripper_id)
         start = self.arm.home_joints_deg if start_joints_deg is None else start_joints_deg
-        joint_ticks = dict(zip(self.arm.joint_ids, self.kinematics.to_ticks([math.radians(v) for v in start])))
+        joint_ticks = dict(zip(self.arm.joint_ids, self.kinematics.to_ticks([math.radians(v) for v in start]), strict=True))
         self.servos = {
             i: Servo(i, joint_ticks.get(i, self.arm.gripper_open_ticks if i == self.arm.gripper_id else 2048))
             for i in ids

@@ -38,7 +38,7 @@ class _Segment:
 
     def position(self) -> list[float]:
         f = 1.0 if self.duration_s <= 0 else min(1.0, self.elapsed_s / self.duration_s)
-        return [a + (b - a) * f for a, b in zip(self.start, self.end)]
+        return [a + (b - a) * f for a, b in zip(self.start, self.end, strict=True)]
 
 
 class GrblEmulator(EmulatedDevice):

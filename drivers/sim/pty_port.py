@@ -17,7 +17,8 @@ import termios
 import threading
 import time
 import tty
-from typing import Iterator, Protocol
+from collections.abc import Iterator
+from typing import Protocol
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +29,7 @@ class ByteDevice(Protocol):
 
     lock: threading.RLock
     unplug_requested: bool  # set by the device to have the cable pulled after this reply
-    server: "PtyServer | None"
+    server: PtyServer | None
 
     def power_on(self, now_s: float) -> bytes: ...
 
@@ -53,7 +54,7 @@ class PtyServer:
         self._thread = threading.Thread(target=self._run, name=f"pty-{name}", daemon=True)
         device.server = self
 
-    def start(self) -> "PtyServer":
+    def start(self) -> PtyServer:
         self._plug()
         self._thread.start()
         return self
