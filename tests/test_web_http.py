@@ -38,7 +38,8 @@ def config(tmp_path):
     return c
 
 
-def make_client(service, config, host="127.0.0.1", web=WebConfig(), check=None, base_url=LOCAL):
+def make_client(service, config, host="127.0.0.1", web=None, check=None, base_url=LOCAL):
+    web = web or WebConfig()
     return TestClient(build_app(service, config, web, Access(host, web, check)), base_url=base_url)
 
 

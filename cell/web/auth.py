@@ -13,8 +13,8 @@ import hmac
 import ipaddress
 import secrets
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from cell.errors import ConfigError
 from cell.web.config import WebConfig

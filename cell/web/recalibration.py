@@ -14,7 +14,7 @@ import secrets
 import struct
 import threading
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import cv2
 import numpy as np
@@ -173,7 +173,7 @@ class RecalibrationDesk:
 
 
 def _now() -> datetime:
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)
 
 
 def _created(text: str) -> datetime | None:

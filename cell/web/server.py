@@ -9,7 +9,7 @@ import asyncio
 import logging
 import socket
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 import uvicorn
 
@@ -39,7 +39,7 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
-def screen_server(service: LineServiceAPI, config: CellConfig) -> "WebServer":
+def screen_server(service: LineServiceAPI, config: CellConfig) -> WebServer:
     """The screen on `service.host`:`service.http_port`, with the service's user and password if set."""
     from cell.service.security import credentials_configured, password_ok
 
