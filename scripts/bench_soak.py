@@ -117,7 +117,7 @@ def main() -> int:
         (tmp / "shift.toml").write_text(SHIFT_TOML)
         port = free_port()
         cmd = [sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--config", str(tmp / "shift.toml"),
-               "--log-dir", str(tmp / "logs"), "--opcua-port", str(port)]
+               "--log-dir", str(tmp / "logs"), "--opcua-port", str(port), "--http-port", str(free_port())]
         proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 env={**os.environ, "PYTHONPATH": str(REPO)})
         try:

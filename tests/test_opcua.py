@@ -39,10 +39,10 @@ class Serve:
     """`run-cell serve ...` in a subprocess; ready when it prints its `ready:` line."""
 
     def __init__(self, tmp: Path, *args: str, env: dict | None = None):
-        self.port = free_port()
+        self.port, self.http_port = free_port(), free_port()
         self.log_dir = tmp / "logs"
         cmd = [sys.executable, "-m", "cell.cli", "serve", "--log-dir", str(self.log_dir),
-               "--opcua-port", str(self.port), *args]
+               "--opcua-port", str(self.port), "--http-port", str(self.http_port), *args]
         self.proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                      env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
         self.url = f"opc.tcp://127.0.0.1:{self.port}/cell"
@@ -235,7 +235,7 @@ def test_a_plc_drives_the_built_in_shift(tmp_path):
     (the steps share its state, so they are one test, whichever worker runs it)."""
     serve = Serve(tmp_path, "--dry-run")
     try:
-        assert f"ready: OPC UA {serve.url} " in serve.wait_ready()
+        assert f"ready: OPC UA {serve.url}; screen http://127.0.0.1:{serve.http_port}/ " in serve.wait_ready()
         for step in (the_node_tree_by_browsenames, continuous_picks_rise_pause_resume_stop,
                      wrong_states_are_bad_invalid_state, halt_then_reset):
             with_cell(serve.url, step)

@@ -81,8 +81,51 @@ def capture_plate(config):
         return camera.capture()
 
 
+def check_image_size(image, config, source: str) -> None:
+    """A plate image must be the camera's size: the calibration maps that camera's pixels."""
+    h, w = image.shape[:2]
+    want = (config.camera.width_px, config.camera.height_px)
+    if (w, h) != want:
+        raise InputError(
+            f"{source}: image is {w} x {h} px but the camera is configured for "
+            f"{want[0]} x {want[1]} px (camera.width_px, camera.height_px)"
+        )
+
+
+def gate_failure(result, config) -> str | None:
+    """Why a fit fails the quality gate (calibration.max_cv_*, a plausible plate and camera), or None."""
+    limits = config.calibration
+    cv = result.chosen.cv
+    problems = []
+    if cv.rms_mm > limits.max_cv_rms_mm or cv.max_mm > limits.max_cv_error_mm:
+        problems.append(
+            f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
+            f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm {limits.max_cv_error_mm} mm"
+        )
+    problems += plausibility_problems(result, limits, config.plate)
+    return "; ".join(problems) or None
+
+
+def replace_active(result, config, out: Path | None = None, accept_change: bool = False,
+                   controls: Controls | None = None) -> tuple[Path, Path | None]:
+    """The quality gate, then under the file's lock the change check and the atomic replacement
+    (the previous file kept as a backup of its own). Every way of recalibrating (the script,
+    `run-cell recalibrate`, the operator screen) goes through here; on any refusal the active
+    file is untouched. Returns the file written and the backup, if any."""
+    limits = config.calibration
+    target = out or limits.active_path
+    if why := gate_failure(result, config):
+        raise CalibrationRejected(f"{why}; {target} left unchanged")
+    backup_dir = limits.backup_dir if out is None else target.parent / "backups"
+    with holding(target, "calibration file", wait_s=limits.lock_wait_s):  # one recalibration of a file at a time
+        backup = _replace(target, result.calibration, backup_dir, accept_change, limits, controls or Controls())
+    cv = result.chosen.cv
+    log.info("recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s", target, result.chosen.label,
+             cv.rms_mm, cv.max_mm, f"; previous kept as {backup}" if backup else "")
+    return target, backup
+
+
 def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
-    controls = controls or Controls()
     config = load_config(args.config)
     if args.preset:
         config.detection.preset = args.preset
@@ -90,36 +133,14 @@ def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
     if out.is_dir():
         raise OutputError(f"{out}: is a folder; --out must name the calibration file", hint="e.g. --out cal/active.json")
     want = (config.camera.width_px, config.camera.height_px)
-    if args.image:
-        image = read_image(args.image, config.camera.max_image_px, want)
-    else:
-        image = capture_plate(config)
-    h, w = image.shape[:2]
-    if (w, h) != want:
-        raise InputError(
-            f"{args.image or 'camera frame'}: image is {w} x {h} px but the camera is configured for "
-            f"{want[0]} x {want[1]} px (camera.width_px, camera.height_px)"
-        )
+    image = read_image(args.image, config.camera.max_image_px, want) if args.image else capture_plate(config)
+    check_image_size(image, config, str(args.image or "camera frame"))
     result = calibrate(image, config, args.model)
     print(summary_text(result, table=not args.quiet))
     if args.report_dir:
         for p in write_report(image, result, args.report_dir):
             print(f"wrote {p}")
-    limits = config.calibration
-    cv = result.chosen.cv
-    if cv.rms_mm > limits.max_cv_rms_mm or cv.max_mm > limits.max_cv_error_mm:
-        raise CalibrationRejected(
-            f"cross-validated error RMS {cv.rms_mm:.4f} mm / max {cv.max_mm:.4f} mm exceeds "
-            f"calibration.max_cv_rms_mm {limits.max_cv_rms_mm} mm / max_cv_error_mm "
-            f"{limits.max_cv_error_mm} mm; {out} left unchanged"
-        )
-    if problems := plausibility_problems(result, limits, config.plate):
-        raise CalibrationRejected("; ".join(problems) + f"; {out} left unchanged")
-    backup_dir = limits.backup_dir if args.out is None else out.parent / "backups"
-    with holding(out, "calibration file", wait_s=limits.lock_wait_s):  # one recalibration of a file at a time
-        backup = _replace(out, result.calibration, backup_dir, args.accept_change, limits, controls)
-    log.info("recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s", out, result.chosen.label,
-             cv.rms_mm, cv.max_mm, f"; previous kept as {backup}" if backup else "")
+    out, backup = replace_active(result, config, args.out, args.accept_change, controls)
     print(f"active calibration replaced: {out}" + (f" (previous kept as {backup})" if backup else ""))
     return 0
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cell.atomicfile import ensure_folder, write_atomic, write_text_atomic
+from cell.atomicfile import ensure_folder, write_bytes_atomic, write_text_atomic
 from cell.calibration.pipeline import CalibrationResult
 from cell.imageio import write_image_atomic
 
@@ -136,7 +136,12 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
 
 
 def deviation_plot(result: CalibrationResult, path: Path) -> None:
-    """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5)."""
+    """The deviation plot (the paper's Fig. 5) as a PNG file, written atomically."""
+    write_bytes_atomic(path, deviation_png(result))
+
+
+def deviation_png(result: CalibrationResult) -> bytes:
+    """dX and dY per point, and the error vectors over the plate (the paper's Fig. 5), PNG bytes."""
     import matplotlib  # lazily: only a written report needs it (slow to import), and Agg goes before pyplot
 
     matplotlib.use("Agg")
@@ -165,10 +170,12 @@ def deviation_plot(result: CalibrationResult, path: Path) -> None:
     ax2.set_ylabel("Y (mm)")
     ax2.set_title(f"error vectors (max {mag.max():.4f} mm, arrows not to scale)")
     fig.tight_layout()
+    buf = io.BytesIO()
     try:
-        write_atomic(path, lambda f: fig.savefig(f, dpi=90, format="png"))
+        fig.savefig(buf, format="png", dpi=90)
     finally:
         plt.close(fig)
+    return buf.getvalue()
 
 
 def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path) -> list[Path]:

@@ -91,6 +91,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     config = serve_config(args)
     check_exposure(config.service)
     _check_port_free(config.service.host, config.service.opcua_port, "--opcua-port")
+    _check_port_free(config.service.host, config.service.http_port, "--http-port")
     stamp = datetime.now(UTC).strftime("%Y%m%d")
     if not args.verbose:
         for h in logging.getLogger().handlers:
@@ -121,13 +122,14 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     An interface is anything with `start()`, `stop()` (coroutines) and `ready_text`."""
     # imported here, not at the top: asyncua would cost every run-cell command 1.6-1.8 s (measured on 2 busy cores)
     from cell.service.opcua import OpcUaServer
+    from cell.web.server import ScreenInterface
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}  # cell.signals' handlers, back afterwards
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
-    interfaces, started = [OpcUaServer(service, config)], []
+    interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
     try:
         for interface in interfaces:
             await interface.start()

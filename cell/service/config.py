@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from cell.web.config import WebConfig
 from drivers.config import Strict
 
 
@@ -29,6 +30,7 @@ class ServiceConfig(Strict):
     certificate_dir: Path | None = Field(
         None, description="server certificate and key, made on first start; default: opcua/ beside the calibration"
     )
+    web: WebConfig = Field(WebConfig(), description="[service.web]: the operator screen's own settings")
     audit_max_bytes: int = Field(
         64 * 2**20, ge=4096, description="the shift's audit log rolls to a new file past this size (and each UTC day)"
     )

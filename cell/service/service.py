@@ -114,6 +114,7 @@ class LineService:
         self._last_target: dict | None = None
         self._frame: FrameView | None = None
         self._frame_seq = 0
+        self._job_camera: _Locked | None = None
         self._listeners: list[Callable[[ServiceEvent], None]] = []
         self._jobs: queue.Queue = queue.Queue()
         self._t0 = time.monotonic()
@@ -246,9 +247,10 @@ class LineService:
 
     def _run_job(self, state: VisionState, controls: Controls) -> None:
         sim = self.devices.sim
+        self._job_camera = _Locked(self._camera, self._device_lock)
         try:
             self._runner = Runner(
-                _Locked(self._camera, self._device_lock), self.devices.arm,
+                self._job_camera, self.devices.arm,
                 lambda frame: self._locate(frame, self._calibration), self._planner, self.config.run, self.audit,
                 controls, self.devices.expect_motion, progress=lambda line: log.info("%s", line),
                 sim_motion_s=None if sim is None else sim.motion_time_s,
@@ -297,7 +299,8 @@ class LineService:
         if runner is None or runner.frame is None or runner.result is None:
             return
         self._frame_seq += 1
-        self._frame = FrameView(self._frame_seq, time.monotonic(), annotate(runner.frame, runner.result))
+        captured_s = self._job_camera.captured_s if self._job_camera is not None else time.monotonic()
+        self._frame = FrameView(self._frame_seq, captured_s, annotate(runner.frame, runner.result))
         self._publish("frame", frame=self._frame)
 
     def _pick_event(self, e: dict) -> None:
@@ -354,6 +357,7 @@ class _Locked(Camera):
 
     def __init__(self, camera: Camera, lock: threading.Lock):
         self.inner, self.lock = camera, lock
+        self.captured_s = time.monotonic()
         self.source, self.width_px, self.height_px = camera.source, camera.width_px, camera.height_px
 
     def connect(self) -> None:
@@ -370,4 +374,6 @@ class _Locked(Camera):
 
     def _grab(self):
         with self.lock:
-            return self.inner.capture()
+            frame = self.inner.capture()
+        self.captured_s = time.monotonic()  # the frame's capture time, for the screen's latency
+        return frame

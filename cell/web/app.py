@@ -1,0 +1,347 @@
+"""The operator screen's routes (Starlette). Every request is checked by `Access`; controls
+are POSTs that go to the service's command table and nowhere else."""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from importlib import resources
+
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+from starlette.responses import JSONResponse, Response, StreamingResponse
+from starlette.routing import Route
+
+from cell.config import CellConfig
+from cell.errors import REPORTED_ERRORS, CalibrationRejected
+from cell.service.api import Command, InvalidState, LineServiceAPI
+from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
+from cell.web.config import WebConfig
+from cell.web.hub import Hub
+from cell.web.recalibration import Busy, RecalibrationDesk
+from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
+
+log = logging.getLogger(__name__)
+
+STATIC = {
+    "/": ("index.html", "text/html; charset=utf-8"),
+    "/static/screen.css": ("screen.css", "text/css; charset=utf-8"),
+    "/static/screen.js": ("screen.js", "text/javascript; charset=utf-8"),
+}
+SECURITY_HEADERS = [
+    (b"content-security-policy", b"default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+                                 b"connect-src 'self'; frame-ancestors 'none'; form-action 'self'; base-uri 'none'"),
+    (b"x-frame-options", b"DENY"),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"cache-control", b"no-store"),
+]
+BLOCKED_WHILE_RECALIBRATING = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.RESUME})
+KEEPALIVE_S = 1.0
+PICTURES = {"plate.jpg": "image/jpeg", "deviation.png": "image/png"}
+
+
+def _error(status: int, message: str, **extra) -> JSONResponse:
+    return JSONResponse({"error": message, **extra}, status_code=status)
+
+
+class Guard:
+    """Pure-ASGI middleware: Host check (DNS rebinding) and the security headers on every reply."""
+
+    def __init__(self, app, access: Access):
+        self.app, self.access = app, access
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
+        if not self.access.host_ok(host):
+            reply = _error(421, f"Host {host!r} is not this screen's loopback address")
+            return await reply(scope, receive, self._secure(send))
+        return await self.app(scope, receive, self._secure(send))
+
+    @staticmethod
+    def _secure(send):
+        async def wrapped(message):
+            if message["type"] == "http.response.start":
+                message = {**message, "headers": list(message.get("headers", [])) + SECURITY_HEADERS}
+            await send(message)
+
+        return wrapped
+
+
+class ScreenApp:
+    """Routes bound to one service, one access policy and one recalibration desk."""
+
+    def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
+        self.service, self.web, self.access = service, web, access
+        self.hub = Hub(service, web.frame_max_width_px, web.jpeg_quality, web.max_screens)
+        self.desk = RecalibrationDesk(service, config)
+        pkg = resources.files("cell.web") / "static"
+        self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
+        self.max_upload = int(web.max_upload_mb * 1024 * 1024)
+
+    # ---- checks ----------------------------------------------------------------------
+    @staticmethod
+    def _sid(request: Request) -> str | None:
+        return request.cookies.get(SESSION_COOKIE)
+
+    def _view_refused(self, request: Request) -> Response | None:
+        if not self.access.may_view(self._sid(request)):
+            return _error(401, "log in to watch the cell")
+        return None
+
+    def _control_refused(self, request: Request) -> Response | None:
+        """Same origin, logged in where a password is set, and this session's CSRF token."""
+        origin = request.headers.get("origin")
+        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
+            return _error(403, f"cross-origin request from {origin!r} refused")
+        if request.headers.get("sec-fetch-site", "same-origin") not in ("same-origin", "none"):
+            return _error(403, "cross-site request refused")
+        sid = self._sid(request)
+        if not self.access.may_control(sid):
+            return _error(401, "log in to control the cell")
+        if not self.access.csrf_ok(sid, request.headers.get(CSRF_HEADER)):
+            return _error(403, "missing or wrong CSRF token: reload the page")
+        return None
+
+    # ---- pages and session -----------------------------------------------------------
+    async def static_file(self, request: Request) -> Response:
+        body, kind = self.static[request.url.path]
+        return Response(body, media_type=kind)
+
+    async def session(self, request: Request) -> Response:
+        sid = self._sid(request)
+        can_control = self.access.may_control(sid)
+        return JSONResponse({
+            "login_required": self.access.login_required,
+            "logged_in": self.access.session(sid) is not None,
+            "can_view": self.access.may_view(sid),
+            "can_control": can_control,
+            "csrf": self.access.csrf_for(sid) if can_control else None,
+        })
+
+    async def login(self, request: Request) -> Response:
+        origin = request.headers.get("origin")
+        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
+            return _error(403, f"cross-origin login from {origin!r} refused")
+        if not self.access.login_required:
+            return _error(400, "this screen has no password")
+        body = await self._read_body(request, 4096)
+        if isinstance(body, Response):
+            return body
+        try:
+            sent = json.loads(body)
+            user, password = sent["user"], sent["password"]
+            if not (isinstance(user, str) and isinstance(password, str)):
+                raise TypeError("user and password must be strings")
+        except (ValueError, KeyError, TypeError):
+            return _error(400, 'send JSON {"user": "...", "password": "..."}')
+        if not await run_in_threadpool(self.access.check_password, user, password):
+            log.warning("screen: failed login from %s", request.client.host if request.client else "?")
+            await asyncio.sleep(0.5)  # slows guessing
+            return _error(401, "wrong user or password")
+        sid, csrf = self.access.new_session()
+        log.info("screen: login from %s", request.client.host if request.client else "?")
+        reply = JSONResponse({"csrf": csrf})
+        reply.set_cookie(SESSION_COOKIE, sid, max_age=int(self.web.session_h * 3600), httponly=True,
+                         samesite="strict", path="/")
+        return reply
+
+    async def logout(self, request: Request) -> Response:
+        if refused := self._control_refused(request):
+            return refused
+        self.access.end_session(self._sid(request))
+        reply = JSONResponse({"ok": True})
+        reply.delete_cookie(SESSION_COOKIE, path="/")
+        return reply
+
+    # ---- state and frames ------------------------------------------------------------
+    def _state(self, snapshot=None) -> dict:
+        snapshot = snapshot or self.service.snapshot()
+        return snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+
+    async def state(self, request: Request) -> Response:
+        return self._view_refused(request) or JSONResponse(self._state())
+
+    async def frame_jpeg(self, request: Request) -> Response:
+        if refused := self._view_refused(request):
+            return refused
+        latest = self.hub.latest
+        if latest is None:
+            return _error(404, "no frame captured yet")
+        return Response(latest.jpeg, media_type="image/jpeg", headers={"x-frame-seq": str(latest.seq)})
+
+    async def events(self, request: Request) -> Response:
+        """Server-sent events: `state` on every change (and each second), `frame` per new JPEG."""
+        if refused := self._view_refused(request):
+            return refused
+        screen = self.hub.open_screen()
+        if screen is None:
+            return _error(503, f"{self.web.max_screens} screens are already open (service.web.max_screens)")
+        return StreamingResponse(self._stream(screen), media_type="text/event-stream",
+                                 headers={"x-accel-buffering": "no"})
+
+    async def _stream(self, screen):
+        try:
+            sent_seq = -1
+            while not screen.closed:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(screen.wake.wait(), KEEPALIVE_S)
+                screen.wake.clear()
+                if screen.closed:
+                    break
+                snapshot, screen.snapshot = screen.snapshot, None
+                yield _sse("state", self._state(snapshot))
+                frame, screen.frame = screen.frame, None
+                if frame is not None and frame.seq != sent_seq:
+                    sent_seq = frame.seq
+                    yield _sse("frame", frame.event_json())
+        finally:
+            self.hub.close_screen(screen)
+
+    # ---- controls --------------------------------------------------------------------
+    async def command(self, request: Request) -> Response:
+        if refused := self._control_refused(request):
+            return refused
+        command = COMMANDS.get(request.path_params["name"])
+        if command is None:
+            return _error(404, "unknown command", known=sorted(COMMANDS))
+        if command in BLOCKED_WHILE_RECALIBRATING and self.desk.open is not None:
+            return _error(409, "a recalibration report is open: accept or reject it first")
+        try:
+            self.service.command(command)
+        except InvalidState as e:
+            return _error(409, str(e))
+        log.info("screen: %s accepted", command.value)
+        return JSONResponse({"ok": True, "command": command.value})
+
+    async def recal_capture(self, request: Request) -> Response:
+        if refused := self._control_refused(request):
+            return refused
+        return await self._recal(self.desk.from_camera)
+
+    async def recal_upload(self, request: Request) -> Response:
+        if refused := self._control_refused(request):
+            return refused
+        body = await self._read_body(request, self.max_upload)
+        if isinstance(body, Response):
+            return body
+        return await self._recal(self.desk.from_upload, body)
+
+    async def _recal(self, make, *args) -> Response:
+        if not may_recalibrate(self.service.snapshot()):
+            return _error(409, "recalibrate only while stopped (Ready), paused or halted")
+        try:
+            report = await run_in_threadpool(make, *args)
+        except InvalidState as e:
+            return _error(409, str(e))
+        except Busy as e:
+            return _error(409, str(e))
+        except REPORTED_ERRORS as e:  # no plate, bad image, or the camera failed
+            return _error(422, f"{e}; the active calibration is unchanged")
+        self.hub.publish_now()  # every screen: Start and Resume wait for the answer
+        return JSONResponse(report.summary_json())
+
+    async def recal_picture(self, request: Request) -> Response:
+        if refused := self._view_refused(request):
+            return refused
+        kind = request.path_params["kind"]
+        if kind not in PICTURES:
+            return _error(404, "no such picture", known=sorted(PICTURES))
+        try:
+            report = self.desk.report(request.path_params["report_id"])
+        except Busy as e:
+            return _error(404, str(e))
+        return Response(report.plate_jpeg if kind == "plate.jpg" else report.deviation_png, media_type=PICTURES[kind])
+
+    async def recal_answer(self, request: Request) -> Response:
+        if refused := self._control_refused(request):
+            return refused
+        report_id, answer = request.path_params["report_id"], request.path_params["answer"]
+        if answer not in ("accept", "reject"):
+            return _error(404, "answer accept or reject")
+        try:
+            if answer == "reject":
+                self.desk.reject(report_id)
+                self.hub.publish_now()
+                return JSONResponse({"ok": True, "accepted": False})
+            if not may_recalibrate(self.service.snapshot()):
+                return _error(409, "the cell is running: pause or stop it before accepting a calibration")
+            info = await run_in_threadpool(self.desk.accept, report_id)
+        except Busy as e:
+            return _error(409, str(e))
+        except CalibrationRejected as e:
+            return _error(422, str(e))
+        except InvalidState as e:
+            return _error(409, f"{e}: the calibration file was written but the running cell did not take it")
+        except (*REPORTED_ERRORS, OSError) as e:
+            return _error(500, f"accepting failed: {e}")
+        self.hub.publish_now()
+        return JSONResponse({"ok": True, "accepted": True, "model": info.model})
+
+    async def calibration_picture(self, request: Request) -> Response:
+        """The active calibration's numbered plate and deviation plot, when it was made on this screen."""
+        if refused := self._view_refused(request):
+            return refused
+        kind = request.path_params["kind"]
+        if kind not in PICTURES:
+            return _error(404, "no such picture", known=sorted(PICTURES))
+        if not self.desk.has_pictures(self.service.snapshot().calibration):
+            return _error(404, "no report pictures for the calibration in use (not made on this screen since start)")
+        return Response(self.desk.active_pictures[kind], media_type=PICTURES[kind])
+
+    @staticmethod
+    async def _read_body(request: Request, limit: int) -> bytes | Response:
+        """The body up to `limit` bytes; longer (declared or sent) is refused without reading it all."""
+        declared = request.headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            return _error(413, f"upload too large: at most {limit // 1024} KiB")
+        chunks, size = [], 0
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                return _error(413, f"upload too large: at most {limit // 1024} KiB")
+            chunks.append(chunk)
+        return b"".join(chunks)
+
+    def routes(self) -> list[Route]:
+        return [
+            *(Route(path, self.static_file) for path in STATIC),
+            Route("/api/session", self.session),
+            Route("/api/login", self.login, methods=["POST"]),
+            Route("/api/logout", self.logout, methods=["POST"]),
+            Route("/api/state", self.state),
+            Route("/api/events", self.events),
+            Route("/api/frame.jpg", self.frame_jpeg),
+            Route("/api/command/{name}", self.command, methods=["POST"]),
+            Route("/api/recalibration/capture", self.recal_capture, methods=["POST"]),
+            Route("/api/recalibration/upload", self.recal_upload, methods=["POST"]),
+            Route("/api/recalibration/{report_id}/{kind:str}", self.recal_picture),
+            Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
+            Route("/api/calibration/{kind}", self.calibration_picture),
+        ]
+
+
+def _sse(event: str, data: dict) -> str:
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
+
+
+def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
+    """The screen as an ASGI app: Starlette routes behind the Host check and security headers."""
+    screen = ScreenApp(service, config, web, access)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app):
+        screen.hub.start(asyncio.get_running_loop())
+        try:
+            yield
+        finally:
+            screen.hub.close()
+
+    app = Starlette(routes=screen.routes(), lifespan=lifespan)
+    guard = Guard(app, screen.access)
+    guard.screen = screen
+    return guard

@@ -1,0 +1,114 @@
+"""Who may watch and who may drive the cell from the screen.
+
+Loopback without a password: anyone on this PC may use it (a browser page from another
+site still cannot: every control needs this process's CSRF token, which only a same-origin
+page can read, and the Host header must name loopback, against DNS rebinding).
+With a password (required for a non-loopback bind; the line service's user and password,
+shared with OPC UA): a login gives an HttpOnly, SameSite=Strict session cookie and a CSRF
+token bound to that session.
+"""
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import secrets
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from cell.errors import ConfigError
+from cell.web.config import WebConfig
+
+SESSION_COOKIE = "cell_session"
+CSRF_HEADER = "x-csrf-token"
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
+MAX_SESSIONS = 64
+
+
+def is_loopback(host: str) -> bool:
+    name = host.strip("[]").lower()
+    if name == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(name).is_loopback
+    except ValueError:
+        return False  # a host name other than localhost may resolve anywhere
+
+
+@dataclass
+class _Session:
+    csrf: str
+    expires_s: float
+
+
+class Access:
+    """The screen's access rules: password check, sessions and CSRF tokens."""
+
+    def __init__(self, host: str, web: WebConfig, check_password: Callable[[str, str], bool] | None = None):
+        """`check_password(user, password)`: the service's credential check; None when none is configured."""
+        self.loopback = is_loopback(host)
+        self._check = check_password
+        self.login_required = check_password is not None
+        if not self.loopback and not self.login_required:
+            raise ConfigError(
+                f"the screen would listen on {host}, beyond loopback, without a password: anyone on the "
+                f"network could drive the arm",
+                hint="set service.user and service.password_hash (`run-cell hash-password`) or service.password_env, "
+                "or listen on 127.0.0.1",
+            )
+        self.view_open = web.view_without_password or not self.login_required
+        self._session_s = web.session_h * 3600
+        self._sessions: dict[str, _Session] = {}
+        self.open_csrf = secrets.token_urlsafe(32)  # the token when no login is needed
+
+    def check_password(self, user: str, password: str) -> bool:
+        return self._check is not None and self._check(user, password)
+
+    def new_session(self) -> tuple[str, str]:
+        """A fresh session id (the cookie) and its CSRF token."""
+        now = time.monotonic()
+        self._sessions = {k: s for k, s in self._sessions.items() if s.expires_s > now}
+        while len(self._sessions) >= MAX_SESSIONS:
+            self._sessions.pop(next(iter(self._sessions)))
+        sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
+        self._sessions[sid] = _Session(csrf, now + self._session_s)
+        return sid, csrf
+
+    def end_session(self, sid: str | None) -> None:
+        self._sessions.pop(sid or "", None)
+
+    def session(self, sid: str | None) -> _Session | None:
+        s = self._sessions.get(sid or "")
+        if s is None or s.expires_s <= time.monotonic():
+            return None
+        return s
+
+    def csrf_for(self, sid: str | None) -> str | None:
+        """The CSRF token this client must send with controls, or None when it must log in first."""
+        if not self.login_required:
+            return self.open_csrf
+        s = self.session(sid)
+        return s.csrf if s else None
+
+    def may_view(self, sid: str | None) -> bool:
+        return self.view_open or self.session(sid) is not None
+
+    def may_control(self, sid: str | None) -> bool:
+        return not self.login_required or self.session(sid) is not None
+
+    def csrf_ok(self, sid: str | None, token: str | None) -> bool:
+        want = self.csrf_for(sid)
+        return bool(want and token) and hmac.compare_digest(want.encode(), token.encode())
+
+    def host_ok(self, host_header: str) -> bool:
+        """On a loopback bind, only loopback Host names (a rebound DNS name is refused)."""
+        if not self.loopback:
+            return True
+        return _host_name(host_header).lower() in LOOPBACK_NAMES
+
+
+def _host_name(host_header: str) -> str:
+    """The name part of a Host header: '[::1]:8080' -> '::1', 'localhost:8080' -> 'localhost'."""
+    if host_header.startswith("["):
+        return host_header[1 : host_header.find("]")]
+    return host_header.split(":", 1)[0]

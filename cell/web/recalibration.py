@@ -1,0 +1,183 @@
+"""Recalibration from the screen: a plate image (the cell's camera or an upload) -> the
+report -> the operator accepts or rejects.
+
+Accepting goes through cell.calibration.recalibrate.replace_active, the same quality gate
+and atomic replacement as scripts/recalibrate.py, then service.install_calibration. Nothing
+from the request names a file: an upload is bytes decoded as an image, the report's pictures
+live in memory under a random id, and the files written are the config's.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import secrets
+import struct
+import threading
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import cv2
+import numpy as np
+
+from cell.calibration.pipeline import CalibrationResult, calibrate
+from cell.calibration.recalibrate import check_image_size, gate_failure, replace_active
+from cell.calibration.report import annotate_plate, deviation_png
+from cell.config import CellConfig
+from cell.errors import InputError
+from cell.service.api import CalibrationInfo, LineServiceAPI
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Report:
+    """A fitted calibration waiting for the operator's answer, and its pictures."""
+
+    id: str
+    result: CalibrationResult
+    source: str  # for display only
+    plate_jpeg: bytes
+    deviation_png: bytes
+    gate_failure: str | None
+
+    def summary_json(self) -> dict:
+        r, cv, fit = self.result, self.result.chosen.cv, self.result.chosen.fit
+        return {
+            "id": self.id,
+            "source": self.source,
+            "model": r.chosen.label,
+            "why": r.why,
+            "points": int(len(r.points.pixel)),
+            "missing": [int(m) for m in r.points.missing],
+            "fit_rms_mm": round(fit.rms_mm, 4),
+            "fit_max_mm": round(fit.max_mm, 4),
+            "cv_rms_mm": round(cv.rms_mm, 4),
+            "cv_max_mm": round(cv.max_mm, 4),
+            "models": [{"model": s.label, "cv_rms_mm": round(s.cv.rms_mm, 4), "cv_max_mm": round(s.cv.max_mm, 4)}
+                       for s in r.scores],
+            "passes": self.gate_failure is None,
+            "gate_failure": self.gate_failure,
+        }
+
+
+class Busy(Exception):
+    """Another recalibration step is running, or the report asked for is not the open one."""
+
+
+def image_size_from_header(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header, read before decoding, so a tiny file claiming
+    a gigapixel image is refused without allocating it. None: neither format."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        return struct.unpack(">II", data[16:24])
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = struct.unpack(">H", data[i + 2 : i + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return w, h
+        i += 2 + length
+    return None
+
+
+def decode_upload(data: bytes, config: CellConfig) -> np.ndarray:
+    """The uploaded bytes as a BGR image of the camera's size, or InputError saying why not."""
+    if not data:
+        raise InputError("upload: empty file")
+    size = image_size_from_header(data)
+    if size is None:
+        raise InputError("upload: not a PNG or JPEG image")
+    want = (config.camera.width_px, config.camera.height_px)
+    if size != want:
+        raise InputError(
+            f"upload: image is {size[0]} x {size[1]} px but the camera is configured for {want[0]} x {want[1]} px"
+        )
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError("upload: cannot decode the image (corrupt or truncated)")
+    check_image_size(image, config, "upload")
+    return image
+
+
+class RecalibrationDesk:
+    """One recalibration at a time; the open report is the only one that can be accepted."""
+
+    def __init__(self, service: LineServiceAPI, config: CellConfig):
+        self.service, self.config = service, config
+        self._lock = threading.Lock()  # one fit at a time (matplotlib is not thread-safe either)
+        self.open: Report | None = None
+        self.active_pictures: dict[str, bytes] = {}  # the accepted report's pictures, for the card
+        self.active_time: datetime | None = None
+
+    def has_pictures(self, info: CalibrationInfo | None) -> bool:
+        """Whether the calibration in use is the one accepted here (whose pictures we hold)."""
+        return bool(self.active_pictures) and info is not None and info.time_utc == self.active_time
+
+    def from_camera(self) -> Report:
+        image = self.service.capture_plate_image()  # raises InvalidState unless Ready/paused/Halted
+        check_image_size(image, self.config, "camera frame")
+        return self._fit(image, f"camera frame {_now():%Y-%m-%d %H:%M:%S} UTC")
+
+    def from_upload(self, data: bytes) -> Report:
+        image = decode_upload(data, self.config)
+        digest = hashlib.sha256(data).hexdigest()[:12]
+        return self._fit(image, f"uploaded image sha256 {digest}, {_now():%Y-%m-%d %H:%M:%S} UTC")
+
+    def _fit(self, image: np.ndarray, source: str) -> Report:
+        if not self._lock.acquire(blocking=False):
+            raise Busy("a recalibration is being computed: wait for its report")
+        try:
+            result = calibrate(image, self.config)  # PlateNotFound is an InputError-like CellError
+            plate = annotate_plate(image, result)
+            ok, jpeg = cv2.imencode(".jpg", plate, [cv2.IMWRITE_JPEG_QUALITY, 85])
+            report = Report(secrets.token_urlsafe(16), result, source, jpeg.tobytes(), deviation_png(result),
+                            gate_failure(result, self.config))
+            self.open = report
+            log.info("recalibration report %s from %s: %s", report.id, source, result.why)
+            return report
+        finally:
+            self._lock.release()
+
+    def report(self, report_id: str) -> Report:
+        r = self.open
+        if r is None or not secrets.compare_digest(r.id.encode(), report_id.encode()):
+            raise Busy("no such recalibration report open (rejected, accepted, or replaced by a newer one)")
+        return r
+
+    def reject(self, report_id: str) -> None:
+        self.report(report_id)
+        log.info("recalibration report %s rejected by the operator", report_id)
+        self.open = None
+
+    def accept(self, report_id: str) -> CalibrationInfo:
+        """Gate, atomic replacement, then the service starts using it; refused: nothing changes."""
+        with self._lock:
+            report = self.report(report_id)
+            path, backup = replace_active(report.result, self.config)  # CalibrationRejected: file untouched
+            cal, cv = report.result.calibration, report.result.chosen.cv
+            info = CalibrationInfo(cal.model_name, cv.rms_mm, cv.max_mm, _created(cal.created_utc), report.source)
+            self.service.install_calibration(cal, info)
+            self.active_pictures = {"plate.jpg": report.plate_jpeg, "deviation.png": report.deviation_png}
+            self.active_time = info.time_utc
+            self.open = None
+            log.info("recalibration %s accepted from the screen: %s written%s", report_id, path,
+                     f", previous kept as {backup}" if backup else "")
+            return info
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def _created(text: str) -> datetime | None:
+    try:
+        return datetime.fromisoformat(text)
+    except ValueError:
+        return None
