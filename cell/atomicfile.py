@@ -2,6 +2,7 @@
 synced, then renamed over it. On any failure (a full disk, a signal, a folder where a file
 should be) the temporary file is removed and the error names the target in one line.
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -9,6 +9,7 @@ raises AuditWriteFailed once, so the run faults and stops safely; from then on, 
 always once `best_effort` is set (while making safe and ending the run), events that
 cannot be written are dropped: the record never stands in the way of the safe stop.
 """
+
 from __future__ import annotations
 
 import json
@@ -77,9 +78,11 @@ class AuditLog:
         broken_before = self.failed is not None
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
             if not (broken_before or self.best_effort):
-                raise AuditWriteFailed(f"audit log {self.path}: cannot write event {self._seq} ({kind}): "
-                                       f"{self.failed.strerror or self.failed}",
-                                       hint="free space on its filesystem or set run.log_dir elsewhere")
+                raise AuditWriteFailed(
+                    f"audit log {self.path}: cannot write event {self._seq} ({kind}): "
+                    f"{self.failed.strerror or self.failed}",
+                    hint="free space on its filesystem or set run.log_dir elsewhere",
+                )
         return record
 
     def close(self) -> None:

@@ -6,6 +6,7 @@ OpenCV's object frame has Z = X x Y; with point 1 at the top-left that points in
 table (z = -height), with point 1 at another corner the frame may be mirrored and Z
 point at the camera (z = +height). `_up` holds that sign.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -79,9 +80,7 @@ class CameraModel:
         # Camera looking straight down: camera x = table X, camera y = table Y, camera z
         # = table z (into the table). Then roll about the optical axis, then tilt.
         R_roll = _rotation("z", roll_deg)
-        R_tilt = _rotation("z", tilt_azimuth_deg) @ _rotation("x", tilt_deg) @ _rotation(
-            "z", -tilt_azimuth_deg
-        )
+        R_tilt = _rotation("z", tilt_azimuth_deg) @ _rotation("x", tilt_deg) @ _rotation("z", -tilt_azimuth_deg)
         R = R_roll @ R_tilt  # table -> camera
         target = np.array([look_at_table_mm[0], look_at_table_mm[1], 0.0])
         # Camera centre C = target - distance * (optical axis in table frame).

@@ -5,6 +5,7 @@ CellError or a driver's DeviceError: one line on stderr saying what and where, a
 non-zero exit. Stop signals are handled from the start (cell.signals), before any command
 opens a device.
 """
+
 from __future__ import annotations
 
 import argparse

@@ -3,6 +3,7 @@
 Every key carries its unit; every model forbids unknown keys so a typo is an error that
 names the key, not a silently ignored setting.
 """
+
 from __future__ import annotations
 
 import tomllib
@@ -31,9 +32,7 @@ class PlateConfig(Strict):
     pitch_x_mm: float = Field(22.0, gt=0, le=1000)
     pitch_y_mm: float = Field(16.0, gt=0, le=1000)
     diameter_mm: float = Field(10.0, gt=0, le=500)
-    first_point: Corner = Field(
-        "top-left", description="image corner where point 1 lies, for a plate seen unrotated"
-    )
+    first_point: Corner = Field("top-left", description="image corner where point 1 lies, for a plate seen unrotated")
 
     @model_validator(mode="after")
     def _circles_do_not_touch(self) -> PlateConfig:
@@ -61,8 +60,7 @@ class PaperDetectionConfig(Strict):
     def _area_order(self) -> PaperDetectionConfig:
         if self.min_area_px >= self.max_area_px:
             raise ValueError(
-                f"detection.paper.min_area_px ({self.min_area_px} px) must be below "
-                f"max_area_px ({self.max_area_px} px)"
+                f"detection.paper.min_area_px ({self.min_area_px} px) must be below max_area_px ({self.max_area_px} px)"
             )
         return self
 
@@ -99,15 +97,20 @@ class CalibrationConfig(Strict):
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
     max_camera_model_ratio: float = Field(
-        5.0, gt=1, description="refused when the physical camera model's CV RMS exceeds the best model's this many "
-                               "times (and by max_camera_model_excess_mm): the plate is not the configured one"
+        5.0,
+        gt=1,
+        description="refused when the physical camera model's CV RMS exceeds the best model's this many "
+        "times (and by max_camera_model_excess_mm): the plate is not the configured one",
     )
     max_camera_model_excess_mm: float = Field(0.05, gt=0, le=10)
     camera_height_min_mm: float = Field(50.0, gt=0, description="a fitted camera closer to the table is refused")
     camera_height_max_mm: float = Field(3000.0, gt=0, description="a fitted camera farther from the table is refused")
     max_scale_change_pct: float = Field(
-        2.0, gt=0, le=100, description="a new calibration whose scale (mm per px at the image centre) differs more "
-                                       "from the active one's needs --accept-change"
+        2.0,
+        gt=0,
+        le=100,
+        description="a new calibration whose scale (mm per px at the image centre) differs more "
+        "from the active one's needs --accept-change",
     )
     max_origin_change_mm: float = Field(
         5.0, gt=0, description="a new calibration that maps the image centre this much elsewhere needs --accept-change"
@@ -120,8 +123,10 @@ class CalibrationConfig(Strict):
     @model_validator(mode="after")
     def _heights_ordered(self) -> CalibrationConfig:
         if self.camera_height_min_mm >= self.camera_height_max_mm:
-            raise ValueError(f"calibration.camera_height_min_mm ({self.camera_height_min_mm}) must be below "
-                             f"camera_height_max_mm ({self.camera_height_max_mm})")
+            raise ValueError(
+                f"calibration.camera_height_min_mm ({self.camera_height_min_mm}) must be below "
+                f"camera_height_max_mm ({self.camera_height_max_mm})"
+            )
         return self
 
 
@@ -137,9 +142,11 @@ class DriftConfig(Strict):
         1.5, gt=0, le=100, description="small enough (under parts.segment.noise_area_mm2) that locate ignores the marks"
     )
     limit_mm: float = Field(
-        0.25, gt=0, le=50,
+        0.25,
+        gt=0,
+        le=50,
         description="stop when a mark maps further than this from its place: below 0.3 mm by more than the "
-                    "measurement noise, so that a 0.3 mm bump is caught",
+        "measurement noise, so that a 0.3 mm bump is caught",
     )
     search_mm: float = Field(3.0, gt=0, le=50, description="how far from its place a mark is looked for")
 

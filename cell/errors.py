@@ -1,4 +1,5 @@
 """Errors the operator sees: each says what went wrong and where, in one line."""
+
 from __future__ import annotations
 
 import errno
@@ -68,8 +69,9 @@ def describe_os_error(e: OSError) -> str:
 
 def output_error(path, e: OSError) -> OutputError:
     """A failed write to `path` as a one-line error: exit 2 for a wrong destination, 3 for the disk failing."""
-    err = OutputError(f"{path}: cannot write: {e.strerror or e}",
-                      hint="give a writable file path with free space on its filesystem")
+    err = OutputError(
+        f"{path}: cannot write: {e.strerror or e}", hint="give a writable file path with free space on its filesystem"
+    )
     if e.errno in _DISK_FAILED:
         err.exit_code = 3
     return err

@@ -1,4 +1,5 @@
 """Reading images with errors that say which file and what is wrong."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -26,11 +27,13 @@ def read_image(path: str | Path, max_px: int | None = None, expected_size: tuple
     except OSError as e:
         raise InputError(f"{path}: cannot read image: {e.strerror or e}") from None
     if max_px is not None and w * h > max_px:
-        raise InputError(f"{path}: image is {w} x {h} px ({w * h} px), more than camera.max_image_px {max_px}; "
-                         "not decoded")
+        raise InputError(
+            f"{path}: image is {w} x {h} px ({w * h} px), more than camera.max_image_px {max_px}; not decoded"
+        )
     if expected_size is not None and (w, h) != tuple(expected_size):
-        raise InputError(f"{path}: image is {w} x {h} px but {expected_size[0]} x {expected_size[1]} px is expected; "
-                         "not decoded")
+        raise InputError(
+            f"{path}: image is {w} x {h} px but {expected_size[0]} x {expected_size[1]} px is expected; not decoded"
+        )
     data = np.fromfile(str(path), dtype=np.uint8)
     image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if image is None:
@@ -44,8 +47,9 @@ def check_image_path(path: str | Path) -> None:
     if path.is_dir():
         raise OutputError(f"{path}: is a folder, not an image file", hint="give a file path ending .png or .jpg")
     if not path.suffix or not cv2.haveImageWriter(f"x{path.suffix}"):
-        raise OutputError(f"{path}: cannot write an image as {path.suffix or 'a file without extension'!r}",
-                          hint="use .png or .jpg")
+        raise OutputError(
+            f"{path}: cannot write an image as {path.suffix or 'a file without extension'!r}", hint="use .png or .jpg"
+        )
 
 
 def write_image_atomic(path: str | Path, image: np.ndarray) -> None:

@@ -7,6 +7,7 @@ an flock on a file in the lock folder (RUN_CELL_LOCK_DIR, default <tmp>/run-cell
 named after the resource's real path, holding "<program> pid N". The kernel drops the lock
 when the process dies, however it dies, so a stale file never blocks anyone.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -78,8 +79,10 @@ def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
         except BlockingIOError:
             if time.monotonic() >= deadline:
                 holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
-                raise Busy(f"{what} {resource} in use by {holder}",
-                           hint=f"wait for it to finish or stop it; lock file {lock_path(resource)}") from None
+                raise Busy(
+                    f"{what} {resource} in use by {holder}",
+                    hint=f"wait for it to finish or stop it; lock file {lock_path(resource)}",
+                ) from None
             time.sleep(0.05)
 
 

@@ -4,6 +4,7 @@ Written through a RecordFile: a run's log is created exclusively (its own file);
 shared `logs/cell.log` of the other commands is appended to. A failed write (a full
 disk) is reported once on stderr and never raised into the code that logged.
 """
+
 from __future__ import annotations
 
 import logging
@@ -58,6 +59,8 @@ def stop_logging_to(path: str | Path) -> None:
         if isinstance(h, RecordHandler) and h.path == Path(path):
             root.removeHandler(h)
             h.close()
+
+
 def quiet_terminal(level: int) -> None:
     """Raise the terminal's log handlers to `level`: the operator's file keeps every line,
     the terminal only what a command does not already say in its own one-line message."""

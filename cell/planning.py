@@ -4,6 +4,7 @@ angle and bin, pick order, and the workspace/reach check made before any motion.
 Jaw angle convention: the direction in which the jaws close, degrees counter-clockwise
 from the robot's +X, in [-90, 90) (a parallel gripper is symmetric under 180 degrees).
 """
+
 from __future__ import annotations
 
 import json
@@ -55,8 +56,13 @@ class TableToRobot:
         return wrap_jaw_deg(table_angle_deg + self.rotation_deg)
 
     def to_dict(self) -> dict:
-        return {"rotation_deg": self.rotation_deg, "tx_mm": self.tx_mm, "ty_mm": self.ty_mm,
-                "table_z_mm": self.table_z_mm, "scale": self.scale}
+        return {
+            "rotation_deg": self.rotation_deg,
+            "tx_mm": self.tx_mm,
+            "ty_mm": self.ty_mm,
+            "table_z_mm": self.table_z_mm,
+            "scale": self.scale,
+        }
 
 
 def wrap_jaw_deg(angle_deg: float) -> float:
@@ -88,8 +94,10 @@ def fit_table_to_robot(
 
 
 def save_taught(path: Path, fit: TableToRobot, points: list[dict], residuals: np.ndarray) -> None:
-    write_json_atomic(path, {"schema": SCHEMA, "transform": fit.to_dict(), "points": points,
-                             "residuals_mm": [float(r) for r in residuals]})
+    write_json_atomic(
+        path,
+        {"schema": SCHEMA, "transform": fit.to_dict(), "points": points, "residuals_mm": [float(r) for r in residuals]},
+    )
 
 
 def load_taught(path: Path) -> TableToRobot:
@@ -154,8 +162,9 @@ class Planner:
         plan = self.cfg.for_class(part.cls)
         table_xy = part.grasp_mm or part.table_mm
         if not all(math.isfinite(v) for v in (*table_xy, *(() if part.angle_deg is None else (part.angle_deg,)))):
-            raise Unreachable(f"part at table {tuple(table_xy)} mm, angle {part.angle_deg} deg: not a finite number "
-                              "(calibration?)")
+            raise Unreachable(
+                f"part at table {tuple(table_xy)} mm, angle {part.angle_deg} deg: not a finite number (calibration?)"
+            )
         rx, ry = self.frame.to_robot(table_xy)[0]
         z = self.frame.table_z_mm
         angle = None
@@ -164,9 +173,13 @@ class Planner:
                 raise Unreachable("no axis angle to put the jaws across")
             angle = self.frame.angle_to_robot(part.angle_deg + 90.0)
         t = Target(
-            part.id, part.cls, (float(table_xy[0]), float(table_xy[1])),
-            (float(rx), float(ry), z + plan.pick_above_table_mm), z + plan.approach_above_table_mm,
-            angle, plan.bin_robot_mm,
+            part.id,
+            part.cls,
+            (float(table_xy[0]), float(table_xy[1])),
+            (float(rx), float(ry), z + plan.pick_above_table_mm),
+            z + plan.approach_above_table_mm,
+            angle,
+            plan.bin_robot_mm,
         )
         if not all(math.isfinite(v) for v in (*t.robot_mm, t.approach_z_mm, *(() if angle is None else (angle,)))):
             raise Unreachable(f"target {t.robot_mm} mm, jaws {angle} deg: not a finite number (calibration?)")

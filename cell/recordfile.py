@@ -6,6 +6,7 @@ written (a full disk, a pulled USB stick) must never stop the arm being made saf
 first failed write is reported once on stderr, later writes are dropped, and the owner
 decides (via `failed`) whether that is a fault.
 """
+
 from __future__ import annotations
 
 import errno
@@ -63,8 +64,7 @@ class RecordFile:
                 data = data[n:]
         except OSError as e:
             self.failed = e
-            tell_stderr(f"{self.what} {self.path}: write failed ({e.strerror or e}); "
-                        "its further lines are dropped")
+            tell_stderr(f"{self.what} {self.path}: write failed ({e.strerror or e}); its further lines are dropped")
             return False
         return True
 

@@ -2,6 +2,7 @@
 loop, and the built-in simulated cell. Robot-frame values are mm in the arm's base frame;
 heights named *_above_table_mm are relative to the table surface.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -40,7 +41,9 @@ class RobotWorkspace(Workspace):
     @model_validator(mode="after")
     def _reach_ordered(self) -> RobotWorkspace:
         if self.reach_min_mm >= self.reach_max_mm:
-            raise ValueError(f"reach_min_mm ({self.reach_min_mm:g} mm) must be below reach_max_mm ({self.reach_max_mm:g} mm)")
+            raise ValueError(
+                f"reach_min_mm ({self.reach_min_mm:g} mm) must be below reach_max_mm ({self.reach_max_mm:g} mm)"
+            )
         return self
 
 
@@ -48,7 +51,8 @@ class PlanningConfig(Strict):
     """Table mm -> robot mm, and the per-class pick and place moves."""
 
     frame: Literal["offset", "taught"] = Field(
-        "offset", description="'offset': the fixed offset below (the paper's way); 'taught': the fit of `run-cell teach`"
+        "offset",
+        description="'offset': the fixed offset below (the paper's way); 'taught': the fit of `run-cell teach`",
     )
     offset_x_mm: float = Field(-132.0, description="robot X of the table origin (plate point 1)")
     offset_y_mm: float = Field(40.0, description="robot Y of the table origin")
@@ -88,13 +92,16 @@ class FeederConfig(Strict):
     washer_share: float = Field(0.10, ge=0, le=1, description="fraction that are washers (the cell must leave them)")
     seed: int = Field(1, ge=0)
     area_mm: tuple[float, float, float, float] = Field(
-        (15.0, 25.0, 255.0, 170.0), description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm); "
-                                                "the default keeps clear of the arm's base (reach_min_mm)"
+        (15.0, 25.0, 255.0, 170.0),
+        description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm); "
+        "the default keeps clear of the arm's base (reach_min_mm)",
     )
     max_on_table: int = Field(40, ge=1, le=500, description="a part due when this many lie on the table is not dropped")
     clear_after_s: float = Field(
-        600.0, ge=0, description="a part left on the table this long (simulated s) is cleared away, as an operator "
-                                 "clears rejects (washers); 0 = never"
+        600.0,
+        ge=0,
+        description="a part left on the table this long (simulated s) is cleared away, as an operator "
+        "clears rejects (washers); 0 = never",
     )
 
     @model_validator(mode="after")
@@ -115,24 +122,28 @@ class SimConfig(Strict):
     truth_rotation_deg: float = Field(0.0, ge=-180, le=180, description="true rotation table -> robot")
     truth_table_z_mm: float = Field(0.0, description="true robot Z of the table surface")
     layout: Literal["paper", "paper-square-to-base", "random"] = Field(
-        "paper", description="paper: Table IV's 9 bolts and 8 nuts plus a washer; paper-square-to-base: the same with "
-                             "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip)"
+        "paper",
+        description="paper: Table IV's 9 bolts and 8 nuts plus a washer; paper-square-to-base: the same with "
+        "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip)",
     )
     seed: int = Field(0, ge=0)
     perfect_calibration: bool = Field(
         False, description="use the camera model itself instead of calibrating the rendered plate"
     )
     camera_bumped_mm: tuple[float, float] = Field(
-        (0.0, 0.0), description="move the camera this far (table X, Y) after the plate was calibrated: a stale calibration"
+        (0.0, 0.0),
+        description="move the camera this far (table X, Y) after the plate was calibrated: a stale calibration",
     )
     camera_bumped_at_pick: int = Field(
-        0, ge=0, description="when: 0 before the run starts; N the camera moves just before the frame that pick N "
-                             "is planned from"
+        0,
+        ge=0,
+        description="when: 0 before the run starts; N the camera moves just before the frame that pick N "
+        "is planned from",
     )
     reference_marks_mm: list[tuple[float, float]] = Field(
         default_factory=lambda: [(-6.0, -6.0), (270.0, -6.0), (-6.0, 182.0), (270.0, 182.0)],
         description="dark dots printed on the simulated table (drift.mark_diameter_mm across), just outside the "
-                    "plate's corners; the run watches them unless drift.marks_mm names others",
+        "plate's corners; the run watches them unless drift.marks_mm names others",
     )
     jaw_across_tolerance_mm: float = Field(
         1.5, gt=0, le=20, description="error allowed along the jaws' closing direction"
@@ -149,15 +160,23 @@ class SimConfig(Strict):
     gripper_s: float = Field(0.4, ge=0, description="arm.kind sim: time to open or close the gripper")
     realtime: bool = Field(False, description="arm.kind sim: sleep for the simulated motion time")
     emulator_speed_scale: float = Field(
-        50.0, gt=0, le=10000, description="arm.kind serial/dynamixel (the real driver against an emulated arm): "
-                                          "the emulator moves this many times faster than the arm would; 1 = real time"
+        50.0,
+        gt=0,
+        le=10000,
+        description="arm.kind serial/dynamixel (the real driver against an emulated arm): "
+        "the emulator moves this many times faster than the arm would; 1 = real time",
     )
     speed_factor: float = Field(
-        1.0, gt=0, le=10000, description="run-cell serve: simulated time runs this many times faster than the wall "
-                                         "clock (the feeder, the capture interval): rehearse a shift in minutes"
+        1.0,
+        gt=0,
+        le=10000,
+        description="run-cell serve: simulated time runs this many times faster than the wall "
+        "clock (the feeder, the capture interval): rehearse a shift in minutes",
     )
     feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(
-        0, ge=0, description="arm.kind serial/dynamixel: rehearse a fault after this many grips (GRBL ALARM:1 on the "
-                             "next move; Dynamixel gripper servo overload); 0 = never"
+        0,
+        ge=0,
+        description="arm.kind serial/dynamixel: rehearse a fault after this many grips (GRBL ALARM:1 on the "
+        "next move; Dynamixel gripper servo overload); 0 = never",
     )

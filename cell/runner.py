@@ -19,6 +19,7 @@ DONE, and the cell captures again after the interval; only a stop ends the job. 
 `finish` request ends it at the next safe point (no part in the gripper, the last pick
 verified) with the arm homed and powered, ready for the next job.
 """
+
 from __future__ import annotations
 
 import logging
@@ -96,9 +97,16 @@ class Runner:
         self.holding = False
         self.homed = False
         self._handlers = {
-            S.IDLE: self._idle, S.HOME: self._home, S.CAPTURE: self._capture, S.LOCATE: self._locate,
-            S.VERIFY: self._verify, S.PLAN: self._plan, S.PICK: self._pick, S.PLACE: self._place,
-            S.PAUSED: self._paused, S.WAIT: self._wait,
+            S.IDLE: self._idle,
+            S.HOME: self._home,
+            S.CAPTURE: self._capture,
+            S.LOCATE: self._locate,
+            S.VERIFY: self._verify,
+            S.PLAN: self._plan,
+            S.PICK: self._pick,
+            S.PLACE: self._place,
+            S.PAUSED: self._paused,
+            S.WAIT: self._wait,
         }
 
     # ---- the loop -------------------------------------------------------------------
@@ -107,8 +115,13 @@ class Runner:
         t0 = time.perf_counter()
         with self.controls.shielded():
             try:
-                self.audit.event("run_start", expect_motion=self.expect_motion, camera=self.camera.source,
-                                 arm=type(self.arm).__name__, arm_port=self.arm.port)
+                self.audit.event(
+                    "run_start",
+                    expect_motion=self.expect_motion,
+                    camera=self.camera.source,
+                    arm=type(self.arm).__name__,
+                    arm_port=self.arm.port,
+                )
                 while not self.sm.finished:
                     self._guarded_step()
             except CellError as e:  # the audit log failed before the first step
@@ -275,8 +288,13 @@ class Runner:
         self.result = self.locate(self.frame)
         self.summary.locate_s += time.perf_counter() - t0
         objects, warnings = self.result.objects, self.result.warnings
-        self.audit.event("frame", frame=self.summary.frames, locate_ms=round(self.result.elapsed_ms, 3),
-                         warnings=warnings, detections=[_detection(o) for o in objects])
+        self.audit.event(
+            "frame",
+            frame=self.summary.frames,
+            locate_ms=round(self.result.elapsed_ms, 3),
+            warnings=warnings,
+            detections=[_detection(o) for o in objects],
+        )
         if warnings and not objects:  # blind, not empty: never "table clear" or "part gone"
             raise CellError("cannot see the table: " + "; ".join(warnings))
         n_pick = sum(o.pick for o in objects)
@@ -300,8 +318,15 @@ class Runner:
         else:
             result = "missed"
             self.summary.misses += 1
-        self.audit.event("verify", track=track.id, cls=track.cls, attempt=track.attempts, result=result,
-                         table_mm=track.table_mm, still_at_mm=[o.table_mm for o in still])
+        self.audit.event(
+            "verify",
+            track=track.id,
+            cls=track.cls,
+            attempt=track.attempts,
+            result=result,
+            table_mm=track.table_mm,
+            still_at_mm=[o.table_mm for o in still],
+        )
         reason = f"part {track.id} {result}"
         if result == "missed" and track.attempts > self.cfg.max_retries:
             track.status = PartStatus.FAILED
@@ -355,8 +380,10 @@ class Runner:
             track.status = PartStatus.UNREACHABLE
             self.summary.unreachable += 1
             self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
-            self.progress(f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "
-                          f"unreachable, skipped: {e}")
+            self.progress(
+                f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "
+                f"unreachable, skipped: {e}"
+            )
             return None
 
     def _start_attempt(self, track: Track, target: Target) -> None:
@@ -365,9 +392,17 @@ class Runner:
         self.summary.attempts += 1
         self.summary.retries += track.attempts > 1
         self.target, self.track = target, track
-        self.audit.event("target", track=track.id, cls=target.cls, attempt=track.attempts,
-                         table_mm=target.table_mm, robot_mm=target.robot_mm, approach_z_mm=target.approach_z_mm,
-                         jaw_angle_deg=target.jaw_angle_deg, bin_robot_mm=target.bin_robot_mm)
+        self.audit.event(
+            "target",
+            track=track.id,
+            cls=target.cls,
+            attempt=track.attempts,
+            table_mm=target.table_mm,
+            robot_mm=target.robot_mm,
+            approach_z_mm=target.approach_z_mm,
+            jaw_angle_deg=target.jaw_angle_deg,
+            bin_robot_mm=target.bin_robot_mm,
+        )
 
     def _pick(self) -> Step:
         t = self.target
@@ -413,12 +448,20 @@ class Runner:
         s = self.summary
         angle = "" if t.jaw_angle_deg is None else f", jaws {t.jaw_angle_deg:+.1f} deg"
         counts = ", ".join(f"{n} {c}s" for c, n in sorted(s.picked.items())) or "none"
-        return (f"pick {s.attempts:2d}: part {track.id:2d} {t.cls:4s} table ({t.table_mm[0]:6.1f}, {t.table_mm[1]:6.1f}) mm"
-                f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"
-                f"  [picked {counts}; misses {s.misses}, failed {s.failed}]")
+        return (
+            f"pick {s.attempts:2d}: part {track.id:2d} {t.cls:4s} table ({t.table_mm[0]:6.1f}, {t.table_mm[1]:6.1f}) mm"
+            f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"
+            f"  [picked {counts}; misses {s.misses}, failed {s.failed}]"
+        )
 
 
 def _detection(o: LocatedPart) -> dict:
-    return {"id": o.id, "cls": o.cls, "pick": o.pick, "table_mm": [round(v, 3) for v in o.table_mm],
-            "pixel": [round(v, 2) for v in o.pixel], "angle_deg": None if o.angle_deg is None else round(o.angle_deg, 2),
-            "reason": o.reason}
+    return {
+        "id": o.id,
+        "cls": o.cls,
+        "pick": o.pick,
+        "table_mm": [round(v, 3) for v in o.table_mm],
+        "pixel": [round(v, 2) for v in o.pixel],
+        "angle_deg": None if o.angle_deg is None else round(o.angle_deg, 2),
+        "reason": o.reason,
+    }

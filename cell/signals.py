@@ -8,6 +8,7 @@ raises StopRequested at once, so `with` blocks close ports and remove temporary 
 on the way out. Where it must not be (making the arm safe, ending the run), the signal is
 only recorded (`Controls.stop`) and acted on by the code that checks it.
 """
+
 from __future__ import annotations
 
 import contextlib

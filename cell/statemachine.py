@@ -9,6 +9,7 @@ Locate -> Verify -> Plan -> ... -> Done; in continuous mode Plan with nothing to
 to Wait -> Capture instead of Done, until a stop. The frame captured after a place is the one
 Verify checks and the next Plan uses, so each pick costs one frame.
 """
+
 from __future__ import annotations
 
 import ast

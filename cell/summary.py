@@ -1,6 +1,7 @@
 """The end-of-run summary, and the same counts recomputed from an audit log so the two can
 be checked against each other (a summary that disagrees with its log is a bug).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
@@ -47,9 +48,11 @@ class Summary:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d.update(software_ms_per_pick=round(self.software_ms_per_pick, 3),
-                 wall_ms_per_pick=round(self.wall_ms_per_pick, 3),
-                 motion_s_per_pick=round(self.motion_s_per_pick, 3))
+        d.update(
+            software_ms_per_pick=round(self.software_ms_per_pick, 3),
+            wall_ms_per_pick=round(self.wall_ms_per_pick, 3),
+            motion_s_per_pick=round(self.motion_s_per_pick, 3),
+        )
         return d
 
     def lines(self) -> list[str]:

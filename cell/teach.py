@@ -4,6 +4,7 @@ pair (circle's table mm, gripper's robot mm) recorded, and a rigid transform fit
 A fit is refused when its largest residual exceeds planning.teach_max_residual_mm: one
 badly jogged circle must not silently tilt every target.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -16,8 +17,10 @@ from cell.errors import InputError
 from cell.planning import TableToRobot, TeachRejected, fit_table_to_robot
 from drivers.arm.base import Arm
 
-JOG_HELP = ("commands: 'x 1.5', 'y -0.5', 'z -10' (relative mm), 'to X Y Z' (absolute), "
-            "'ok' to record this circle, 'skip', 'quit'")
+JOG_HELP = (
+    "commands: 'x 1.5', 'y -0.5', 'z -10' (relative mm), 'to X Y Z' (absolute), "
+    "'ok' to record this circle, 'skip', 'quit'"
+)
 
 
 @dataclass(frozen=True)
@@ -43,8 +46,12 @@ def fit_points(points: list[TaughtPoint], config: CellConfig) -> tuple[TableToRo
     """The fit and each point's residual, mm; refused unless the points can determine it."""
     check_points(points)
     cfg = config.planning
-    return fit_table_to_robot(np.array([p.table_mm for p in points]), np.array([p.robot_mm for p in points]),
-                              cfg.table_z_mm, cfg.teach_fit_scale)
+    return fit_table_to_robot(
+        np.array([p.table_mm for p in points]),
+        np.array([p.robot_mm for p in points]),
+        cfg.table_z_mm,
+        cfg.teach_fit_scale,
+    )
 
 
 def check_points(points: list[TaughtPoint]) -> None:
@@ -58,8 +65,9 @@ def check_points(points: list[TaughtPoint]) -> None:
     if len(set(circles)) < 3:
         raise InputError(f"teaching needs 3 or more distinct circles, got {sorted(set(circles))}", hint=hint)
     if len(set(circles)) < len(circles):
-        raise InputError(f"circle(s) {sorted({c for c in circles if circles.count(c) > 1})} given more than once",
-                         hint=hint)
+        raise InputError(
+            f"circle(s) {sorted({c for c in circles if circles.count(c) > 1})} given more than once", hint=hint
+        )
     table = np.array([p.table_mm for p in points], dtype=np.float64)
     centred = table - table.mean(axis=0)
     spread = np.linalg.svd(centred, compute_uv=False)
@@ -79,8 +87,9 @@ def check_fit(points: list[TaughtPoint], residuals: np.ndarray, config: CellConf
         )
 
 
-def jog_session(arm: Arm, circles: list[int], config: CellConfig,
-                ask: Callable[[str], str], tell: Callable[[str], None]) -> list[TaughtPoint]:
+def jog_session(
+    arm: Arm, circles: list[int], config: CellConfig, ask: Callable[[str], str], tell: Callable[[str], None]
+) -> list[TaughtPoint]:
     """Walk the operator through each circle on a connected arm; the pose at 'ok' is recorded."""
     points = []
     for circle in circles:

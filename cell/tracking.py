@@ -1,6 +1,7 @@
 """Parts followed across frames by position: a detection within a radius of a tracked part
 is that part. The runner asks which track a detection is, which tracks are near a place,
 and how many tracks ended in each status."""
+
 from __future__ import annotations
 
 import enum

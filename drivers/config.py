@@ -1,4 +1,5 @@
 """The one base of every config model, driver and application alike (cell's config reuses it)."""
+
 from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict

@@ -1,5 +1,6 @@
 """What every device driver shares: connect, disconnect (never raises), is_connected, and
 `with device:` connecting and always disconnecting. Arm and Camera build on it."""
+
 from __future__ import annotations
 
 import abc

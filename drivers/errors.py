@@ -1,6 +1,7 @@
 """Device errors: each carries the port, the command sent and the device's own reply, so the
 one-line message the operator sees says what failed, where, and what to do. The application
 (cell/) reports them; drivers never import it."""
+
 from __future__ import annotations
 
 

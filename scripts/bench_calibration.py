@@ -8,6 +8,7 @@ fit) against the renderer's exact truth. Times are CPU times on one core, median
 
     python scripts/bench_calibration.py [--repeat 5]
 """
+
 from __future__ import annotations
 
 import os
@@ -42,7 +43,9 @@ CAMERAS = [
 
 def camera_for(spec) -> CameraModel:
     _, w, h, mmpx, k1, k2, tilt, az, roll = spec
-    return CameraModel.looking_down(w, h, mmpx, (132.0, 88.0), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2)
+    return CameraModel.looking_down(
+        w, h, mmpx, (132.0, 88.0), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2
+    )
 
 
 def timed(fn, repeat: int):
@@ -63,7 +66,9 @@ def main() -> int:
     config = CellConfig()
     paper = config.model_copy(deep=True)
     paper.detection.preset = "paper"
-    print(f"{'camera':<28}{'default model':<16}{'RMS':>8}{'max':>8}{'ms':>7}   {'paper RMS':>9}{'max':>8}{'ms':>7}   {'findCirclesGrid ms':>18}")
+    print(
+        f"{'camera':<28}{'default model':<16}{'RMS':>8}{'max':>8}{'ms':>7}   {'paper RMS':>9}{'max':>8}{'ms':>7}   {'findCirclesGrid ms':>18}"
+    )
     worst = {"d_rms": 0.0, "d_max": 0.0, "p_rms": [], "speed": []}
     for spec in CAMERAS:
         cam = camera_for(spec)
@@ -72,7 +77,9 @@ def main() -> int:
         d_res, d_ms = timed(lambda: calibrate(image, config), args.repeat)
         p_res, p_ms = timed(lambda: calibrate(image, paper, "quadratic"), args.repeat)
         (found, _), g_ms = timed(
-            lambda: cv2.findCirclesGrid(gray, (config.plate.columns, config.plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID),
+            lambda: cv2.findCirclesGrid(
+                gray, (config.plate.columns, config.plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID
+            ),
             args.repeat,
         )
         d_rms, d_max = plate_field_error_mm(cam, d_res.calibration, config.plate)

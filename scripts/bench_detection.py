@@ -19,6 +19,7 @@ scale, crops: cell/sim/degrade.py, as tests/test_real_circles.py uses them).
 
     python scripts/bench_detection.py [--repeat 7]
 """
+
 from __future__ import annotations
 
 import os
@@ -105,11 +106,12 @@ def bench(label: str, gray: np.ndarray, config: CellConfig, area_scale: float, r
         a = agreement(ours.number, ours.pixel, ref, *size)
         agree = f"{a.max_px:.3f}" + ("" if a.same_numbering and a.matched == len(ref) else " (numbering differs)")
     found = lambda r: "yes" if r is not None else "no"  # noqa: E731
-    ours_found = "no" if ours is None else f"{len(ours.number)}" + (f" ({len(ours.missing)} missing)" if ours.missing else "")
+    ours_found = (
+        "no" if ours is None else f"{len(ours.number)}" + (f" ({len(ours.missing)} missing)" if ours.missing else "")
+    )
     scaled = f"{ms[2]:>8.1f} {found(cv_scaled):>4}" if len(ms) > 2 else f"{'-':>8} {'':>4}"
     print(
-        f"{label:<34}{ms[0]:>8.1f} {ours_found:>14}{ms[1]:>9.1f} {found(cv_default):>4}{scaled}"
-        f"{ratio:>8.2f}{agree:>10}"
+        f"{label:<34}{ms[0]:>8.1f} {ours_found:>14}{ms[1]:>9.1f} {found(cv_default):>4}{scaled}{ratio:>8.2f}{agree:>10}"
     )
     return ratio
 
@@ -139,8 +141,10 @@ def variants_table(config: CellConfig) -> None:
                     ours_moved = np.linalg.norm(pair(ours.pixel) - pair(clean_ours.pixel), axis=1).max()
                     row += f"{ours_moved:>12.3f}{np.linalg.norm(ref - clean_cv, axis=1).max():>10.3f}"
             print(row)
-    print(f"agreement over {len(worst)} variants OpenCV found: max |ours - OpenCV| median {np.median(worst):.3f} px, "
-          f"{sum(w <= 0.2 for w in worst)} of {len(worst)} within 0.2 px")
+    print(
+        f"agreement over {len(worst)} variants OpenCV found: max |ours - OpenCV| median {np.median(worst):.3f} px, "
+        f"{sum(w <= 0.2 for w in worst)} of {len(worst)} within 0.2 px"
+    )
 
 
 def main() -> int:
@@ -168,10 +172,14 @@ def main() -> int:
         # The plate (264 x 176 mm) filling most of the frame, mild barrel distortion and tilt.
         plate = rendered_config.plate
         mm_per_px = 1.15 * max(plate.pitch_x_mm * plate.columns / w, plate.pitch_y_mm * plate.rows / h)
-        cam = CameraModel.looking_down(w, h, mm_per_px, (132.0, 88.0), tilt_deg=4.0, tilt_azimuth_deg=30.0, roll_deg=2.0, k1=-0.08)
+        cam = CameraModel.looking_down(
+            w, h, mm_per_px, (132.0, 88.0), tilt_deg=4.0, tilt_azimuth_deg=30.0, roll_deg=2.0, k1=-0.08
+        )
         gray = cv2.cvtColor(render_plate(cam, plate, seed=7), cv2.COLOR_BGR2GRAY)
         d_px = plate.diameter_mm / mm_per_px
-        ratios.append(bench(f"rendered 13x12 {w}x{h}", gray, rendered_config, max(1.0, (d_px / 40.0) ** 2), args.repeat))
+        ratios.append(
+            bench(f"rendered 13x12 {w}x{h}", gray, rendered_config, max(1.0, (d_px / 40.0) ** 2), args.repeat)
+        )
     print(
         f"\ntime ratio ours / findCirclesGrid: max {max(ratios):.2f}, median {statistics.median(ratios):.2f} "
         f"over {len(ratios)} images (median of {args.repeat} alternating runs each, one core; target <= 1.0)"

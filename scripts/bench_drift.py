@@ -13,6 +13,7 @@ the watch stay quiet while nothing moves?
 
     python scripts/bench_drift.py [--frames 1000] [--bump-mm 0.3]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,8 +48,15 @@ def bump_run(direction: tuple[float, float], at_pick: int, size_mm: float, log_d
     with sim_cell(config) as sim, AuditLog(log_dir / f"bump-{at_pick}.jsonl") as audit:
         watch = DriftWatch(sim.calibration, config.drift.model_copy(update={"marks_mm": sim.marks_mm}))
         planner = Planner(config.planning, table_to_robot(config.planning))
-        runner = Runner(sim.camera, sim.arm, lambda f: locate(f, sim.calibration, config), planner, config.run,
-                        audit, drift_watch=watch)
+        runner = Runner(
+            sim.camera,
+            sim.arm,
+            lambda f: locate(f, sim.calibration, config),
+            planner,
+            config.run,
+            audit,
+            drift_watch=watch,
+        )
         summary = runner.run()
     # Pick k is planned from frame k; frames from `at_pick` on are the moved camera's.
     with_moved = max(0, summary.attempts - (at_pick - 1))
@@ -77,7 +85,12 @@ def quiet_frames(n: int, seed: int = 1) -> tuple[int, float, float, float]:
         frame = expose(model, opacity, optics, rng, exposure)
         drifts.append(watch.measure(frame).drift_mm)
     d = np.array(drifts)
-    return int(np.count_nonzero(d > config.drift.limit_mm)), float(d.max()), float(np.percentile(d, 99)), config.drift.limit_mm
+    return (
+        int(np.count_nonzero(d > config.drift.limit_mm)),
+        float(d.max()),
+        float(np.percentile(d, 99)),
+        config.drift.limit_mm,
+    )
 
 
 def main() -> int:
@@ -94,13 +107,19 @@ def main() -> int:
     for direction, at_pick in BUMPS:
         outcome, attempts, with_moved = bump_run(direction, at_pick, args.bump_mm, args.log_dir)
         caught &= with_moved == 0 and outcome.startswith("fault")
-        print(f"  moved along ({direction[0]:+.2f}, {direction[1]:+.2f}) before pick {at_pick:2d}: "
-              f"stopped after {attempts} picks, {with_moved} picks made with the moved camera; {outcome[:110]}")
+        print(
+            f"  moved along ({direction[0]:+.2f}, {direction[1]:+.2f}) before pick {at_pick:2d}: "
+            f"stopped after {attempts} picks, {with_moved} picks made with the moved camera; {outcome[:110]}"
+        )
     over, worst, p99, limit = quiet_frames(args.frames)
-    print(f"\nstill table, {args.frames} frames of sensor noise and slow light drift: {over} false alarms "
-          f"(largest drift measured {worst:.3f} mm, 99th percentile {p99:.3f} mm; limit {limit} mm)")
-    print(f"\nbump caught before any pick made with it: {'yes' if caught else 'NO'}; false alarms: {over} "
-          f"(benchmark took {time.perf_counter() - t0:.0f} s)")
+    print(
+        f"\nstill table, {args.frames} frames of sensor noise and slow light drift: {over} false alarms "
+        f"(largest drift measured {worst:.3f} mm, 99th percentile {p99:.3f} mm; limit {limit} mm)"
+    )
+    print(
+        f"\nbump caught before any pick made with it: {'yes' if caught else 'NO'}; false alarms: {over} "
+        f"(benchmark took {time.perf_counter() - t0:.0f} s)"
+    )
     return 0
 
 

@@ -18,6 +18,7 @@ core (cv2.setNumThreads(1)).
 
     python scripts/bench_parts.py [--scenes 8] [--repeat 5]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,7 +81,9 @@ def score(result, parts) -> dict:
             out["angle"].append(abs((obj.angle_deg - part.axis_angle_deg + 90.0) % 180.0 - 90.0))
             # The head end is right when the reported head is nearer the true head than the tip.
             tip = 2 * np.array(part.footprint_centre_mm) - np.array(part.head_centre_mm)
-            out["head"].append(np.hypot(*(np.array(obj.head_mm) - part.head_centre_mm)) < np.hypot(*(np.array(obj.head_mm) - tip)))
+            out["head"].append(
+                np.hypot(*(np.array(obj.head_mm) - part.head_centre_mm)) < np.hypot(*(np.array(obj.head_mm) - tip))
+            )
     return out
 
 
@@ -92,7 +95,8 @@ def report(size: str, n_scenes: int, n_cameras: int, totals: dict, times_ms: lis
         tot = totals[run]
         conf = tot["confusion"]
         classes = ", ".join(
-            f"{k}: " + "/".join(f"{conf[(k, c)]} {c}" for c in ("nut", "bolt", "unknown") if conf[(k, c)]) for k in kinds
+            f"{k}: " + "/".join(f"{conf[(k, c)]} {c}" for c in ("nut", "bolt", "unknown") if conf[(k, c)])
+            for k in kinds
         )
         c, a = np.array(tot["centre"]), np.array(tot["angle"])
         print(f"\n[{run}]")

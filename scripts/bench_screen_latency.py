@@ -11,6 +11,7 @@ With --screenshot PATH it also saves the screen while running (docs/screen.png).
 
 Needs the test extras (playwright) and the system Chromium (Debian package `chromium`).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -70,8 +71,11 @@ def measure(url: str, frames: int, screenshot: Path | None, timeout_s: float) ->
         poll(page, "window.screenStats && screenStats.states > 0", 20)
         page.get_by_role("button", name="Start continuous", exact=True).click()
         if screenshot is not None:  # early, while the table is still full of parts being picked
-            poll(page, "screenStats.lastState.display.key === 'running' && screenStats.lastState.last_picks.length >= 2",
-                 timeout_s)
+            poll(
+                page,
+                "screenStats.lastState.display.key === 'running' && screenStats.lastState.last_picks.length >= 2",
+                timeout_s,
+            )
             screenshot.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot))
             print(f"wrote {screenshot}")
@@ -109,8 +113,9 @@ def main() -> int:
 
 
 def _figures(ms: list[float]) -> str:
-    return (f"median {statistics.median(ms):.0f} ms, p95 {statistics.quantiles(ms, n=20)[18]:.0f} ms, "
-            f"max {max(ms):.0f} ms")
+    return (
+        f"median {statistics.median(ms):.0f} ms, p95 {statistics.quantiles(ms, n=20)[18]:.0f} ms, max {max(ms):.0f} ms"
+    )
 
 
 if __name__ == "__main__":

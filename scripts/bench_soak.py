@@ -8,6 +8,7 @@ from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log
 
     .venv/bin/python scripts/bench_soak.py [--picks 2000] [--timeout-s 1800]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,7 +51,9 @@ def proc_figures(pid: int) -> dict:
     rss_kb = int(next(line for line in status.splitlines() if line.startswith("VmRSS:")).split()[1])
     threads = len(os.listdir(f"/proc/{pid}/task"))
     fds = len(os.listdir(f"/proc/{pid}/fd"))
-    children = sum(len(Path(f"/proc/{pid}/task/{t}/children").read_text().split()) for t in os.listdir(f"/proc/{pid}/task"))
+    children = sum(
+        len(Path(f"/proc/{pid}/task/{t}/children").read_text().split()) for t in os.listdir(f"/proc/{pid}/task")
+    )
     return {"rss_mb": rss_kb / 1024, "threads": threads, "fds": fds, "children": children}
 
 
@@ -85,8 +88,11 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
                 raise SystemExit(f"timed out after {timeout_s} s at {n} picks")
             if n - last_print >= 250:
                 f = proc_figures(pid)
-                print(f"  {n:5d} picks  {time.monotonic() - t0:6.0f} s  RSS {f['rss_mb']:.1f} MB  threads {f['threads']}"
-                      f"  fds {f['fds']}", flush=True)
+                print(
+                    f"  {n:5d} picks  {time.monotonic() - t0:6.0f} s  RSS {f['rss_mb']:.1f} MB  threads {f['threads']}"
+                    f"  fds {f['fds']}",
+                    flush=True,
+                )
                 last_print = n
             await asyncio.sleep(0.25)
         await cell.call_method(f"{ns}:Stop")
@@ -101,8 +107,10 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
         out["median_early"], out["median_late"] = statistics.median(early), statistics.median(late)
         out["end"] = proc_figures(pid)
         out["states"] = states
-        out["counters"] = {name: await read(name) for name in
-                           ("PickedBolts", "PickedNuts", "Misses", "Retries", "Failed", "Unreachable", "UnknownLeft")}
+        out["counters"] = {
+            name: await read(name)
+            for name in ("PickedBolts", "PickedNuts", "Misses", "Retries", "Failed", "Unreachable", "UnknownLeft")
+        }
         out["alarm"] = await read("ActiveAlarm")
         return out
 
@@ -116,10 +124,29 @@ def main() -> int:
         tmp = Path(tmp)
         (tmp / "shift.toml").write_text(SHIFT_TOML)
         port = free_port()
-        cmd = [sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--config", str(tmp / "shift.toml"),
-               "--log-dir", str(tmp / "logs"), "--opcua-port", str(port), "--http-port", str(free_port())]
-        proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO)})
+        cmd = [
+            sys.executable,
+            "-m",
+            "cell.cli",
+            "serve",
+            "--dry-run",
+            "--config",
+            str(tmp / "shift.toml"),
+            "--log-dir",
+            str(tmp / "logs"),
+            "--opcua-port",
+            str(port),
+            "--http-port",
+            str(free_port()),
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            cwd=tmp,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
         try:
             line = ""
             while not line.startswith("ready:"):
@@ -139,21 +166,37 @@ def main() -> int:
     picked_lines = sum(1 for e in events if e["kind"] == "verify" and e["result"] == "picked")
     faults = sum(1 for e in events if e["kind"] == "fault")
     s, a, e = r["start"], r["at_100"], r["end"]
-    print(f"picks {picks} ({c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
-          f"({60 * picks / r['wall_s']:.0f} per minute); misses {c['Misses']}, retries {c['Retries']}, "
-          f"failed {c['Failed']}, unreachable {c['Unreachable']}, unknown left {c['UnknownLeft']}")
+    print(
+        f"picks {picks} ({c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
+        f"({60 * picks / r['wall_s']:.0f} per minute); misses {c['Misses']}, retries {c['Retries']}, "
+        f"failed {c['Failed']}, unreachable {c['Unreachable']}, unknown left {c['UnknownLeft']}"
+    )
     print(f"faults {faults}; vision states seen: {', '.join(sorted(r['states']))}; alarm: {r['alarm'] or 'none'}")
-    print(f"RSS start {s['rss_mb']:.1f} MB, at pick 100 {a['rss_mb']:.1f} MB, end {e['rss_mb']:.1f} MB "
-          f"(growth from pick 100: {100 * (e['rss_mb'] / a['rss_mb'] - 1):+.1f} %)")
-    print(f"RSS over picks 100-350 vs the last 250 picks: peak {r['peak_early']:.1f} -> {r['peak_late']:.1f} MB "
-          f"({100 * (r['peak_late'] / r['peak_early'] - 1):+.1f} %), median {r['median_early']:.1f} -> "
-          f"{r['median_late']:.1f} MB ({100 * (r['median_late'] / r['median_early'] - 1):+.1f} %)")
-    print(f"threads start {s['threads']}, at pick 100 {a['threads']}, end {e['threads']}; "
-          f"fds start {s['fds']}, at pick 100 {a['fds']}, end {e['fds']}; child processes at end {e['children']}")
-    print(f"audit: {len(events)} lines in {files} file(s); 'picked' lines {picked_lines} vs picks {picks}; "
-          f"serve exit code {rc}")
-    ok = (faults == 0 and picked_lines == picks and rc == 0 and e["threads"] <= a["threads"] and e["fds"] <= a["fds"]
-          and r["peak_late"] < 1.05 * r["peak_early"])
+    print(
+        f"RSS start {s['rss_mb']:.1f} MB, at pick 100 {a['rss_mb']:.1f} MB, end {e['rss_mb']:.1f} MB "
+        f"(growth from pick 100: {100 * (e['rss_mb'] / a['rss_mb'] - 1):+.1f} %)"
+    )
+    print(
+        f"RSS over picks 100-350 vs the last 250 picks: peak {r['peak_early']:.1f} -> {r['peak_late']:.1f} MB "
+        f"({100 * (r['peak_late'] / r['peak_early'] - 1):+.1f} %), median {r['median_early']:.1f} -> "
+        f"{r['median_late']:.1f} MB ({100 * (r['median_late'] / r['median_early'] - 1):+.1f} %)"
+    )
+    print(
+        f"threads start {s['threads']}, at pick 100 {a['threads']}, end {e['threads']}; "
+        f"fds start {s['fds']}, at pick 100 {a['fds']}, end {e['fds']}; child processes at end {e['children']}"
+    )
+    print(
+        f"audit: {len(events)} lines in {files} file(s); 'picked' lines {picked_lines} vs picks {picks}; "
+        f"serve exit code {rc}"
+    )
+    ok = (
+        faults == 0
+        and picked_lines == picks
+        and rc == 0
+        and e["threads"] <= a["threads"]
+        and e["fds"] <= a["fds"]
+        and r["peak_late"] < 1.05 * r["peak_early"]
+    )
     print("PASS" if ok else "FAIL")
     return 0 if ok else 1
 

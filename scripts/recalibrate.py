@@ -6,6 +6,7 @@ package is installed.
 python scripts/recalibrate.py --image PLATE.png --out CAL.json [--config FILE]
     [--model auto|quadratic|homography|polynomial|camera] [--report-dir DIR]
 """
+
 import sys
 
 from cell.calibration.recalibrate import main

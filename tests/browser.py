@@ -1,5 +1,6 @@
 """Headless Chromium for the screen's browser tests and scripts: the system's Chromium
 (Debian package `chromium`) driven by Playwright, which cannot download its own here."""
+
 from __future__ import annotations
 
 import os
@@ -7,8 +8,13 @@ import shutil
 from pathlib import Path
 
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
 ]
 
 

@@ -6,6 +6,7 @@ with --exhaustive. pytest-timeout bounds every test, and the ones that open a pt
 subprocess say their own, tighter, limit. Device and file locks go to a folder of this
 test session, not the machine's.
 """
+
 from __future__ import annotations
 
 import os
@@ -18,9 +19,12 @@ from drivers.sim.pty_port import serve_pty
 
 
 def pytest_addoption(parser):
-    parser.addoption("--exhaustive", action="store_true",
-                     help="also run the exhaustive fault-injection sweeps (every audit write, every signal in every "
-                          "state on both arms; far longer than the suite)")
+    parser.addoption(
+        "--exhaustive",
+        action="store_true",
+        help="also run the exhaustive fault-injection sweeps (every audit write, every signal in every "
+        "state on both arms; far longer than the suite)",
+    )
 
 
 def pytest_collection_modifyitems(config, items):

@@ -4,6 +4,7 @@ The fake arm removes a part from the fake table when it closes within 1 mm of it
 back through the true offset), so misses come from geometry as in the simulated cell.
 Drivers themselves are tested against emulated firmware on a pty, never against these.
 """
+
 from __future__ import annotations
 
 import math

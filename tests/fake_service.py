@@ -1,6 +1,7 @@
 """A line service for the screen's tests: the LineServiceAPI contract, the real command table
 (`allowed()`), a ticking thread that "captures" frames and "picks" parts, and the real
 simulated plate for recalibration. It stands above the driver layer: no camera, no arm."""
+
 from __future__ import annotations
 
 import functools
@@ -181,8 +182,15 @@ class FakeLineService:
         cls = "bolt" if self._seq % 2 else "nut"
         field = "picked_bolts" if cls == "bolt" else "picked_nuts"
         self.counters = replace(self.counters, **{field: getattr(self.counters, field) + 1})
-        pick = PickRecord(_now(), self._seq // 3, cls, (10.0 + self._seq, 20.0), (-122.0 + self._seq, 60.0, 5.0),
-                          30.0 if cls == "bolt" else None, "picked")
+        pick = PickRecord(
+            _now(),
+            self._seq // 3,
+            cls,
+            (10.0 + self._seq, 20.0),
+            (-122.0 + self._seq, 60.0, 5.0),
+            30.0 if cls == "bolt" else None,
+            "picked",
+        )
         self.picks.append(pick)
         self._emit("pick", pick=pick)
         if self.state is V.SINGLE_EXECUTION and self._seq % 30 == 0:

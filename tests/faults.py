@@ -4,6 +4,7 @@ a signal when the run reaches a given point, and the emulated arm's state afterw
 Fast settings (the perfect calibration, the emulator at its fastest) keep each run short;
 the drivers, emulators, audit log and runner are the real ones.
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -1,5 +1,6 @@
 """Shared test helpers: where the repo and ../shared are (skipping, saying why, where it is
 absent), and reading a run's audit log."""
+
 from __future__ import annotations
 
 import signal

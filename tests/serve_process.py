@@ -1,6 +1,7 @@
 """`run-cell serve --dry-run` in a subprocess on free ports, for the browser tests and the
 screen benchmark: started in a folder of its own, its screen's address read from the ready line,
 stopped with SIGTERM (the safe stop) and killed only if it does not end."""
+
 from __future__ import annotations
 
 import os
@@ -24,11 +25,22 @@ def free_port() -> int:
 class ServeProcess:
     def __init__(self, workdir: Path, *extra: str, timeout_s: float = 60.0):
         self.workdir = workdir
-        cmd = [sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--opcua-port", str(free_port()),
-               "--http-port", str(free_port()), *extra]
+        cmd = [
+            sys.executable,
+            "-m",
+            "cell.cli",
+            "serve",
+            "--dry-run",
+            "--opcua-port",
+            str(free_port()),
+            "--http-port",
+            str(free_port()),
+            *extra,
+        ]
         env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-        self.proc = subprocess.Popen(cmd, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, bufsize=1)
+        self.proc = subprocess.Popen(
+            cmd, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+        )
         self.lines: list[str] = []
         self.url = self._wait_ready(timeout_s)
         self._drain = threading.Thread(target=self._read_rest, daemon=True)
@@ -45,8 +57,9 @@ class ServeProcess:
         finally:
             timer.cancel()
         self.proc.wait(timeout=10)
-        raise RuntimeError(f"run-cell serve ended (exit {self.proc.returncode}) before its ready line:\n"
-                           + "\n".join(self.lines[-20:]))
+        raise RuntimeError(
+            f"run-cell serve ended (exit {self.proc.returncode}) before its ready line:\n" + "\n".join(self.lines[-20:])
+        )
 
     def _read_rest(self) -> None:
         for line in self.proc.stdout:

@@ -1,4 +1,5 @@
 """`run-cell ports / jog / home` end to end: the CLI opens a real pty with emulated firmware."""
+
 import math
 import time
 
@@ -77,20 +78,31 @@ def test_no_device_at_port_is_one_clear_line(tmp_path, capsys):
 
 def test_real_arm_without_port_is_a_config_error(capsys):
     assert main(["jog", "--arm", "dynamixel", "--to", "200", "0", "50"]) == 2
-    assert capsys.readouterr().err == ("run-cell jog: error: arm.port is empty but arm.kind is 'dynamixel' (hint: set "
-                                       "arm.port in the config or pass --port; `run-cell ports` lists the serial ports)\n")
+    assert capsys.readouterr().err == (
+        "run-cell jog: error: arm.port is empty but arm.kind is 'dynamixel' (hint: set "
+        "arm.port in the config or pass --port; `run-cell ports` lists the serial ports)\n"
+    )
 
 
 @pytest.mark.parametrize(
     "toml, message",
     [
-        ('[arm]\nkind = "serial"\n[arm.serial]\nbaud = -5\n', "arm.serial.baud: Input should be greater than or equal to 300"),
+        (
+            '[arm]\nkind = "serial"\n[arm.serial]\nbaud = -5\n',
+            "arm.serial.baud: Input should be greater than or equal to 300",
+        ),
         ('[arm]\nkind = "robot"\n', "arm.kind: Input should be 'serial', 'dynamixel', 'mock' or 'sim'"),
-        ('[arm.serial]\nbaudrate = 9600\n', "arm.serial.baudrate: Extra inputs are not permitted"),
+        ("[arm.serial]\nbaudrate = 9600\n", "arm.serial.baudrate: Extra inputs are not permitted"),
         ('[arm.serial.commands]\nfeed = "G1 X{x}"\n', "arm.serial.commands.feed: unknown placeholder {x}"),
-        ('[arm.dynamixel]\ngripper_id = 12\n', "must be distinct"),
-        ('[arm.serial.workspace]\nz_min_mm = 50.0\nz_max_mm = 10.0\n', "z_min_mm (50 mm) must be below z_max_mm (10 mm)"),
-        ('[arm.serial]\nstatus_query = false\n[arm.serial.commands]\nwait = ""\n', "the end of a move could not be known"),
+        ("[arm.dynamixel]\ngripper_id = 12\n", "must be distinct"),
+        (
+            "[arm.serial.workspace]\nz_min_mm = 50.0\nz_max_mm = 10.0\n",
+            "z_min_mm (50 mm) must be below z_max_mm (10 mm)",
+        ),
+        (
+            '[arm.serial]\nstatus_query = false\n[arm.serial.commands]\nwait = ""\n',
+            "the end of a move could not be known",
+        ),
     ],
 )
 def test_bad_arm_config_names_the_key(tmp_path, capsys, toml, message):

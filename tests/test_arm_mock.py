@@ -1,4 +1,5 @@
 """The mock arm (for --dry-run) refuses exactly what the real drivers refuse, and records the rest."""
+
 import pytest
 from dynamixel_sdk import PortHandler
 
@@ -10,8 +11,16 @@ from drivers.arm.mock import MockArm, MockCommand
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
 
-TARGETS = [(100.0, 50.0, 20.0, None), (250.0, 0.0, 0.0, None), (10.0, 10.0, 10.0, 30.0), (200.0, 0.0, 50.0, None),
-           (390.0, 0.0, 0.0, None), (-150.0, 10.0, 50.0, None), (200.0, 100.0, 20.0, 90.0), (150.0, -80.0, 10.0, None)]
+TARGETS = [
+    (100.0, 50.0, 20.0, None),
+    (250.0, 0.0, 0.0, None),
+    (10.0, 10.0, 10.0, 30.0),
+    (200.0, 0.0, 50.0, None),
+    (390.0, 0.0, 0.0, None),
+    (-150.0, 10.0, 50.0, None),
+    (200.0, 100.0, 20.0, 90.0),
+    (150.0, -80.0, 10.0, None),
+]
 
 
 def verdict(arm, target):
@@ -25,8 +34,11 @@ def verdict(arm, target):
 @pytest.mark.parametrize("kind", ["serial", "dynamixel"])
 def test_mock_checks_targets_exactly_like_the_real_driver(kind):
     cfg = ArmConfig(kind="mock", mock_of=kind)
-    real = (SerialGcodeArm(SerialLine("/dev/null", 115200), cfg.serial) if kind == "serial"
-            else DynamixelArm(PortHandler("/dev/null"), cfg.dynamixel))
+    real = (
+        SerialGcodeArm(SerialLine("/dev/null", 115200), cfg.serial)
+        if kind == "serial"
+        else DynamixelArm(PortHandler("/dev/null"), cfg.dynamixel)
+    )
     mock = MockArm(cfg)
     verdicts = [verdict(mock, t) for t in TARGETS]
     assert verdicts == [verdict(real, t) for t in TARGETS]

@@ -1,4 +1,5 @@
 """The audit log: one valid JSON object per line, readable while the run is still going."""
+
 from __future__ import annotations
 
 import json
@@ -34,7 +35,7 @@ def test_a_killed_writer_leaves_a_readable_log(tmp_path):
         "import os\nfrom cell.audit import AuditLog\n"
         f"log = AuditLog({str(path)!r})\n"
         "log.state = 'pick'\nlog.event('target', robot_mm=[1, 2, 3])\n"
-        "os.write(log._file._fd, b'{\"seq\": 2, \"kind\": \"ver')\nos._exit(9)\n"
+        'os.write(log._file._fd, b\'{"seq": 2, "kind": "ver\')\nos._exit(9)\n'
     )
     subprocess.run([sys.executable, "-c", code], check=False)
     events = read_events(path)
@@ -43,9 +44,12 @@ def test_a_killed_writer_leaves_a_readable_log(tmp_path):
 
 def test_counts_from_log_match_a_summary():
     events = [
-        {"kind": "target", "attempt": 1}, {"kind": "verify", "result": "missed", "cls": "nut"},
-        {"kind": "target", "attempt": 2}, {"kind": "verify", "result": "picked", "cls": "nut"},
-        {"kind": "unreachable"}, {"kind": "frame", "detections": [{"pick": False}, {"pick": True}]},
+        {"kind": "target", "attempt": 1},
+        {"kind": "verify", "result": "missed", "cls": "nut"},
+        {"kind": "target", "attempt": 2},
+        {"kind": "verify", "result": "picked", "cls": "nut"},
+        {"kind": "unreachable"},
+        {"kind": "frame", "detections": [{"pick": False}, {"pick": True}]},
     ]
     s = Summary(picked={"nut": 1}, misses=1, retries=1, unreachable=1, attempts=2, unknown_left=1)
     assert counts_from_log(events) == s.counts()
@@ -54,10 +58,12 @@ def test_counts_from_log_match_a_summary():
 
 def test_two_runs_started_in_the_same_second_write_two_logs(tmp_path):
     """Each run's log is created exclusively under its own name (time, pid): never shared."""
-    code = ("import sys\nfrom pathlib import Path\nfrom cell.audit import AuditLog\n"
-            "from cell.recordfile import unique_stem\n"
-            f"log = AuditLog(f\"{{unique_stem(Path({str(tmp_path)!r}), 'run', ('.jsonl', '.log'))}}.jsonl\")\n"
-            "for i in range(200):\n    log.event('frame', i=i)\n")
+    code = (
+        "import sys\nfrom pathlib import Path\nfrom cell.audit import AuditLog\n"
+        "from cell.recordfile import unique_stem\n"
+        f"log = AuditLog(f\"{{unique_stem(Path({str(tmp_path)!r}), 'run', ('.jsonl', '.log'))}}.jsonl\")\n"
+        "for i in range(200):\n    log.event('frame', i=i)\n"
+    )
     procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(2)]
     assert [p.wait(timeout=60) for p in procs] == [0, 0]
     logs = sorted(tmp_path.glob("run-*.jsonl"))

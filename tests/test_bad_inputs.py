@@ -1,6 +1,7 @@
 """Every bad input the cell was tried with before going on a line (issue 8): each ends in one
 line on stderr naming what and where, the documented exit code, nothing half-written and no
 temporary file left behind."""
+
 from __future__ import annotations
 
 import errno
@@ -50,16 +51,32 @@ def leftovers(folder: Path) -> list[str]:
 
 
 def recal(work, out, *extra, capsys):
-    code = recalibrate.main(["--image", str(work / "plate.png"), "--out", str(out), "--config", str(work / "cell.toml"),
-                             "--log", str(work / "cell.log"), "--quiet", *map(str, extra)])
+    code = recalibrate.main(
+        [
+            "--image",
+            str(work / "plate.png"),
+            "--out",
+            str(out),
+            "--config",
+            str(work / "cell.toml"),
+            "--log",
+            str(work / "cell.log"),
+            "--quiet",
+            *map(str, extra),
+        ]
+    )
     return code, capsys.readouterr().err
 
 
 # ---- recalibration ---------------------------------------------------------------------------
 def test_recalibrate_out_a_folder(work, tmp_path, capsys):
     code, err = recal(work, tmp_path, capsys=capsys)
-    assert code == 2 and one_line(err) == f"recalibrate: error: {tmp_path}: is a folder; --out must name the " \
-                                           "calibration file (hint: e.g. --out cal/active.json)"
+    assert (
+        code == 2
+        and one_line(err)
+        == f"recalibrate: error: {tmp_path}: is a folder; --out must name the "
+        "calibration file (hint: e.g. --out cal/active.json)"
+    )
     assert list(tmp_path.iterdir()) == []
 
 
@@ -122,8 +139,19 @@ def test_a_signal_while_the_calibration_is_replaced_waits_for_both_files(work, t
 
 def test_a_plate_with_another_pitch_is_refused(work, tmp_path, capsys):
     out = tmp_path / "active.json"
-    code = recalibrate.main(["--image", str(work / "plate-20mm.png"), "--out", str(out), "--config",
-                             str(work / "cell.toml"), "--log", str(work / "cell.log"), "--quiet"])
+    code = recalibrate.main(
+        [
+            "--image",
+            str(work / "plate-20mm.png"),
+            "--out",
+            str(out),
+            "--config",
+            str(work / "cell.toml"),
+            "--log",
+            str(work / "cell.log"),
+            "--quiet",
+        ]
+    )
     line = one_line(capsys.readouterr().err)
     assert code == 3 and line.startswith("recalibrate: refused: the physical camera model fits ")
     assert "the plate's geometry does not agree with the config (plate.pitch_x_mm 22, pitch_y_mm 16" in line
@@ -151,8 +179,14 @@ def test_a_huge_image_is_refused_from_its_header(work, tmp_path, capsys):
     """A 20000 x 20000 PNG header (the pixels would need 1.2 GB) is refused without decoding."""
     big = tmp_path / "big.png"
     ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
-    big.write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr
-                    + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr)) + b"\0" * 1000)
+    big.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + struct.pack(">I", 13)
+        + b"IHDR"
+        + ihdr
+        + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+        + b"\0" * 1000
+    )
     code = recalibrate.main(["--image", str(big), "--out", str(tmp_path / "a.json"), "--log", str(work / "cell.log")])
     line = one_line(capsys.readouterr().err)
     assert code == 2 and "image is 20000 x 20000 px (400000000 px), more than camera.max_image_px" in line
@@ -169,18 +203,26 @@ def _corrupt(work, tmp_path, change) -> Path:
     return path
 
 
-@pytest.mark.parametrize("change,message", [
-    (lambda d: d["camera"]["tvec"].__setitem__(2, float("nan")), "camera.tvec[2] is not a finite number"),
-    (lambda d: d["camera"]["camera_matrix"][0].__setitem__(0, float("inf")),
-     "camera.camera_matrix[0][0] is not a finite number"),
-    (lambda d: d["camera"]["tvec"].__setitem__(2, -d["camera"]["tvec"][2]), "not above the table, looking at it"),
-    (lambda d: d.__setitem__("image_size", [0, 720]), "image size 0 x 720 px is outside 16..20000 px"),
-    (lambda d: d.__setitem__("image_size", [640, 480]), "camera model is 1280 x 720 px, the calibration 640 x 480"),
-], ids=["nan-pose", "inf-focal", "camera-below-table", "zero-width", "size-mismatch"])
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (lambda d: d["camera"]["tvec"].__setitem__(2, float("nan")), "camera.tvec[2] is not a finite number"),
+        (
+            lambda d: d["camera"]["camera_matrix"][0].__setitem__(0, float("inf")),
+            "camera.camera_matrix[0][0] is not a finite number",
+        ),
+        (lambda d: d["camera"]["tvec"].__setitem__(2, -d["camera"]["tvec"][2]), "not above the table, looking at it"),
+        (lambda d: d.__setitem__("image_size", [0, 720]), "image size 0 x 720 px is outside 16..20000 px"),
+        (lambda d: d.__setitem__("image_size", [640, 480]), "camera model is 1280 x 720 px, the calibration 640 x 480"),
+    ],
+    ids=["nan-pose", "inf-focal", "camera-below-table", "zero-width", "size-mismatch"],
+)
 def test_an_impossible_calibration_is_refused_on_load(work, tmp_path, capsys, change, message):
     bad = _corrupt(work, tmp_path, change)
-    for argv in (["locate", "--image", str(work / "plate.png"), "--calibration", str(bad), "--json"],
-                 ["map", "--calibration", str(bad), "10", "10"]):
+    for argv in (
+        ["locate", "--image", str(work / "plate.png"), "--calibration", str(bad), "--json"],
+        ["map", "--calibration", str(bad), "10", "10"],
+    ):
         assert main(argv) == 2
         out = capsys.readouterr()
         assert out.out == "" and message in one_line(out.err) and str(bad) in out.err
@@ -188,8 +230,9 @@ def test_an_impossible_calibration_is_refused_on_load(work, tmp_path, capsys, ch
 
 def test_map_refuses_pixels_outside_the_image(work, tmp_path, capsys):
     assert main(["map", "--calibration", str(work / "cal.json"), "50000", "10"]) == 2
-    assert one_line(capsys.readouterr().err).endswith("pixel (50000, 10) is outside the calibrated 1280 x 720 px "
-                                                      "image; 1 such point(s)")
+    assert one_line(capsys.readouterr().err).endswith(
+        "pixel (50000, 10) is outside the calibrated 1280 x 720 px image; 1 such point(s)"
+    )
     csv = tmp_path / "p.csv"
     csv.write_text("x_px,y_px\n10,10\n-3,700\n")
     assert main(["map", "--calibration", str(work / "cal.json"), "--pixels", str(csv), "--json"]) == 2
@@ -198,8 +241,15 @@ def test_map_refuses_pixels_outside_the_image(work, tmp_path, capsys):
 
 
 # ---- configs and the command line ------------------------------------------------------------
-@pytest.mark.parametrize("key,value", [("sim.speed_mm_s", "nan"), ("planning.offset_x_mm", "inf"),
-                                       ("arm.serial.speed_mm_s", "-inf"), ("parts.max_part_width_mm", "nan")])
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("sim.speed_mm_s", "nan"),
+        ("planning.offset_x_mm", "inf"),
+        ("arm.serial.speed_mm_s", "-inf"),
+        ("parts.max_part_width_mm", "nan"),
+    ],
+)
 def test_nan_and_inf_config_values_are_refused(tmp_path, capsys, key, value):
     *section, name = key.split(".")
     cfg = tmp_path / "c.toml"
@@ -209,24 +259,34 @@ def test_nan_and_inf_config_values_are_refused(tmp_path, capsys, key, value):
     assert f"invalid config: {key}: Input should be a finite number" in line
 
 
-@pytest.mark.parametrize("argv", [["--dry-run", "--offset-x-mm", "nan"], ["--dry-run", "--offset-y-mm", "inf"],
-                                  ["jog", "--arm", "mock", "--to", "nan", "0", "50"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--dry-run", "--offset-x-mm", "nan"],
+        ["--dry-run", "--offset-y-mm", "inf"],
+        ["jog", "--arm", "mock", "--to", "nan", "0", "50"],
+    ],
+)
 def test_nan_on_the_command_line_is_refused(argv, capsys):
     with pytest.raises(SystemExit) as e:
         main(argv)
     assert e.value.code == 2 and "not a finite number" in capsys.readouterr().err.strip().splitlines()[-1]
 
 
-@pytest.mark.parametrize("points,message", [
-    (["1", "nan", "0", "13", "10", "0", "144", "0", "10"], "circle 1: robot position (nan, 0.0) is not a finite"),
-    (["1", "10", "20"] * 3, "teaching needs 3 or more distinct circles, got [1]"),
-    (["1", "10", "20", "1", "10", "20", "13", "30", "20", "144", "10", "40"], "circle(s) [1] given more than once"),
-    (["1", "10", "20", "2", "32", "20", "13", "274", "20"], "circles [1, 2, 13] lie on one line"),
-], ids=["nan", "same-circle", "repeated", "collinear"])
+@pytest.mark.parametrize(
+    "points,message",
+    [
+        (["1", "nan", "0", "13", "10", "0", "144", "0", "10"], "circle 1: robot position (nan, 0.0) is not a finite"),
+        (["1", "10", "20"] * 3, "teaching needs 3 or more distinct circles, got [1]"),
+        (["1", "10", "20", "1", "10", "20", "13", "30", "20", "144", "10", "40"], "circle(s) [1] given more than once"),
+        (["1", "10", "20", "2", "32", "20", "13", "274", "20"], "circles [1, 2, 13] lie on one line"),
+    ],
+    ids=["nan", "same-circle", "repeated", "collinear"],
+)
 def test_teach_refuses_points_that_cannot_fix_the_frame(tmp_path, capsys, points, message):
     argv = ["teach", "--dry-run"]
     for i in range(0, len(points), 3):
-        argv += ["--point", *points[i:i + 3]]
+        argv += ["--point", *points[i : i + 3]]
     assert main(argv) == 2
     assert message in one_line(capsys.readouterr().err)
 
@@ -234,10 +294,24 @@ def test_teach_refuses_points_that_cannot_fix_the_frame(tmp_path, capsys, points
 # ---- other outputs ---------------------------------------------------------------------------
 def test_locate_annotate_with_an_unknown_extension(work, tmp_path, capsys):
     out = tmp_path / "out.xyz"
-    assert main(["locate", "--image", str(work / "plate.png"), "--calibration", str(work / "cal.json"),
-                 "--annotate", str(out)]) == 2
-    assert one_line(capsys.readouterr().err) == f"run-cell locate: error: {out}: cannot write an image as '.xyz' " \
-                                                "(hint: use .png or .jpg)"
+    assert (
+        main(
+            [
+                "locate",
+                "--image",
+                str(work / "plate.png"),
+                "--calibration",
+                str(work / "cal.json"),
+                "--annotate",
+                str(out),
+            ]
+        )
+        == 2
+    )
+    assert (
+        one_line(capsys.readouterr().err) == f"run-cell locate: error: {out}: cannot write an image as '.xyz' "
+        "(hint: use .png or .jpg)"
+    )
     assert list(tmp_path.iterdir()) == []
 
 
@@ -251,8 +325,20 @@ def test_locate_annotate_and_calibrate_demo_on_a_failing_disk(work, tmp_path, ca
         return real_open(file, mode, *a, **k)
 
     monkeypatch.setattr("builtins.open", failing_open)
-    assert main(["locate", "--image", str(work / "plate.png"), "--calibration", str(work / "cal.json"),
-                 "--annotate", str(tmp_path / "a.png")]) == code
+    assert (
+        main(
+            [
+                "locate",
+                "--image",
+                str(work / "plate.png"),
+                "--calibration",
+                str(work / "cal.json"),
+                "--annotate",
+                str(tmp_path / "a.png"),
+            ]
+        )
+        == code
+    )
     assert os.strerror(failure) in one_line(capsys.readouterr().err)
     assert main(["calibrate-demo", "--out-dir", str(tmp_path / "demo")]) == code
     err = capsys.readouterr().err

@@ -4,6 +4,7 @@ Webcam-like cameras from the issue's range; the default pipeline must reach RMS 
 and max <= 0.05 mm at dense points not used in the fit, and beat the paper's pipeline
 by at least 20x in RMS on the same image.
 """
+
 import numpy as np
 import pytest
 
@@ -28,7 +29,9 @@ CAMERAS = {
 @pytest.mark.parametrize("name", list(CAMERAS))
 def test_default_pipeline_over_the_plate_field(name):
     w, h, mmpx, k1, k2, tilt, az, roll = CAMERAS[name]
-    cam = CameraModel.looking_down(w, h, mmpx, (132, 88), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2)
+    cam = CameraModel.looking_down(
+        w, h, mmpx, (132, 88), tilt_deg=tilt, tilt_azimuth_deg=az, roll_deg=roll, k1=k1, k2=k2
+    )
     image = render_plate(cam, CONFIG.plate, seed=11)
     default = calibrate(image, CONFIG)
     rms, worst = plate_field_error_mm(cam, default.calibration, CONFIG.plate)

@@ -1,4 +1,5 @@
 """Frame sources: folders, video files, devices; no frame or a wrong size is a CameraError."""
+
 from __future__ import annotations
 
 import cv2
@@ -86,8 +87,11 @@ def test_a_folder_image_of_the_wrong_size_is_refused_from_its_header(tmp_path):
     import zlib
 
     ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
-    (tmp_path / "big.png").write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr
-                                       + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr)))
-    with FolderCamera(tmp_path, 64, 48) as cam, pytest.raises(
-            CameraError, match="big.png: frame is 20000x20000 px, expected 64x48 px; not decoded"):
+    (tmp_path / "big.png").write_bytes(
+        b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    )
+    with (
+        FolderCamera(tmp_path, 64, 48) as cam,
+        pytest.raises(CameraError, match="big.png: frame is 20000x20000 px, expected 64x48 px; not decoded"),
+    ):
         cam.capture()

@@ -1,4 +1,5 @@
 """`run-cell check-calibration`: a fresh plate image through the calibration in use."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -29,16 +30,36 @@ def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("check")
     calibrate(render_plate(camera(), CONFIG.plate, seed=1), CONFIG).calibration.save(d / "cal.json")
     (d / "cell.toml").write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n")
-    for name, cam, seed in (("fresh", camera(), 2), ("bumped", camera((0.5, 0.0)), 3), ("turned", camera(roll_deg=3.2), 4)):
+    for name, cam, seed in (
+        ("fresh", camera(), 2),
+        ("bumped", camera((0.5, 0.0)), 3),
+        ("turned", camera(roll_deg=3.2), 4),
+    ):
         cv2.imwrite(str(d / f"{name}.png"), render_plate(cam, CONFIG.plate, seed=seed))
     return d
 
 
 def run_check(work, image, *extra):
     return subprocess.run(
-        [sys.executable, "-m", "cell.cli", "check-calibration", "--image", work / image, "--calibration",
-         work / "cal.json", "--config", work / "cell.toml", "--log", work / "cell.log", *extra],
-        capture_output=True, text=True, timeout=120, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "cell.cli",
+            "check-calibration",
+            "--image",
+            work / image,
+            "--calibration",
+            work / "cal.json",
+            "--config",
+            work / "cell.toml",
+            "--log",
+            work / "cell.log",
+            *extra,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
     )
 
 
@@ -81,8 +102,12 @@ def test_limit_comes_from_the_config(work, tmp_path):
 
 @pytest.mark.parametrize(
     "case, message",
-    [("missing image", "not found"), ("missing calibration", "calibration file not found"),
-     ("wrong size", "1280 x 720"), ("other plate", "plate.columns")],
+    [
+        ("missing image", "not found"),
+        ("missing calibration", "calibration file not found"),
+        ("wrong size", "1280 x 720"),
+        ("other plate", "plate.columns"),
+    ],
 )
 def test_bad_input_is_one_line_exit_2(work, tmp_path, case, message):
     args = []

@@ -1,4 +1,5 @@
 """Config files: every shipped TOML validates; mistakes are named with key and unit."""
+
 import argparse
 from pathlib import Path
 from typing import get_args
@@ -28,16 +29,25 @@ def test_paper_config_is_the_paper_preset():
     assert cfg.detection.preset == "paper" and cfg.calibration.model == "quadratic"
     assert cfg.detection.paper.hsv_lower == (10, 0, 100) and cfg.detection.paper.hsv_upper == (250, 250, 250)
     assert (cfg.detection.paper.min_area_px, cfg.detection.paper.max_area_px) == (500, 2000)
-    assert (cfg.plate.columns, cfg.plate.rows, cfg.plate.pitch_x_mm, cfg.plate.pitch_y_mm, cfg.plate.diameter_mm) == (13, 12, 22, 16, 10)
+    assert (cfg.plate.columns, cfg.plate.rows, cfg.plate.pitch_x_mm, cfg.plate.pitch_y_mm, cfg.plate.diameter_mm) == (
+        13,
+        12,
+        22,
+        16,
+        10,
+    )
 
 
-@pytest.mark.parametrize("text,message", [
-    ("[plate]\ncolums = 13\n", "plate.colums: Extra inputs are not permitted"),
-    ("[plate]\ndiameter_mm = 30\n", "plate.diameter_mm (30.0 mm) must be smaller than both pitches"),
-    ("[detection.paper]\nmin_area_px = 3000\n", "min_area_px (3000.0 px) must be below max_area_px (2000 px)"),
-    ("[calibration]\nmodel = 'cubic'\n", "calibration.model"),
-    ("[plate\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("[plate]\ncolums = 13\n", "plate.colums: Extra inputs are not permitted"),
+        ("[plate]\ndiameter_mm = 30\n", "plate.diameter_mm (30.0 mm) must be smaller than both pitches"),
+        ("[detection.paper]\nmin_area_px = 3000\n", "min_area_px (3000.0 px) must be below max_area_px (2000 px)"),
+        ("[calibration]\nmodel = 'cubic'\n", "calibration.model"),
+        ("[plate\n", "not valid TOML"),
+    ],
+)
 def test_config_errors_name_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"
     path.write_text(text)

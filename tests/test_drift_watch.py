@@ -1,5 +1,6 @@
 """The drift watch: reference marks measured on every frame; a moved camera stops the cell
 before the next pick."""
+
 from __future__ import annotations
 
 import numpy as np

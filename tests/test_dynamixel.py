@@ -1,4 +1,5 @@
 """The Dynamixel driver through the ROBOTIS SDK against the emulated Protocol 2.0 bus on a pty."""
+
 import math
 import threading
 import time
@@ -52,7 +53,9 @@ def test_move_sends_one_sync_write_and_arrives(bus):
         assert torques(emu) == [True] * 5
         arm.move_to(200.0, 50.0, 30.0)
         goals = KIN.to_ticks(KIN.inverse(200.0, 50.0, 30.0))
-        params = bytes([116, 0, 4, 0]) + b"".join(bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals, strict=True))
+        params = bytes([116, 0, 4, 0]) + b"".join(
+            bytes([i]) + g.to_bytes(4, "little") for i, g in zip(CFG.joint_ids, goals, strict=True)
+        )
         assert packet(0xFE, SYNC_WRITE, params) in emu.packets_received
         wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == goals
@@ -60,7 +63,10 @@ def test_move_sends_one_sync_write_and_arrives(bus):
         assert math.dist((x, y, z), (200.0, 50.0, 30.0)) < 0.5  # one tick is 0.088 deg
         assert angle == pytest.approx(math.degrees(math.atan2(50.0, 188.0)), abs=0.1)
         status = arm.status()
-        assert status.state == "idle" and math.dist((status.pose.x_mm, status.pose.y_mm, status.pose.z_mm), (x, y, z)) < 1e-9
+        assert (
+            status.state == "idle"
+            and math.dist((status.pose.x_mm, status.pose.y_mm, status.pose.z_mm), (x, y, z)) < 1e-9
+        )
 
 
 def test_gripper_listener_and_home(bus):
@@ -76,7 +82,8 @@ def test_gripper_listener_and_home(bus):
         arm.home()
         wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == KIN.to_ticks(
-            [math.radians(v) for v in CFG.home_joints_deg])
+            [math.radians(v) for v in CFG.home_joints_deg]
+        )
     (closed, x, y, z, _), (opened, *_) = events
     assert closed and not opened
     assert math.dist((x, y, z), (180.0, -40.0, 20.0)) < 0.5

@@ -1,4 +1,5 @@
 """The emulated Protocol 2.0 bus alone, byte for byte (examples from the ROBOTIS e-manual)."""
+
 import pytest
 
 from drivers.sim.dxl_emulator import (
@@ -31,13 +32,21 @@ def test_byte_stuffing_round_trip():
 
 def test_ping_read_write_and_their_errors():
     emu = DxlBusEmulator(ids=(11,))
-    assert emu.receive(packet(11, PING), 0.0) == packet(11, STATUS, bytes([0]) + (1020).to_bytes(2, "little") + bytes([52]))
+    assert emu.receive(packet(11, PING), 0.0) == packet(
+        11, STATUS, bytes([0]) + (1020).to_bytes(2, "little") + bytes([52])
+    )
     assert emu.receive(packet(7, PING), 0.0) == b""  # nobody there
     # Present position (132, 4 bytes) of a servo at the default home pose of joint 1.
-    assert emu.receive(packet(11, READ, bytes([132, 0, 4, 0])), 0.0) == packet(11, STATUS, bytes([0]) + (2048).to_bytes(4, "little"))
+    assert emu.receive(packet(11, READ, bytes([132, 0, 4, 0])), 0.0) == packet(
+        11, STATUS, bytes([0]) + (2048).to_bytes(4, "little")
+    )
     assert emu.receive(packet(11, WRITE, bytes([64, 0, 1])), 0.0) == packet(11, STATUS, b"\x00")  # torque on
-    assert emu.receive(packet(11, WRITE, bytes([11, 0, 1])), 0.0) == packet(11, STATUS, b"\x07")  # EEPROM locked: access error
-    assert emu.receive(packet(11, WRITE, bytes([116, 0]) + (5000).to_bytes(4, "little")), 0.0) == packet(11, STATUS, b"\x06")
+    assert emu.receive(packet(11, WRITE, bytes([11, 0, 1])), 0.0) == packet(
+        11, STATUS, b"\x07"
+    )  # EEPROM locked: access error
+    assert emu.receive(packet(11, WRITE, bytes([116, 0]) + (5000).to_bytes(4, "little")), 0.0) == packet(
+        11, STATUS, b"\x06"
+    )
     bad = bytearray(packet(11, PING))
     bad[-1] ^= 0xFF
     assert emu.receive(bytes(bad), 0.0) == packet(11, STATUS, b"\x03")  # CRC error
@@ -51,8 +60,10 @@ def test_sync_write_moves_at_profile_velocity_and_sync_read_answers_in_order():
     emu.receive(packet(0xFE, SYNC_WRITE, bytes([116, 0, 4, 0, 1]) + (3048).to_bytes(4, "little")), 0.0)
     emu.tick(0.1)
     reply = emu.receive(packet(0xFE, SYNC_READ, bytes([132, 0, 4, 0, 1, 2])), 0.1)
-    assert reply == (packet(1, STATUS, bytes([0]) + (2048 + 156).to_bytes(4, "little"))
-                     + packet(2, STATUS, bytes([0]) + (2048).to_bytes(4, "little")))
+    assert reply == (
+        packet(1, STATUS, bytes([0]) + (2048 + 156).to_bytes(4, "little"))
+        + packet(2, STATUS, bytes([0]) + (2048).to_bytes(4, "little"))
+    )
     emu.tick(1.0)
     assert emu.receive(packet(1, READ, bytes([122, 0, 1, 0])), 1.0) == packet(1, STATUS, b"\x00\x00")  # arrived
 
@@ -60,8 +71,14 @@ def test_sync_write_moves_at_profile_velocity_and_sync_read_answers_in_order():
 def test_motion_time_is_the_longest_servo_move_at_profile_velocity_whatever_the_speed_scale():
     emu = DxlBusEmulator(ids=(1, 2), speed_scale=10)
     emu.receive(packet(0xFE, SYNC_WRITE, bytes([64, 0, 1, 0, 1, 1, 2, 1])), 0.0)
-    emu.receive(packet(0xFE, SYNC_WRITE, bytes([112, 0, 4, 0, 1]) + (100).to_bytes(4, "little")
-                       + bytes([2]) + (100).to_bytes(4, "little")), 0.0)
+    emu.receive(
+        packet(
+            0xFE,
+            SYNC_WRITE,
+            bytes([112, 0, 4, 0, 1]) + (100).to_bytes(4, "little") + bytes([2]) + (100).to_bytes(4, "little"),
+        ),
+        0.0,
+    )
     goals = bytes([1]) + (2048 + 1000).to_bytes(4, "little") + bytes([2]) + (2048 - 500).to_bytes(4, "little")
     emu.receive(packet(0xFE, SYNC_WRITE, bytes([116, 0, 4, 0]) + goals), 0.0)
     for t in (0.02, 0.04, 0.06, 0.08):  # 1000 ticks at 1563.3 ticks/s: 0.64 s, 0.064 s of clock at 10x

@@ -1,5 +1,6 @@
 """One process per device: a second command on a port in use is refused (exit 2) naming the
 process that holds it, before it sends a byte; the drivers open their ports exclusively."""
+
 from __future__ import annotations
 
 import os
@@ -37,14 +38,20 @@ def wait_for(predicate, timeout_s: float = 30.0) -> None:
 def test_a_second_jog_on_the_port_of_a_moving_arm_is_refused_and_the_first_stops_safely(capsys):
     emu = GrblEmulator(speed_scale=1)  # 500 mm/min: the first jog is still moving when the second comes
     with serve_pty(emu) as path:
-        first = subprocess.Popen([str(RUN_CELL), "jog", "--arm", "serial", "--port", path, "--to", "150", "0", "50"],
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        first = subprocess.Popen(
+            [str(RUN_CELL), "jog", "--arm", "serial", "--port", path, "--to", "150", "0", "50"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             wait_for(lambda: emu.state == "Run")
             assert main(["jog", "--arm", "serial", "--port", path, "--to", "10", "10", "10"]) == 2
             err = capsys.readouterr().err
-            assert err == f"run-cell jog: error: port {path} in use by run-cell pid {first.pid} " \
-                          f"(hint: wait for it to finish or stop it; lock file {lock_path(path)})\n"
+            assert (
+                err == f"run-cell jog: error: port {path} in use by run-cell pid {first.pid} "
+                f"(hint: wait for it to finish or stop it; lock file {lock_path(path)})\n"
+            )
             assert emu.state == "Run"  # not soft-reset, no ALARM:3: the second never opened the port
             first.send_signal(signal.SIGTERM)
             out, err = first.communicate(timeout=30)
@@ -68,8 +75,10 @@ def test_the_drivers_open_their_port_exclusively(kind, emulator):
 
 def test_a_lock_names_its_holder_and_dies_with_it(tmp_path):
     resource = tmp_path / "calibration.json"
-    code = ("import sys, time\nfrom cell.locks import holding\n"
-            f"with holding({str(resource)!r}, 'file'):\n    print('held', flush=True)\n    time.sleep(60)\n")
+    code = (
+        "import sys, time\nfrom cell.locks import holding\n"
+        f"with holding({str(resource)!r}, 'file'):\n    print('held', flush=True)\n    time.sleep(60)\n"
+    )
     holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline() == "held\n"

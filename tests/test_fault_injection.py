@@ -7,6 +7,7 @@ takes one write of every (event kind, state) the run produces, and the write rig
 the gripper closed on both arms; --exhaustive sweeps every write of a whole run and every
 signal in every state on both arms.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -41,8 +42,10 @@ def writes(tmp_path_factory):
             assert run_cell(d / "a", kind) == 3
             FullDiskAt(None).install(mp)
             assert run_cell(d / "b", kind, max_attempts=1) == 3
-            out[kind] = {"normal": [(e["kind"], e["state"]) for e in audit_events(d / "a" / "logs")],
-                         "fault": [(e["kind"], e["state"]) for e in audit_events(d / "b" / "logs")]}
+            out[kind] = {
+                "normal": [(e["kind"], e["state"]) for e in audit_events(d / "a" / "logs")],
+                "fault": [(e["kind"], e["state"]) for e in audit_events(d / "b" / "logs")],
+            }
     return out
 
 
@@ -56,15 +59,38 @@ def firsts(seq: list[tuple[str, str]]) -> dict[tuple[str, str], int]:
 
 # Which writes the default suite fails: every (kind, state) pair once, arms taking turns; the
 # runs are chosen by name here and resolved against the reference runs in the test.
-NORMAL_PAIRS = [("config", "idle"), ("run_start", "idle"), ("arm", "idle"), ("state", "idle"), ("arm", "home"),
-                ("state", "home"), ("state", "capture"), ("frame", "locate"), ("state", "locate"),
-                ("target", "plan"), ("state", "plan"), ("arm", "pick"), ("state", "pick"), ("arm", "place"),
-                ("state", "place"), ("verify", "verify"), ("state", "verify")]
-FAULT_PAIRS = [("fault", "plan"), ("safe_step", "plan"), ("state", "plan"), ("sim_truth", "fault"),
-               ("summary", "fault"), ("run_end", "fault")]
-CASES = ([("normal", pair, KINDS[i % 2]) for i, pair in enumerate(NORMAL_PAIRS)]
-         + [("fault", pair, KINDS[i % 2]) for i, pair in enumerate(FAULT_PAIRS)]
-         + [("normal", "after close_gripper", kind) for kind in KINDS])
+NORMAL_PAIRS = [
+    ("config", "idle"),
+    ("run_start", "idle"),
+    ("arm", "idle"),
+    ("state", "idle"),
+    ("arm", "home"),
+    ("state", "home"),
+    ("state", "capture"),
+    ("frame", "locate"),
+    ("state", "locate"),
+    ("target", "plan"),
+    ("state", "plan"),
+    ("arm", "pick"),
+    ("state", "pick"),
+    ("arm", "place"),
+    ("state", "place"),
+    ("verify", "verify"),
+    ("state", "verify"),
+]
+FAULT_PAIRS = [
+    ("fault", "plan"),
+    ("safe_step", "plan"),
+    ("state", "plan"),
+    ("sim_truth", "fault"),
+    ("summary", "fault"),
+    ("run_end", "fault"),
+]
+CASES = (
+    [("normal", pair, KINDS[i % 2]) for i, pair in enumerate(NORMAL_PAIRS)]
+    + [("fault", pair, KINDS[i % 2]) for i, pair in enumerate(FAULT_PAIRS)]
+    + [("normal", "after close_gripper", kind) for kind in KINDS]
+)
 
 
 def write_number(writes, kind: str, run: str, what) -> int:
@@ -93,8 +119,9 @@ def full_disk_run(tmp_path, kind: str, n: int, monkeypatch, capsys, max_attempts
 
 
 @pytest.mark.parametrize("run,what,kind", CASES, ids=lambda v: "-".join(v) if isinstance(v, tuple) else str(v))
-def test_a_full_disk_at_an_audit_write_leaves_the_arm_safe_and_exits_3(writes, run, what, kind, tmp_path,
-                                                                        monkeypatch, capsys):
+def test_a_full_disk_at_an_audit_write_leaves_the_arm_safe_and_exits_3(
+    writes, run, what, kind, tmp_path, monkeypatch, capsys
+):
     n = write_number(writes, kind, run, what)
     code, disk, sim, err, logs = full_disk_run(tmp_path, kind, n, monkeypatch, capsys, 1 if run == "fault" else None)
     assert code == 3
@@ -114,9 +141,17 @@ def test_a_full_disk_at_an_audit_write_leaves_the_arm_safe_and_exits_3(writes, r
 # ---- signals -----------------------------------------------------------------------------------
 REASONS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 # Where in the run a signal comes: at the write of this (kind, state), i.e. during that state's work.
-POINTS = {"start-up": ("run_start", "idle"), "idle": ("arm", "idle"), "home": ("arm", "home"),
-          "capture": ("state", "capture"), "locate": ("frame", "locate"), "plan": ("target", "plan"),
-          "pick": "after close_gripper", "place": ("arm", "place"), "verify": ("verify", "verify")}
+POINTS = {
+    "start-up": ("run_start", "idle"),
+    "idle": ("arm", "idle"),
+    "home": ("arm", "home"),
+    "capture": ("state", "capture"),
+    "locate": ("frame", "locate"),
+    "plan": ("target", "plan"),
+    "pick": "after close_gripper",
+    "place": ("arm", "place"),
+    "verify": ("verify", "verify"),
+}
 STOPS = list(REASONS)
 # The default suite: every point once, the three stop signals and both arms taking turns.
 STOP_CASES = [(point, STOPS[i % 3], KINDS[i % 2]) for i, point in enumerate(POINTS)]
@@ -126,19 +161,22 @@ ALL_STOP_CASES = [c for c in itertools.product(POINTS, STOPS, KINDS) if c not in
 def signal_at(n: int, sig: int, then=None) -> FullDiskAt:
     """Audit writes that send `sig` to this process after write n (a disk that never fills);
     then(data) is called on every later write; `.sent` says whether the signal went."""
+
     def hook(count, data):
         if count == n:
             injector.sent = True
             os.kill(os.getpid(), sig)
         elif count > n and then is not None:
             then(data)
+
     injector = FullDiskAt(None, hook=hook)
     injector.sent = False
     return injector
 
 
-def signalled_run(tmp_path, kind: str, n: int, sig: int, monkeypatch, capsys, then=None,
-                  max_attempts: int | None = None):
+def signalled_run(
+    tmp_path, kind: str, n: int, sig: int, monkeypatch, capsys, then=None, max_attempts: int | None = None
+):
     """Run with `sig` sent at write n, then(data, sim) called on each later write: (exit code,
     captured sim, stderr, log folder). A run the
     overloaded machine faulted before write n (the servos' 34 ms status timeout) never got the
@@ -238,8 +276,10 @@ def test_sigusr1_during_plate_calibration_pauses_before_the_first_motion(tmp_pat
     assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 130
     events = audit_events(tmp_path / "logs")
     assert [e["command"] for e in events if e["kind"] == "arm"] == ["connect"]  # paused before anything moved
-    assert [(e["source"], e["target"]) for e in events if e["kind"] == "state"][:2] == [("idle", "home"),
-                                                                                        ("home", "paused")]
+    assert [(e["source"], e["target"]) for e in events if e["kind"] == "state"][:2] == [
+        ("idle", "home"),
+        ("home", "paused"),
+    ]
     check_stopped(tmp_path / "logs", sim, signal.SIGTERM, capsys.readouterr().err)
 
 
@@ -265,8 +305,9 @@ def _pause_case(writes, point, tmp_path, monkeypatch, capsys):
             seen["held"] = sim.cell.world.held()
             os.kill(os.getpid(), signal.SIGTERM)  # stop while paused
 
-    code, sim, err, logs = signalled_run(tmp_path, kind, point_number(writes, kind, point), signal.SIGUSR1,
-                                         monkeypatch, capsys, then=at_pause)
+    code, sim, err, logs = signalled_run(
+        tmp_path, kind, point_number(writes, kind, point), signal.SIGUSR1, monkeypatch, capsys, then=at_pause
+    )
     assert code == 130, err
     assert seen["held"] is None  # paused with nothing in the gripper
     check_stopped(logs, sim, signal.SIGTERM, err)
@@ -298,11 +339,15 @@ def test_sigusr1_during_start_up_pauses_before_the_first_motion_and_resumes(writ
     events = audit_events(tmp_path / "logs")
     states = [(e["source"], e["target"]) for e in events if e["kind"] == "state"]
     assert states[:4] == [("idle", "home"), ("home", "paused"), ("paused", "home"), ("home", "capture")]
-    before = [e["command"] for e in events[: events.index(next(e for e in events if e.get("target") == "paused"))]
-              if e["kind"] == "arm"]
+    before = [
+        e["command"]
+        for e in events[: events.index(next(e for e in events if e.get("target") == "paused"))]
+        if e["kind"] == "arm"
+    ]
     assert before == ["connect"]  # nothing had moved when it paused
     assert [e["kind"] for e in events].count("target") == 1 and any(
-        e["kind"] == "verify" and e["result"] == "picked" for e in events)
+        e["kind"] == "verify" and e["result"] == "picked" for e in events
+    )
 
 
 # ---- the exhaustive sweep (--exhaustive): a full disk at every audit write of a whole run -------------
@@ -356,6 +401,12 @@ def test_a_real_full_disk_mid_run(tiny_filesystem, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "write failed (No space left on device)" in err and "the audit log is incomplete" in err
     assert "simulated truth: " in err and "gripper:" not in err
-    assert err.strip().splitlines()[-1].endswith("No space left on device (hint: free space on its filesystem or "
-                                                 "set run.log_dir elsewhere) (arm made safe; exit 3)")
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .endswith(
+            "No space left on device (hint: free space on its filesystem or "
+            "set run.log_dir elsewhere) (arm made safe; exit 3)"
+        )
+    )
     assert_arm_safe(sim.cell, tiny_filesystem)

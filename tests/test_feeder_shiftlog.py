@@ -1,5 +1,6 @@
 """The simulated feeder (seeded, free spots only, never overlapping, tidy) and the shift's
 rolling audit log (whole lines, by day and size, read back as one shift)."""
+
 from __future__ import annotations
 
 import json
@@ -14,7 +15,9 @@ from cell.summary import counts_from_log
 
 
 def world() -> World:
-    return World([], Truth(0.0, -132.0, 40.0, 0.0), [Bin("bolt", (-200.0, 60.0), 40.0), Bin("nut", (200.0, 60.0), 40.0)])
+    return World(
+        [], Truth(0.0, -132.0, 40.0, 0.0), [Bin("bolt", (-200.0, 60.0), 40.0), Bin("nut", (200.0, 60.0), 40.0)]
+    )
 
 
 class Clock:
@@ -39,7 +42,7 @@ def test_parts_arrive_at_the_rate_on_free_spots_inside_the_area():
     for i, a in enumerate(specs):
         o = a.top_view_outline_mm()
         assert x0 <= o[:, 0].min() and o[:, 0].max() <= x1 and y0 <= o[:, 1].min() and o[:, 1].max() <= y1
-        for b in specs[i + 1:]:
+        for b in specs[i + 1 :]:
             assert _outline_gap_mm(a, b) >= MIN_GAP_MM
     clock.t = 120.0  # 40 more due, but at most 25 on the table
     feeder.tick()
@@ -115,17 +118,27 @@ def test_the_shift_log_rolls_at_a_new_day_and_a_restart_takes_the_next_file(tmp_
 
 def test_shift_counts_agree_with_the_summary_recount():
     events = [
-        {"kind": "target", "attempt": 1}, {"kind": "verify", "result": "missed", "cls": "bolt"},
-        {"kind": "target", "attempt": 2}, {"kind": "verify", "result": "picked", "cls": "bolt"},
-        {"kind": "target", "attempt": 1}, {"kind": "verify", "result": "picked", "cls": "nut"},
-        {"kind": "unreachable"}, {"kind": "failed"},
+        {"kind": "target", "attempt": 1},
+        {"kind": "verify", "result": "missed", "cls": "bolt"},
+        {"kind": "target", "attempt": 2},
+        {"kind": "verify", "result": "picked", "cls": "bolt"},
+        {"kind": "target", "attempt": 1},
+        {"kind": "verify", "result": "picked", "cls": "nut"},
+        {"kind": "unreachable"},
+        {"kind": "failed"},
         {"kind": "frame", "detections": [{"pick": False}, {"pick": True}]},
     ]
     c = ShiftCounts.from_events(events)
     ref = counts_from_log(events)
     assert (c.picked, c.misses, c.retries, c.failed, c.unreachable, c.unknown_left, c.attempts) == (
-        ref["picked"], ref["misses"], ref["retries"], ref["failed"], ref["unreachable"], ref["unknown_left"],
-        ref["attempts"])
+        ref["picked"],
+        ref["misses"],
+        ref["retries"],
+        ref["failed"],
+        ref["unreachable"],
+        ref["unknown_left"],
+        ref["attempts"],
+    )
     assert c.counters().picked_bolts == 1 and c.counters().retries == 1
 
 

@@ -1,4 +1,5 @@
 """The serial G-code driver against the GRBL emulator on a real pseudo-terminal, via pyserial."""
+
 import threading
 import time
 
@@ -13,8 +14,14 @@ from drivers.sim.pty_port import serve_pty
 
 pytestmark = pytest.mark.timeout(60)  # opens a pty with the emulated GRBL
 
-FAST = dict(command_timeout_s=0.5, motion_timeout_s=3.0, connect_timeout_s=0.5,
-            reconnect_timeout_s=2.0, poll_interval_s=0.02, speed_mm_s=100.0)
+FAST = dict(
+    command_timeout_s=0.5,
+    motion_timeout_s=3.0,
+    connect_timeout_s=0.5,
+    reconnect_timeout_s=2.0,
+    poll_interval_s=0.02,
+    speed_mm_s=100.0,
+)
 
 
 def make_arm(path: str, **overrides) -> SerialGcodeArm:

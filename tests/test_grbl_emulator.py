@@ -1,4 +1,5 @@
 """The GRBL emulator alone: the replies a GRBL 1.1 at default settings gives, byte for byte."""
+
 from drivers.sim.grbl_emulator import BANNER, GrblEmulator
 
 

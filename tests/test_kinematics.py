@@ -1,4 +1,5 @@
 """IK/FK of the 4-axis arm (OpenManipulator-X geometry): round trips and refusals."""
+
 import math
 
 import pytest

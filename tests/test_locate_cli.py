@@ -1,4 +1,5 @@
 """`run-cell locate`: JSON contract, readable table, annotation, one-line errors."""
+
 from __future__ import annotations
 
 import json
@@ -78,7 +79,10 @@ def test_plain_scale_and_paper_preset(files, capsys):
     [
         (lambda d: d / "missing.png", "image file not found"),
         (lambda d: (d / "text.png").write_text("not an image") and d / "text.png", "cannot decode image"),
-        (lambda d: cv2.imwrite(str(d / "small.png"), np.zeros((100, 100, 3), np.uint8)) and d / "small.png", "100 x 100 px"),
+        (
+            lambda d: cv2.imwrite(str(d / "small.png"), np.zeros((100, 100, 3), np.uint8)) and d / "small.png",
+            "100 x 100 px",
+        ),
     ],
 )
 def test_bad_images_give_one_line_errors(files, capsys, make, message):

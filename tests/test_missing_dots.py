@@ -1,5 +1,6 @@
 """A plate with circles that cannot be seen: every output of a recalibration still comes out,
 saying which points are missing (report, Table III CSV, numbered plate, JSON calibration)."""
+
 import csv
 import json
 import subprocess
@@ -29,9 +30,23 @@ MISSING = sorted(r * 13 + c + 1 for c, r in OMIT)
 
 def recalibrate(image: Path, out: Path, config: Path, report: Path):
     return subprocess.run(
-        [sys.executable, SCRIPT, "--image", image, "--out", out, "--config", config, "--report-dir", report,
-         "--log", out.parent / "cell.log"],
-        capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            SCRIPT,
+            "--image",
+            image,
+            "--out",
+            out,
+            "--config",
+            config,
+            "--report-dir",
+            report,
+            "--log",
+            out.parent / "cell.log",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
 
 

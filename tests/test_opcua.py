@@ -1,5 +1,6 @@
 """`run-cell serve` in a subprocess, driven by asyncua's client as a PLC would: knowing only the
 namespace URI and the BrowseNames (Objects/Cell/...), nothing of the server's Python objects."""
+
 from __future__ import annotations
 
 import asyncio
@@ -23,9 +24,23 @@ pytestmark = pytest.mark.timeout(240)  # runs run-cell serve as a subprocess
 REPO = Path(__file__).resolve().parents[1]
 NS = "urn:pick-cell"
 COUNTERS = ["PickedBolts", "PickedNuts", "Misses", "Retries", "Failed", "Unreachable", "UnknownLeft"]
-VARIABLES = ["VisionState", "CellState", *COUNTERS, "LastPickClass", "LastPickTableMm", "LastPickRobotMm",
-             "LastPickAngleDeg", "LastPickOutcome", "LastPickTime", "ActiveAlarm", "Heartbeat", "CalibrationModel",
-             "CalibrationCvRmsMm", "CalibrationCvMaxMm", "CalibrationTime"]
+VARIABLES = [
+    "VisionState",
+    "CellState",
+    *COUNTERS,
+    "LastPickClass",
+    "LastPickTableMm",
+    "LastPickRobotMm",
+    "LastPickAngleDeg",
+    "LastPickOutcome",
+    "LastPickTime",
+    "ActiveAlarm",
+    "Heartbeat",
+    "CalibrationModel",
+    "CalibrationCvRmsMm",
+    "CalibrationCvMaxMm",
+    "CalibrationTime",
+]
 METHODS = ["StartSingleJob", "StartContinuous", "Stop", "Pause", "Resume", "Halt", "Reset"]
 
 
@@ -41,10 +56,27 @@ class Serve:
     def __init__(self, tmp: Path, *args: str, env: dict | None = None):
         self.port, self.http_port = free_port(), free_port()
         self.log_dir = tmp / "logs"
-        cmd = [sys.executable, "-m", "cell.cli", "serve", "--log-dir", str(self.log_dir),
-               "--opcua-port", str(self.port), "--http-port", str(self.http_port), *args]
-        self.proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
+        cmd = [
+            sys.executable,
+            "-m",
+            "cell.cli",
+            "serve",
+            "--log-dir",
+            str(self.log_dir),
+            "--opcua-port",
+            str(self.port),
+            "--http-port",
+            str(self.http_port),
+            *args,
+        ]
+        self.proc = subprocess.Popen(
+            cmd,
+            cwd=tmp,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})},
+        )
         self.url = f"opc.tcp://127.0.0.1:{self.port}/cell"
         self.output = ""
 
@@ -236,8 +268,12 @@ def test_a_plc_drives_the_built_in_shift(tmp_path):
     serve = Serve(tmp_path, "--dry-run")
     try:
         assert f"ready: OPC UA {serve.url}; screen http://127.0.0.1:{serve.http_port}/ " in serve.wait_ready()
-        for step in (the_node_tree_by_browsenames, continuous_picks_rise_pause_resume_stop,
-                     wrong_states_are_bad_invalid_state, halt_then_reset):
+        for step in (
+            the_node_tree_by_browsenames,
+            continuous_picks_rise_pause_resume_stop,
+            wrong_states_are_bad_invalid_state,
+            halt_then_reset,
+        ):
             with_cell(serve.url, step)
         garbage_and_a_vanishing_client_leave_the_cell_running(serve)
         with_cell(serve.url, lambda cell: cell.call("StartContinuous"))
@@ -290,12 +326,17 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
     certs = tmp_path / "certs"
     (tmp_path / "exposed.toml").write_text(
         f'[service]\nhost = "0.0.0.0"\nuser = "plc"\npassword_env = "CELL_TEST_PW"\ncertificate_dir = "{certs}"\n'
-        '[camera]\nwidth_px = 960\nheight_px = 540\n')
+        "[camera]\nwidth_px = 960\nheight_px = 540\n"
+    )
     key, cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
-    asyncio.run(setup_self_signed_certificate(key, cert, "urn:test-plc", "localhost",
-                                              [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test-plc"}))
-    serve = Serve(tmp_path, "--dry-run", "--config", str(tmp_path / "exposed.toml"),
-                  env={"CELL_TEST_PW": "correct horse"})
+    asyncio.run(
+        setup_self_signed_certificate(
+            key, cert, "urn:test-plc", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test-plc"}
+        )
+    )
+    serve = Serve(
+        tmp_path, "--dry-run", "--config", str(tmp_path / "exposed.toml"), env={"CELL_TEST_PW": "correct horse"}
+    )
     try:
         assert serve.wait_ready().startswith(f"ready: OPC UA opc.tcp://0.0.0.0:{serve.port}/cell")
         assert (certs / "server-cert.der").is_file() and (certs / "server-key.pem").stat().st_mode & 0o077 == 0

@@ -1,4 +1,5 @@
 """docs/opcua.md says what the server does: every node it serves, and the command table."""
+
 from __future__ import annotations
 
 import re

@@ -1,4 +1,5 @@
 """The paper's own numbers, reproduced from ../shared/paper/."""
+
 import csv
 import json
 

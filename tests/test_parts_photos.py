@@ -1,4 +1,5 @@
 """Real front-lit photos nobody here drew (../shared/data/parts-photos, labels.csv)."""
+
 from __future__ import annotations
 
 import csv

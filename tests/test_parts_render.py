@@ -1,4 +1,5 @@
 """The 3-D part renderer: geometry a vision test can trust."""
+
 from __future__ import annotations
 
 import math
@@ -86,12 +87,14 @@ def test_off_axis_hole_is_the_intersection_of_its_rims():
     c = cam.center_table_mm
     near = scene_opacity(cam, [PartSpec("nut", "M6", float(c[0]), float(c[1]))])
     far = scene_opacity(cam, [PartSpec("nut", "M6", float(c[0]) + 70, float(c[1]) + 45)])
+
     def hole_px(op):
         filled = (op > 0.5).astype(np.uint8)
         contours, _ = cv2.findContours(filled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         solid = np.zeros_like(filled)
         cv2.drawContours(solid, contours, -1, 1, -1)
         return int((solid & (1 - filled)).sum())
+
     assert hole_px(far) < 0.8 * hole_px(near)
     assert hole_px(far) > 0
 

@@ -1,4 +1,5 @@
 """Table -> robot mapping, the taught fit, per-class targets, reach checks and pick order."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -21,8 +22,9 @@ def part(cls="nut", xy=(100.0, 50.0), angle=None, pid=1, grasp=None):
 def test_offset_frame_adds_the_configured_offset_and_table_height():
     frame = TableToRobot.from_offset(PlanningConfig(offset_x_mm=150.0, offset_y_mm=-100.0, table_z_mm=-20.0))
     assert frame.to_robot([10.0, 20.0]).tolist() == [[160.0, -80.0]]
-    t = Planner(PlanningConfig(offset_x_mm=150.0, offset_y_mm=-100.0, table_z_mm=-20.0,
-                               workspace={"z_min_mm": -50}), frame).target(part(xy=(10.0, 20.0)))
+    t = Planner(
+        PlanningConfig(offset_x_mm=150.0, offset_y_mm=-100.0, table_z_mm=-20.0, workspace={"z_min_mm": -50}), frame
+    ).target(part(xy=(10.0, 20.0)))
     assert t.robot_mm == (160.0, -80.0, -20.0 + CFG.nut.pick_above_table_mm)
     assert t.approach_z_mm == -20.0 + CFG.nut.approach_above_table_mm
 
@@ -108,8 +110,9 @@ def test_angle_wraps_into_half_turn():
     assert frame.angle_to_robot(-100.0) == pytest.approx(70.0)
 
 
-@pytest.mark.parametrize("xy,angle", [((float("nan"), 50.0), None), ((100.0, float("inf")), None),
-                                      ((100.0, 50.0), float("nan"))])
+@pytest.mark.parametrize(
+    "xy,angle", [((float("nan"), 50.0), None), ((100.0, float("inf")), None), ((100.0, 50.0), float("nan"))]
+)
 def test_a_target_that_is_not_a_finite_number_never_reaches_the_arm(xy, angle):
     cls = "nut" if angle is None else "bolt"
     with pytest.raises(Unreachable, match="not a finite number"):

@@ -1,4 +1,5 @@
 """Plate detection and numbering on rendered plates, where the truth is exact."""
+
 import cv2
 import numpy as np
 import pytest
@@ -23,7 +24,9 @@ def truth_px(camera, points):
 
 def wide_camera(roll_deg=0.0, tilt_deg=0.0, **kw):
     """1280 x 720 at 0.46 mm/px: room for the plate rotated by 30 degrees and tilted by 10."""
-    return CameraModel.looking_down(1280, 720, 0.46, (132, 88), tilt_deg=tilt_deg, roll_deg=roll_deg, tilt_azimuth_deg=35, **kw)
+    return CameraModel.looking_down(
+        1280, 720, 0.46, (132, 88), tilt_deg=tilt_deg, roll_deg=roll_deg, tilt_azimuth_deg=35, **kw
+    )
 
 
 def polygon_opacity(camera, polygon_mm):
@@ -67,8 +70,10 @@ def test_default_survives_missing_circles_strays_and_a_screw():
     cam = wide_camera(roll_deg=12.0, tilt_deg=6.0)
     omit = {(0, 0), (3, 2), (4, 2), (12, 11), (7, 5), (8, 9)}
     rng = np.random.default_rng(5)
-    dust = [[(x + 0.3 * np.cos(a), y + 0.3 * np.sin(a)) for a in np.linspace(0, 2 * np.pi, 12)]
-            for x, y in rng.uniform((5, 5), (260, 170), (15, 2))]
+    dust = [
+        [(x + 0.3 * np.cos(a), y + 0.3 * np.sin(a)) for a in np.linspace(0, 2 * np.pi, 12)]
+        for x, y in rng.uniform((5, 5), (260, 170), (15, 2))
+    ]
     screw = [(100.5, 41), (136, 44), (136, 48), (100.5, 45)]  # lying across two circles
     extra = np.maximum.reduce([polygon_opacity(cam, p) for p in dust + [screw]])
     pts = find_points(render_plate(cam, PLATE, omit=omit, extra_opacity=extra, seed=4), CONFIG)

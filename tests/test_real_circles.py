@@ -8,6 +8,7 @@ not the truth: a photometric degradation leaves the geometry as it was, so each 
 answer should stay where it was on the untouched photo. On those variants a centre more than
 0.2 px from OpenCV's passes only where OpenCV's own answer moved further than ours did.
 """
+
 import cv2
 import numpy as np
 import pytest

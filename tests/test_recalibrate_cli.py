@@ -1,4 +1,5 @@
 """scripts/recalibrate.py, `run-cell recalibrate` and `run-cell map`, driven as operators and other tools call them."""
+
 import argparse
 import json
 import subprocess
@@ -39,8 +40,18 @@ def work(tmp_path_factory):
 
 
 def recalibrate(work, out, *extra):
-    return run(SCRIPT, "--image", work / "plate.png", "--out", out, "--config", work / "cell.toml",
-               "--log", work / "cell.log", *extra)
+    return run(
+        SCRIPT,
+        "--image",
+        work / "plate.png",
+        "--out",
+        out,
+        "--config",
+        work / "cell.toml",
+        "--log",
+        work / "cell.log",
+        *extra,
+    )
 
 
 def test_recalibrate_writes_report_and_keeps_a_backup(work, tmp_path):
@@ -162,11 +173,14 @@ def test_map_csv_in_input_order(calibration, tmp_path):
     assert json.loads(one.stdout)[0]["X_mm"] == pytest.approx(rows[2]["X_mm"])
 
 
-@pytest.mark.parametrize("content,message", [
-    ("x_px,y_px\n10,20\nnan,5\n", "line 3: not a finite number"),
-    ("x_px,y_px\n10,twenty\n", "line 2: not a number"),
-    ("x,y\n10,20\n", "line 1: header must be 'x_px,y_px'"),
-])
+@pytest.mark.parametrize(
+    "content,message",
+    [
+        ("x_px,y_px\n10,20\nnan,5\n", "line 3: not a finite number"),
+        ("x_px,y_px\n10,twenty\n", "line 2: not a number"),
+        ("x,y\n10,20\n", "line 1: header must be 'x_px,y_px'"),
+    ],
+)
 def test_map_rejects_bad_pixels(calibration, tmp_path, content, message):
     csv = tmp_path / "points.csv"
     csv.write_text(content)
@@ -174,11 +188,17 @@ def test_map_rejects_bad_pixels(calibration, tmp_path, content, message):
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("content,message", [
-    ("{not json", "not JSON"),
-    ('{"schema": "pick-cell/calibration", "version": 1, "model": "quadratic", "coefficients": {}}', "corrupt calibration"),
-    ('{"schema": "other"}', "not a calibration file"),
-])
+@pytest.mark.parametrize(
+    "content,message",
+    [
+        ("{not json", "not JSON"),
+        (
+            '{"schema": "pick-cell/calibration", "version": 1, "model": "quadratic", "coefficients": {}}',
+            "corrupt calibration",
+        ),
+        ('{"schema": "other"}', "not a calibration file"),
+    ],
+)
 def test_map_rejects_a_corrupt_calibration(tmp_path, content, message):
     cal = tmp_path / "cal.json"
     cal.write_text(content)
@@ -238,6 +258,7 @@ def test_run_cell_recalibrate_is_the_script_s_command(work, tmp_path):
 def test_the_script_and_the_sub_command_take_the_same_options():
     def options(parser):
         return sorted((a.dest, tuple(a.option_strings), a.choices, a.default) for a in parser._actions)
+
     sub = next(a for a in cli_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["recalibrate"]
     assert options(script_parser()) == options(sub)
     assert "--report-dir" in sub.format_help() and "--quiet" in sub.format_help()

@@ -1,4 +1,5 @@
 """`run-cell --dry-run` end to end on the built-in simulated cell, and the CLI's errors."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -123,7 +124,7 @@ def test_teach_fits_prints_residuals_and_writes(tmp_path, capsys):
     points = ["1", "-132", "40", "13", "132", "40", "144", "-132", "216", "156", "132", "216"]
     args = ["teach", "--config", str(cfg)]
     for i in range(0, len(points), 3):
-        args += ["--point", *points[i:i + 3]]
+        args += ["--point", *points[i : i + 3]]
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "residual 0.000 mm" in out and (tmp_path / "frame.json").exists()
@@ -132,8 +133,27 @@ def test_teach_fits_prints_residuals_and_writes(tmp_path, capsys):
 def test_teach_refuses_a_fit_with_a_large_residual(tmp_path, capsys):
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'[planning]\ntaught_path = "{tmp_path / "frame.json"}"\n')
-    args = ["teach", "--config", str(cfg), "--point", "1", "-132", "40", "--point", "13", "132", "40",
-            "--point", "144", "-132", "216", "--point", "156", "137", "216"]
+    args = [
+        "teach",
+        "--config",
+        str(cfg),
+        "--point",
+        "1",
+        "-132",
+        "40",
+        "--point",
+        "13",
+        "132",
+        "40",
+        "--point",
+        "144",
+        "-132",
+        "216",
+        "--point",
+        "156",
+        "137",
+        "216",
+    ]
     assert main(args) == 2
     assert "exceeds planning.teach_max_residual_mm" in capsys.readouterr().err
     assert not (tmp_path / "frame.json").exists()
@@ -168,12 +188,12 @@ def line_config(tmp_path: Path, nut_bin=(250.0, 250.0, 60.0)) -> Path:
     cfg = tmp_path / "line.toml"
     cfg.write_text(f"""
 [camera]
-source = "{tmp_path / 'frames'}"
+source = "{tmp_path / "frames"}"
 width_px = 960
 height_px = 540
 loop = true
 [calibration]
-active_path = "{tmp_path / 'cal.json'}"
+active_path = "{tmp_path / "cal.json"}"
 [arm]
 kind = "serial"
 port = "/dev/ttyUSB0"
@@ -198,7 +218,7 @@ bin_robot_mm = [290.0, 20.0, 60.0]
 pick_above_table_mm = 2.0
 bin_robot_mm = {list(nut_bin)}
 [run]
-log_dir = "{tmp_path / 'logs'}"
+log_dir = "{tmp_path / "logs"}"
 """)
     return cfg
 
@@ -224,8 +244,10 @@ def test_a_bin_out_of_reach_is_a_fault_before_anything_moves(tmp_path, capsys):
 def test_ctrl_c_stops_safely_and_the_log_says_where(tmp_path):
 
     cfg = tmp_path / "rt.toml"
-    cfg.write_text(f'[sim]\nrealtime = true\nperfect_calibration = true\nspeed_mm_s = 500.0\n'
-                   f'[run]\nlog_dir = "{tmp_path / "logs"}"\n')
+    cfg.write_text(
+        f"[sim]\nrealtime = true\nperfect_calibration = true\nspeed_mm_s = 500.0\n"
+        f'[run]\nlog_dir = "{tmp_path / "logs"}"\n'
+    )
     code, rest = ctrl_c_after_first_pick("--config", str(cfg))
     assert code == 130
     assert "STOPPED: Ctrl-C" in rest
@@ -240,8 +262,10 @@ def test_a_stale_calibration_camera_moved_shows_as_misses(tmp_path, capsys):
     """Without reference marks (no drift watch) a moved camera shows only as misses; with
     them the cell stops before the first pick (tests/test_drift_watch.py)."""
     cfg = tmp_path / "bumped.toml"
-    cfg.write_text(f'[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\nreference_marks_mm = []\n'
-                   f'[run]\nmax_retries = 1\nlog_dir = "{tmp_path / "logs"}"\n')
+    cfg.write_text(
+        f"[sim]\nperfect_calibration = true\ncamera_bumped_mm = [0.0, 2.5]\nreference_marks_mm = []\n"
+        f'[run]\nmax_retries = 1\nlog_dir = "{tmp_path / "logs"}"\n'
+    )
     assert main(["--config", str(cfg)]) == 1
     c = counts_from_log(audit_of(tmp_path / "logs"))
     assert c["misses"] > 0 and c["failed"] > 0
@@ -254,8 +278,10 @@ def test_a_rotated_robot_frame_needs_teach_and_then_clears_the_table(tmp_path, c
     import math
 
     truth = (2.0, -132.0, 40.0)
-    base = (f'[sim]\nperfect_calibration = true\ntruth_rotation_deg = {truth[0]}\n'
-            f'[run]\nmax_retries = 0\nlog_dir = "{tmp_path / "logs"}"\n')
+    base = (
+        f"[sim]\nperfect_calibration = true\ntruth_rotation_deg = {truth[0]}\n"
+        f'[run]\nmax_retries = 0\nlog_dir = "{tmp_path / "logs"}"\n'
+    )
     offset_cfg = tmp_path / "offset.toml"
     offset_cfg.write_text(base)
     assert main(["--config", str(offset_cfg)]) == 1

@@ -1,5 +1,6 @@
 """The runner with the fakes above the driver layer (tests/doubles.py): a fake table,
 camera, locator and arm; misses come from geometry as in the simulated cell."""
+
 from __future__ import annotations
 
 import math
@@ -15,18 +16,39 @@ from cell.summary import counts_from_log
 from cell.vision.types import LocateResult
 from tests.doubles import PLANNING, TRUE_FRAME, FakeArm, FakeCamera, FakeTable, fake_locator
 
-PARTS = [("nut", 20.0, 30.0, None), ("bolt", 100.0, 60.0, 30.0), ("nut", 200.0, 120.0, None),
-         ("unknown", 150.0, 150.0, None)]
+PARTS = [
+    ("nut", 20.0, 30.0, None),
+    ("bolt", 100.0, 60.0, 30.0),
+    ("nut", 200.0, 120.0, None),
+    ("unknown", 150.0, 150.0, None),
+]
 
 
-def make_runner(tmp_path, parts=PARTS, truth=TRUE_FRAME, arm_fail=None, camera_fail=None, locate_fail=None,
-                run=None, controls=None, expect_motion=True):
+def make_runner(
+    tmp_path,
+    parts=PARTS,
+    truth=TRUE_FRAME,
+    arm_fail=None,
+    camera_fail=None,
+    locate_fail=None,
+    run=None,
+    controls=None,
+    expect_motion=True,
+):
     table = FakeTable(parts)
     arm = FakeArm(table, truth, arm_fail)
     camera = FakeCamera(camera_fail)
     audit = AuditLog(tmp_path / "audit.jsonl")
-    runner = Runner(camera, arm, fake_locator(table, locate_fail), Planner(PLANNING, TRUE_FRAME), run or RunConfig(), audit,
-                    controls, expect_motion)
+    runner = Runner(
+        camera,
+        arm,
+        fake_locator(table, locate_fail),
+        Planner(PLANNING, TRUE_FRAME),
+        run or RunConfig(),
+        audit,
+        controls,
+        expect_motion,
+    )
     return runner, table, arm, audit
 
 
@@ -76,8 +98,15 @@ def test_rehearsal_without_motion_plans_each_part_once(tmp_path):
 
     table = FakeTable(PARTS)
     audit = AuditLog(tmp_path / "a.jsonl")
-    runner = Runner(FakeCamera(), StillArm(table), fake_locator(table), Planner(PLANNING, TRUE_FRAME),
-                    RunConfig(), audit, expect_motion=False)
+    runner = Runner(
+        FakeCamera(),
+        StillArm(table),
+        fake_locator(table),
+        Planner(PLANNING, TRUE_FRAME),
+        RunConfig(),
+        audit,
+        expect_motion=False,
+    )
     summary = runner.run()
     assert summary.rehearsed == 3 and summary.attempts == 3 and summary.exit_code == EXIT_DONE
 
@@ -90,12 +119,21 @@ def test_a_4_axis_arm_rehearses_a_bolt_square_to_its_base_and_its_bin_moves(tmp_
 
     robot_xy = (100.0, 150.0)
     base_deg = math.degrees(math.atan2(robot_xy[1], robot_xy[0] - 12.0))  # yaw axis at x = 12 mm
-    (x, y), = TRUE_FRAME.to_table([robot_xy])
+    ((x, y),) = TRUE_FRAME.to_table([robot_xy])
     table = FakeTable([("bolt", float(x), float(y), base_deg - 90.0)])  # jaws close across the axis
     audit = AuditLog(tmp_path / "a.jsonl")
-    planning = PLANNING.model_copy(update={"bolt": PLANNING.bolt.model_copy(update={"bin_robot_mm": (60.0, -200.0, 60.0)})})
-    runner = Runner(FakeCamera(), MockArm(ArmConfig(kind="mock", mock_of="dynamixel")), fake_locator(table),
-                    Planner(planning, TRUE_FRAME), RunConfig(), audit, expect_motion=False)
+    planning = PLANNING.model_copy(
+        update={"bolt": PLANNING.bolt.model_copy(update={"bin_robot_mm": (60.0, -200.0, 60.0)})}
+    )
+    runner = Runner(
+        FakeCamera(),
+        MockArm(ArmConfig(kind="mock", mock_of="dynamixel")),
+        fake_locator(table),
+        Planner(planning, TRUE_FRAME),
+        RunConfig(),
+        audit,
+        expect_motion=False,
+    )
     summary = runner.run()
     assert summary.unreachable == 0 and summary.rehearsed == 1 and summary.exit_code == EXIT_DONE
 
@@ -161,8 +199,9 @@ def test_plan_fault_from_the_safety_limit(tmp_path):
 
 
 # ---- a stop request in each state --------------------------------------------------------
-@pytest.mark.parametrize("state", [s for s in State if s not in TERMINAL and s not in (State.PAUSED, State.WAIT)],
-                         ids=lambda s: s.name)
+@pytest.mark.parametrize(
+    "state", [s for s in State if s not in TERMINAL and s not in (State.PAUSED, State.WAIT)], ids=lambda s: s.name
+)
 def test_stop_request_in_each_state_makes_the_arm_safe(tmp_path, state):
     controls = Controls()
     runner, table, arm, audit = make_runner(tmp_path, controls=controls)

@@ -1,5 +1,6 @@
 """Continuous mode: WAIT instead of DONE, parts that appear get picked, `finish` ends the job
 at a safe point with the arm homed (not released), and a shift's tracks do not pile up."""
+
 from __future__ import annotations
 
 import threading
@@ -23,8 +24,16 @@ ONE_NUT = [("nut", 20.0, 30.0, None)]
 def continuous_runner(tmp_path, parts=ONE_NUT, interval_s=0.05, run: RunConfig | None = None):
     table = FakeTable(parts)
     arm, camera, controls = FakeArm(table), FakeCamera(), Controls()
-    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME), run or RunConfig(),
-                    AuditLog(tmp_path / "audit.jsonl"), controls, continuous_interval_s=interval_s)
+    runner = Runner(
+        camera,
+        arm,
+        fake_locator(table),
+        Planner(PLANNING, TRUE_FRAME),
+        run or RunConfig(),
+        AuditLog(tmp_path / "audit.jsonl"),
+        controls,
+        continuous_interval_s=interval_s,
+    )
     return runner, table, arm, camera, controls
 
 
@@ -123,8 +132,9 @@ def test_a_shift_forgets_parts_gone_from_the_table(tmp_path):
 
 
 def test_the_attempt_limit_counts_from_the_last_pick(tmp_path):
-    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.01,
-                                                             run=RunConfig(max_attempts_total=3))
+    runner, table, arm, camera, controls = continuous_runner(
+        tmp_path, parts=[], interval_s=0.01, run=RunConfig(max_attempts_total=3)
+    )
     thread = run_in_thread(runner)
     for i in range(6):  # more picks than the limit, each one successful
         table.parts[100 + i] = ("nut", 50.0, 30.0 + 20 * i, None)
@@ -149,9 +159,16 @@ def test_endless_misses_still_hit_the_safety_limit(tmp_path):
     table = FakeTable([("nut", 20.0, 30.0, None)])
     shifted = TableToRobot(0.0, TRUE_FRAME.tx_mm - 3.0, TRUE_FRAME.ty_mm, 0.0)  # every grip misses
     arm, camera = FakeArm(table, shifted), FakeCamera()
-    runner = Runner(camera, arm, fake_locator(table), Planner(PLANNING, TRUE_FRAME),
-                    RunConfig(max_retries=10, max_attempts_total=4), AuditLog(tmp_path / "audit.jsonl"),
-                    Controls(), continuous_interval_s=0.01)
+    runner = Runner(
+        camera,
+        arm,
+        fake_locator(table),
+        Planner(PLANNING, TRUE_FRAME),
+        RunConfig(max_retries=10, max_attempts_total=4),
+        AuditLog(tmp_path / "audit.jsonl"),
+        Controls(),
+        continuous_interval_s=0.01,
+    )
     summary = runner.run()
     assert runner.sm.state == State.FAULT and summary.attempts == 4
     assert "4 pick attempts since the last pick" in summary.reason

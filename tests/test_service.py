@@ -1,6 +1,7 @@
 """The line service in-process over the simulated cell (960 x 540 camera, to keep frames cheap):
 the command table, continuous mode, pause/resume, stop, halt/reset, a fault, events, counters
 carried over a restart, and nothing left running after close."""
+
 from __future__ import annotations
 
 import contextlib
@@ -190,7 +191,9 @@ def test_counters_start_again_with_the_next_days_shift(tmp_path):
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.READY and picked(service) == 17, what="the job")
         today = service._shift_day
-        service._on_audit({"kind": "unreachable", "t_utc": "2999-01-01T00:00:00.001+00:00"})  # the first event after midnight
+        service._on_audit(
+            {"kind": "unreachable", "t_utc": "2999-01-01T00:00:00.001+00:00"}
+        )  # the first event after midnight
         c = service.snapshot().counters
         assert (c.unreachable, c.picked_nuts, c.picked_bolts) == (1, 0, 0)
         assert today != service._shift_day

@@ -1,4 +1,5 @@
 """Who may connect: loopback by default, beyond it only with a user and a hashed or env password."""
+
 from __future__ import annotations
 
 import socket
@@ -40,9 +41,11 @@ def test_an_env_password(monkeypatch):
 
 def test_beyond_loopback_needs_a_user_and_a_password(monkeypatch):
     check_exposure(ServiceConfig())  # loopback: fine without
-    for cfg, missing in ((ServiceConfig(host="0.0.0.0"), "service.user"),
-                         (ServiceConfig(host="10.0.0.5", user="plc"), "service.password_hash"),
-                         (ServiceConfig(host="10.0.0.5", user="plc", password_env="CELL_PW_UNSET"), "CELL_PW_UNSET")):
+    for cfg, missing in (
+        (ServiceConfig(host="0.0.0.0"), "service.user"),
+        (ServiceConfig(host="10.0.0.5", user="plc"), "service.password_hash"),
+        (ServiceConfig(host="10.0.0.5", user="plc", password_env="CELL_PW_UNSET"), "CELL_PW_UNSET"),
+    ):
         with pytest.raises(ConfigError, match=missing):
             check_exposure(cfg)
     with pytest.raises(ConfigError, match="not a pbkdf2_sha256"):
@@ -51,8 +54,13 @@ def test_beyond_loopback_needs_a_user_and_a_password(monkeypatch):
 
 
 def test_serve_refuses_a_bad_port_in_one_line():
-    r = subprocess.run([sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--opcua-port", "70000"],
-                       capture_output=True, text=True, timeout=60, cwd=REPO)
+    r = subprocess.run(
+        [sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--opcua-port", "70000"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO,
+    )
     assert r.returncode == 2 and "--opcua-port 70000: a port is 1-65535" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -61,7 +69,22 @@ def test_serve_refuses_a_taken_port_before_building_anything(tmp_path):
         held.bind(("127.0.0.1", 0))
         held.listen()
         port = held.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "cell.cli", "serve", "--dry-run", "--log-dir", str(tmp_path),
-                            "--opcua-port", str(port)], capture_output=True, text=True, timeout=60, cwd=REPO)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "cell.cli",
+                "serve",
+                "--dry-run",
+                "--log-dir",
+                str(tmp_path),
+                "--opcua-port",
+                str(port),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=REPO,
+        )
     assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr
     assert not list(tmp_path.glob("cell-*.jsonl"))  # refused before the service opened its log

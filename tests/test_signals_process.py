@@ -1,5 +1,6 @@
 """Signals delivered to a real run-cell process: the terminal hangs up mid-run (SIGHUP with
 its output gone), and two recalibrations of one file race. Nothing may be left behind."""
+
 from __future__ import annotations
 
 import json
@@ -27,8 +28,12 @@ RUN_CELL = Path(sys.executable).parent / "run-cell"
 def test_a_hang_up_mid_run_stops_safely_even_with_the_terminal_gone(tmp_path):
     """SSH drops: SIGHUP arrives and stdout is a closed pipe; the safe stop and the log still happen."""
     cfg = fast_config(tmp_path, "dynamixel", speed_scale=50.0)
-    proc = subprocess.Popen([str(RUN_CELL), "--config", str(cfg), "--log-dir", str(tmp_path / "logs")],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [str(RUN_CELL), "--config", str(cfg), "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         for line in proc.stdout:
             if line.startswith("pick  1:"):
@@ -59,11 +64,29 @@ def test_concurrent_recalibrations_are_serialised_and_keep_every_backup(tmp_path
     out = tmp_path / "cal" / "active.json"
     out.parent.mkdir()
     out.write_text('{"original": true}')  # not a calibration: it cannot be compared, only kept
-    runs = [subprocess.Popen([sys.executable, str(REPO / "scripts" / "recalibrate.py"), "--image",
-                              str(tmp_path / "plate.png"), "--out", str(out), "--config", str(tmp_path / "cell.toml"),
-                              "--log", str(tmp_path / "cell.log"), "--quiet", "--model", model],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            for model in ("camera", "polynomial", "camera", "polynomial")]
+    runs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                str(REPO / "scripts" / "recalibrate.py"),
+                "--image",
+                str(tmp_path / "plate.png"),
+                "--out",
+                str(out),
+                "--config",
+                str(tmp_path / "cell.toml"),
+                "--log",
+                str(tmp_path / "cell.log"),
+                "--quiet",
+                "--model",
+                model,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for model in ("camera", "polynomial", "camera", "polynomial")
+    ]
     results = [(p.wait(timeout=120), p.stderr.read()) for p in runs]
     for p in runs:
         p.stdout.close()

@@ -1,4 +1,5 @@
 """The simulated world, arm and camera: grips succeed or miss by geometry alone."""
+
 from __future__ import annotations
 
 import math
@@ -64,7 +65,9 @@ def test_release_drops_into_the_bin_below_or_back_onto_the_table():
 
 
 def test_sim_arm_refuses_out_of_workspace_and_faults_into_the_table():
-    arm = SimArm(world(NUT), Workspace(x_min_mm=-300, x_max_mm=300, y_min_mm=-300, y_max_mm=300, z_min_mm=-10, z_max_mm=200))
+    arm = SimArm(
+        world(NUT), Workspace(x_min_mm=-300, x_max_mm=300, y_min_mm=-300, y_max_mm=300, z_min_mm=-10, z_max_mm=200)
+    )
     with arm:
         with pytest.raises(OutOfReach):
             arm.move_to(400.0, 0.0, 10.0)
@@ -81,7 +84,7 @@ def test_paper_layout_has_the_papers_parts_and_a_washer_none_touching():
     parts = paper_layout()
     kinds = [p.kind for p in parts]
     assert kinds.count("bolt") == 9 and kinds.count("nut") == 8 and kinds.count("washer") == 1
-    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1:]]
+    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
     assert min(gaps) > 3.0
 
 
@@ -95,7 +98,7 @@ def test_square_to_base_layout_lays_every_bolt_across_the_line_from_the_base_non
         d = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
         middle = np.array([b.x_mm, b.y_mm]) + b.shaft_middle_offset_mm * d
         assert abs(np.dot(middle - base, d)) < 1e-9
-    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1:]]
+    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
     assert min(gaps) > 3.0
 
 

@@ -1,6 +1,7 @@
 """The simulated cell through the real arm drivers, from the command line: the serial G-code
 driver against the emulated GRBL, the Dynamixel driver against the emulated servo bus, each
 on a pseudo-terminal. The world changes only through the emulator's gripper events."""
+
 from __future__ import annotations
 
 import math
@@ -108,10 +109,13 @@ def test_the_pick_job_completes_through_the_real_driver_and_the_emulated_arm(kin
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind,reason,safe", [
-    ("serial", "AlarmResponse: arm alarm 1: hard limit", "stopped (!)"),
-    ("dynamixel", "HardwareFault: servo hardware error (servo 15: overload error)", "torque released"),
-])
+@pytest.mark.parametrize(
+    "kind,reason,safe",
+    [
+        ("serial", "AlarmResponse: arm alarm 1: hard limit", "stopped (!)"),
+        ("dynamixel", "HardwareFault: servo hardware error (servo 15: overload error)", "torque released"),
+    ],
+)
 def test_a_fault_mid_job_ends_in_fault_with_the_arm_stopped(kind, reason, safe, tmp_path, capsys):
     text = CONFIGS[kind].read_text()
     assert "arm_fault_after_grips = 0" in text

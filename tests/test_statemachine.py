@@ -1,4 +1,5 @@
 """The transition table: every allowed transition works, everything else raises."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -56,8 +57,19 @@ def test_every_state_is_reachable_from_idle_and_the_loop_reaches_done():
 
 def test_the_happy_path_is_allowed():
     sm = StateMachine()
-    path = [State.HOME, State.CAPTURE, State.LOCATE, State.PLAN, State.PICK, State.PLACE, State.CAPTURE,
-            State.LOCATE, State.VERIFY, State.PLAN, State.DONE]
+    path = [
+        State.HOME,
+        State.CAPTURE,
+        State.LOCATE,
+        State.PLAN,
+        State.PICK,
+        State.PLACE,
+        State.CAPTURE,
+        State.LOCATE,
+        State.VERIFY,
+        State.PLAN,
+        State.DONE,
+    ]
     for s in path:
         sm.go(s, "test")
     assert sm.finished
@@ -72,4 +84,6 @@ def test_diagram_lists_every_working_transition():
 
 def test_docs_state_machine_md_is_current():
     doc = Path(__file__).resolve().parents[1] / "docs" / "state-machine.md"
-    assert doc.read_text(encoding="utf-8") == markdown(), "regenerate: run-cell diagram --markdown > docs/state-machine.md"
+    assert doc.read_text(encoding="utf-8") == markdown(), (
+        "regenerate: run-cell diagram --markdown > docs/state-machine.md"
+    )

@@ -1,4 +1,5 @@
 """Parts settings: part of the cell config, validated with the key named."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Segmentation and shape features on drawn shapes: holes, hexagonality, profiles, edges."""
+
 from __future__ import annotations
 
 import math

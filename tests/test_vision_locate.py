@@ -1,4 +1,5 @@
 """locate() on rendered scenes: classes, footprint centres, bolt angles, odd frames."""
+
 from __future__ import annotations
 
 import cv2

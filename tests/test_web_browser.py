@@ -4,6 +4,7 @@ which can fault on cue.
 
 Skips, saying why, without Playwright or a Chromium; a screenshot of each run is kept in
 test-artifacts/."""
+
 from __future__ import annotations
 
 import json
@@ -105,8 +106,11 @@ class Screen:
         self.wait(f"document.getElementById('state-label').textContent.startsWith({json.dumps(text)})", timeout_s)
 
     def wait_picked_over(self, n: int, timeout_s: float = TIMEOUT_MS / 1000) -> None:
-        self.wait(f"Number(document.getElementById('count-picked_bolts').textContent) + "
-                  f"Number(document.getElementById('count-picked_nuts').textContent) > {n}", timeout_s)
+        self.wait(
+            f"Number(document.getElementById('count-picked_bolts').textContent) + "
+            f"Number(document.getElementById('count-picked_nuts').textContent) > {n}",
+            timeout_s,
+        )
 
     def button(self, name: str):
         return self.page.get_by_role("button", name=name, exact=True)

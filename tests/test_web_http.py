@@ -1,5 +1,6 @@
 """The operator screen over HTTP (Starlette's TestClient) on the fake line service: status
 codes, refused requests, auth, CSRF, uploads and recalibration."""
+
 from __future__ import annotations
 
 import re
@@ -80,7 +81,13 @@ def test_static_files_load_nothing_from_outside():
 
 
 def test_no_path_from_the_request_reaches_the_disk(client):
-    for path in ("/static/../app.py", "/static/%2e%2e/app.py", "/static/index.html", "/etc/passwd", "/api/calibration/..%2fx"):
+    for path in (
+        "/static/../app.py",
+        "/static/%2e%2e/app.py",
+        "/static/index.html",
+        "/etc/passwd",
+        "/api/calibration/..%2fx",
+    ):
         assert client.get(path).status_code == 404
 
 
@@ -177,7 +184,9 @@ def test_view_may_be_left_open_while_controls_keep_the_password(service, config)
 
 def test_login_from_another_origin_is_refused(service, config):
     with make_client(service, config, check=operator_pw7) as c:
-        r = c.post("/api/login", json={"user": "operator", "password": "pw-7"}, headers={"origin": "http://evil.example"})
+        r = c.post(
+            "/api/login", json={"user": "operator", "password": "pw-7"}, headers={"origin": "http://evil.example"}
+        )
         assert r.status_code == 403 and "cell_session" not in c.cookies
 
 
@@ -267,8 +276,11 @@ def test_upload_of_the_wrong_size_and_without_a_plate(client, config):
 def test_oversized_upload_refused_before_it_is_read(service, config):
     with make_client(service, config, web=WebConfig(max_upload_mb=1)) as c:
         token = c.get("/api/session").json()["csrf"]
-        r = c.post("/api/recalibration/upload", content=b"\x89PNG" + b"\x00" * (1024 * 1024 + 1),
-                   headers={"x-csrf-token": token})
+        r = c.post(
+            "/api/recalibration/upload",
+            content=b"\x89PNG" + b"\x00" * (1024 * 1024 + 1),
+            headers={"x-csrf-token": token},
+        )
         assert r.status_code == 413 and "at most 1024 KiB" in r.json()["error"]
     assert not config.calibration.active_path.exists()
 

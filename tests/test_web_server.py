@@ -1,5 +1,6 @@
 """The screen's server in its thread (uvicorn on a real socket) on the fake line service:
 server-sent events reach two screens, frames arrive as JPEG, stopping leaves nothing behind."""
+
 from __future__ import annotations
 
 import base64

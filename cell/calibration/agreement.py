@@ -1,6 +1,7 @@
 """How far our plate points are from cv2.findCirclesGrid's on the same image, and whether both
 number the grid the same way (up to the grid's symmetries: neither knows which corner is point 1
 on a symmetric plate). For tests and benchmarks that use OpenCV as the reference detector."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

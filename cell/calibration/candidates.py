@@ -12,6 +12,7 @@ glare stay apart) and a lax one (faded dots). Connected components give every bl
 and centre in one vectorised call, so clutter costs almost nothing. Only the coarse
 position comes from here: refine.py measures each numbered circle at full resolution.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -24,7 +25,9 @@ _D_MAX = 11.0  # widest dot a level sees whole: the window still reaches the pap
 _D_MIN = 4.5  # narrower dots are left to the finer level
 _D_MIN_FIRST = 2.5  # at the first level searched (half resolution: dots from 5 px across)
 _FIRST_LEVEL = 1  # circles of 5 px and more need no full-resolution search; refinement is at full resolution
-_MIN_FILL = 0.55  # blob area / its bounding box (a disc: 0.79, a 2:1 ellipse at 45 deg 0.63; a ring's broken piece less)
+_MIN_FILL = (
+    0.55  # blob area / its bounding box (a disc: 0.79, a 2:1 ellipse at 45 deg 0.63; a ring's broken piece less)
+)
 _MAX_ASPECT = 3.0  # bounding-box sides (a circle seen at up to ~70 deg)
 _MIN_SIDE = 24  # stop the pyramid when the image gets this small
 _KERNEL = cv2.getStructuringElement(cv2.MORPH_RECT, (_WINDOW, _WINDOW))
@@ -44,7 +47,9 @@ class Candidates:
         return len(self.diameter_px)
 
     def subset(self, keep) -> Candidates:
-        return Candidates(self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.depth[keep], self.pyramid)
+        return Candidates(
+            self.centre_px[keep], self.diameter_px[keep], self.level[keep], self.depth[keep], self.pyramid
+        )
 
 
 def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: float = 10.0) -> Candidates:
@@ -66,7 +71,9 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
         bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
         here = []
         for fraction in dark_fractions:
-            labels, stats, centroids, keep = _level_blobs(img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN)
+            labels, stats, centroids, keep = _level_blobs(
+                img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN
+            )
             centre = centroids[keep] * scale
             d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
             ix, iy = np.round(centroids[keep]).astype(int).T

@@ -8,6 +8,7 @@ The error is also given after the best rigid motion of the plate is taken out: i
 small while the plain error is large, the mapping still holds and the plate (or the camera)
 has moved as a whole.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -89,7 +90,9 @@ def check_text(result: CheckResult, source: str) -> str:
         + (f", missing: {pts.missing}" if pts.missing else ""),
         f"{'point':>5}{'X mm':>9}{'Y mm':>9}{'X mapped':>11}{'Y mapped':>11}{'dX':>9}{'dY':>9}{'error':>9}",
     ]
-    for num, t, m, e, d in zip(pts.number, pts.table_mm, result.mapped_mm, result.error_mm, result.distance_mm, strict=True):
+    for num, t, m, e, d in zip(
+        pts.number, pts.table_mm, result.mapped_mm, result.error_mm, result.distance_mm, strict=True
+    ):
         lines.append(
             f"{int(num):>5}{t[0]:>9.1f}{t[1]:>9.1f}{m[0]:>11.4f}{m[1]:>11.4f}{e[0]:>9.4f}{e[1]:>9.4f}{d:>9.4f}"
         )
@@ -104,6 +107,8 @@ def check_text(result: CheckResult, source: str) -> str:
         + f": max error {result.max_mm:.4f} mm "
         + ("<=" if result.passed else ">")
         + f" calibration.check_max_mm {result.limit_mm} mm"
-        + ("" if result.passed else "; recalibrate (scripts/recalibrate.py), or check the camera and the plate fixture"),
+        + (
+            "" if result.passed else "; recalibrate (scripts/recalibrate.py), or check the camera and the plate fixture"
+        ),
     ]
     return "\n".join(lines)

@@ -8,6 +8,7 @@ Two detectors:
   (candidates.py); each numbered circle's centre is then measured at full resolution in a
   small window (refine.py).
 """
+
 from __future__ import annotations
 
 import cv2

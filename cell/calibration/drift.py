@@ -8,6 +8,7 @@ its centre measured to a fraction of a pixel as the plate's circles are (refine.
 drift is the largest distance between a mark's mapped centre and its place. A mark that
 cannot be measured (covered, out of view) is itself a reason to stop: the watch is blind.
 """
+
 from __future__ import annotations
 
 import logging
@@ -40,8 +41,10 @@ class DriftWatch:
 
     def __init__(self, calibration: Calibration, config: DriftConfig):
         if calibration.camera is None:
-            raise InputError("the drift watch needs the camera pose, which this calibration lacks",
-                             hint="recalibrate with scripts/recalibrate.py")
+            raise InputError(
+                "the drift watch needs the camera pose, which this calibration lacks",
+                hint="recalibrate with scripts/recalibrate.py",
+            )
         self.calibration, self.config = calibration, config
         self.marks_mm = np.asarray(config.marks_mm, dtype=np.float64).reshape(-1, 2)
         self.expected_px = calibration.camera.project(self.marks_mm)

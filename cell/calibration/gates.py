@@ -7,6 +7,7 @@ so it fits far worse than the best model and lands the camera metres above the t
 Against the active calibration, a large jump in scale or origin is either a moved camera
 (the operator says so with --accept-change) or a wrong plate.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,8 @@ def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, 
                 f"the physical camera model fits {camera.cv.rms_mm:.3f} mm RMS (cross-validated) against the best "
                 f"model's {best:.4f} mm: the plate's geometry does not agree with the config (plate.pitch_x_mm "
                 f"{plate.pitch_x_mm:g}, pitch_y_mm {plate.pitch_y_mm:g}; calibration.max_camera_model_ratio "
-                f"{limits.max_camera_model_ratio:g})")
+                f"{limits.max_camera_model_ratio:g})"
+            )
     centre = result.calibration.camera_center_table_mm
     if centre is None or not np.all(np.isfinite(centre)):
         problems.append("no finite camera pose could be fitted")
@@ -38,7 +40,8 @@ def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, 
         problems.append(
             f"the fitted camera is {centre[2]:.0f} mm above the table, outside calibration.camera_height_min_mm "
             f"{limits.camera_height_min_mm:g} .. camera_height_max_mm {limits.camera_height_max_mm:g} (a wrong plate "
-            f"pitch or size?)")
+            f"pitch or size?)"
+        )
     return problems
 
 
@@ -50,10 +53,14 @@ def change_problems(new: Calibration, active: Calibration, limits: CalibrationCo
     scale_new, scale_old = new.mm_per_px(centre), active.mm_per_px(centre)
     change_pct = 100.0 * abs(scale_new / scale_old - 1.0) if scale_old > 0 else math.inf
     if change_pct > limits.max_scale_change_pct:
-        problems.append(f"scale {scale_new:.5f} mm/px against the active {scale_old:.5f} mm/px ({change_pct:.1f} % "
-                        f"> calibration.max_scale_change_pct {limits.max_scale_change_pct:g})")
+        problems.append(
+            f"scale {scale_new:.5f} mm/px against the active {scale_old:.5f} mm/px ({change_pct:.1f} % "
+            f"> calibration.max_scale_change_pct {limits.max_scale_change_pct:g})"
+        )
     moved = float(np.hypot(*(new.pixel_to_table_mm([centre]) - active.pixel_to_table_mm([centre]))[0]))
     if moved > limits.max_origin_change_mm:
-        problems.append(f"the image centre maps {moved:.1f} mm from where the active calibration puts it "
-                        f"(> calibration.max_origin_change_mm {limits.max_origin_change_mm:g})")
+        problems.append(
+            f"the image centre maps {moved:.1f} mm from where the active calibration puts it "
+            f"(> calibration.max_origin_change_mm {limits.max_origin_change_mm:g})"
+        )
     return problems

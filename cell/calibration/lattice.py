@@ -7,6 +7,7 @@ tried and the largest consistent lattice wins. The result must span exactly the
 configured columns x rows, or numbering fails with what was seen: a mis-numbered
 calibration is worse than none.
 """
+
 from __future__ import annotations
 
 import math
@@ -65,9 +66,10 @@ def _grow(points: np.ndarray, neighbours: np.ndarray, sizes, seed: int, tol: flo
         px, py = points[p]
         reach = tol * min(math.hypot(ux, uy), math.hypot(vx, vy))
         # All eight predictions (four directions, one or two steps) against the neighbours at once.
-        steps = np.array([(da * ux + db * vx, da * uy + db * vy) for da, db, _ in dirs]) * np.array(
-            [k for *_, k in dirs], dtype=np.float64
-        )[:, None]
+        steps = (
+            np.array([(da * ux + db * vx, da * uy + db * vy) for da, db, _ in dirs])
+            * np.array([k for *_, k in dirs], dtype=np.float64)[:, None]
+        )
         cand = neighbours[p]
         diff = points[cand][None, :, :] - (points[p] + steps)[:, None, :]
         dist = np.hypot(diff[..., 0], diff[..., 1])

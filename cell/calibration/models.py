@@ -4,6 +4,7 @@ Polynomials and the homography work on normalised pixel coordinates (centred on 
 points and scaled to about +-1) so that the normal equations are well conditioned and the
 stored float64 coefficients lose nothing (ERRATA.md: Eq. 5's rounding alone costs 1.6 mm).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -165,10 +166,7 @@ def fit_camera(pixels: np.ndarray, table_mm: np.ndarray, image_size: tuple[int, 
     f0 = 1.2 * max(w, h)
     K0 = np.array([[f0, 0, (w - 1) / 2], [0, f0, (h - 1) / 2], [0, 0, 1]], dtype=np.float64)
     flags = (
-        cv2.CALIB_USE_INTRINSIC_GUESS
-        | cv2.CALIB_FIX_PRINCIPAL_POINT
-        | cv2.CALIB_FIX_ASPECT_RATIO
-        | cv2.CALIB_FIX_K3
+        cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
     )
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     _, K, dist, rvecs, tvecs = cv2.calibrateCamera(

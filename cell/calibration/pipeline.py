@@ -1,4 +1,5 @@
 """Plate image -> numbered centres -> fitted, cross-validated calibration."""
+
 from __future__ import annotations
 
 import hashlib
@@ -142,7 +143,9 @@ def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return centres * s, diam * s, ok
 
 
-def _size_groups(diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: int = 6, spread: float = 1.8) -> list[np.ndarray]:
+def _size_groups(
+    diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: int = 6, spread: float = 1.8
+) -> list[np.ndarray]:
     """Blob index sets of similar size: the plate's circles are one of them. Those with at least
     `need` blobs come first (fewer cannot be the plate), the deepest (printed dots, not specks
     of texture) first among them."""
@@ -269,9 +272,8 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         raise PlateNotFound(f"only {len(pts.pixel)} plate points: too few to fit {want}")
     chosen = min(scores, key=lambda s: s.cv.rms_mm)
     others = ", ".join(f"{s.label} {s.cv.rms_mm:.4f}" for s in scores if s is not chosen)
-    why = (
-        f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv.rms_mm:.4f} mm"
-        + (f" (others: {others} mm)" if others else " (the only model asked for)")
+    why = f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv.rms_mm:.4f} mm" + (
+        f" (others: {others} mm)" if others else " (the only model asked for)"
     )
     final = fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
     camera = final.camera if chosen.name == "camera" else fit_camera(pts.pixel, pts.table_mm, (w, h))

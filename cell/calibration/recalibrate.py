@@ -6,6 +6,7 @@ camera, a change beyond the limits without --accept-change) or a write failed; 1
 stopped by a signal. In every failure the active file is untouched and no temporary file
 is left. Recalibrations of one file are serialised by its lock; each keeps its own backup.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,8 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def register(sub) -> None:
     """`run-cell recalibrate`: the same command as scripts/recalibrate.py."""
-    p = sub.add_parser("recalibrate", help="fit a new calibration from a plate image and make it active",
-                       description=DESCRIPTION)
+    p = sub.add_parser(
+        "recalibrate", help="fit a new calibration from a plate image and make it active", description=DESCRIPTION
+    )
     add_arguments(p)
     p.set_defaults(func=cmd_recalibrate)
 
@@ -63,12 +65,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
     p.add_argument("--model", choices=get_args(ModelName))
     p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
-    p.add_argument("--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here")
+    p.add_argument(
+        "--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here"
+    )
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     p.add_argument("--quiet", action="store_true", help="print the summary without the per-point table")
-    p.add_argument("--accept-change", action="store_true",
-                   help="replace the active calibration even if scale or origin move beyond the configured limits "
-                        "(the camera or plate was moved on purpose)")
+    p.add_argument(
+        "--accept-change",
+        action="store_true",
+        help="replace the active calibration even if scale or origin move beyond the configured limits "
+        "(the camera or plate was moved on purpose)",
+    )
 
 
 def capture_plate(config):
@@ -106,8 +113,9 @@ def gate_failure(result, config) -> str | None:
     return "; ".join(problems) or None
 
 
-def replace_active(result, config, out: Path | None = None, accept_change: bool = False,
-                   controls: Controls | None = None) -> tuple[Path, Path | None]:
+def replace_active(
+    result, config, out: Path | None = None, accept_change: bool = False, controls: Controls | None = None
+) -> tuple[Path, Path | None]:
     """The quality gate, then under the file's lock the change check and the atomic replacement
     (the previous file kept as a backup of its own). Every way of recalibrating (the script,
     `run-cell recalibrate`, the operator screen) goes through here; on any refusal the active
@@ -120,8 +128,14 @@ def replace_active(result, config, out: Path | None = None, accept_change: bool 
     with holding(target, "calibration file", wait_s=limits.lock_wait_s):  # one recalibration of a file at a time
         backup = _replace(target, result.calibration, backup_dir, accept_change, limits, controls or Controls())
     cv = result.chosen.cv
-    log.info("recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s", target, result.chosen.label,
-             cv.rms_mm, cv.max_mm, f"; previous kept as {backup}" if backup else "")
+    log.info(
+        "recalibrated: %s written (%s; CV RMS %.4f mm, max %.4f mm)%s",
+        target,
+        result.chosen.label,
+        cv.rms_mm,
+        cv.max_mm,
+        f"; previous kept as {backup}" if backup else "",
+    )
     return target, backup
 
 
@@ -131,7 +145,9 @@ def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
         config.detection.preset = args.preset
     out = args.out or config.calibration.active_path
     if out.is_dir():
-        raise OutputError(f"{out}: is a folder; --out must name the calibration file", hint="e.g. --out cal/active.json")
+        raise OutputError(
+            f"{out}: is a folder; --out must name the calibration file", hint="e.g. --out cal/active.json"
+        )
     want = (config.camera.width_px, config.camera.height_px)
     image = read_image(args.image, config.camera.max_image_px, want) if args.image else capture_plate(config)
     check_image_size(image, config, str(args.image or "camera frame"))
@@ -157,8 +173,10 @@ def _replace(out: Path, new: Calibration, backup_dir: Path, accept_change: bool,
         log.warning("the active calibration cannot be compared (%s); it is replaced and kept as a backup", e)
         active = None
     if active is not None and (problems := change_problems(new, active, limits)) and not accept_change:
-        raise CalibrationRejected("; ".join(problems) + f"; {out} left unchanged",
-                                  hint="if the camera or plate was moved on purpose, rerun with --accept-change")
+        raise CalibrationRejected(
+            "; ".join(problems) + f"; {out} left unchanged",
+            hint="if the camera or plate was moved on purpose, rerun with --accept-change",
+        )
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     with controls.shielded():
         backup = copy_unique(out, ensure_folder(backup_dir), f"{out.stem}.{stamp}", out.suffix)

@@ -17,6 +17,7 @@ All circles are measured at once: windows of one size share one pixel grid, so e
 (moments, the plane's normal equations) and every quadratic form (the ellipses) is one
 matrix product of the stacked windows with the grid's monomials 1, x, y, x2, xy, y2.
 """
+
 from __future__ import annotations
 
 import numpy as np

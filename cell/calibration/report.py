@@ -1,6 +1,7 @@
 """The calibration report: the paper's Table III for every point, its summary lines, and
 the files an integrator keeps (CSV, the numbered plate image of Fig. 4, the deviation plot
 of Fig. 5)."""
+
 from __future__ import annotations
 
 import csv
@@ -47,7 +48,9 @@ def missing_rows(result: CalibrationResult) -> list[dict]:
     rows = []
     for num in result.points.missing:
         c, r = (int(num) - 1) % cols, (int(num) - 1) // cols
-        rows.append({"point": int(num), "X_mm": c * float(pattern["pitch_x_mm"]), "Y_mm": r * float(pattern["pitch_y_mm"])})
+        rows.append(
+            {"point": int(num), "X_mm": c * float(pattern["pitch_x_mm"]), "Y_mm": r * float(pattern["pitch_y_mm"])}
+        )
     return rows
 
 
@@ -93,15 +96,17 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     ]
     if cal.camera is not None:
         C = cal.camera.center_table_mm
-        lines.append(
-            f"camera centre (table frame): X {C[0]:.1f} mm, Y {C[1]:.1f} mm, {C[2]:.1f} mm above the table"
-        )
+        lines.append(f"camera centre (table frame): X {C[0]:.1f} mm, Y {C[1]:.1f} mm, {C[2]:.1f} mm above the table")
     lines.append(
         f"time: detect+number {result.timings_ms['detect_number_ms']:.1f} ms, "
         f"fit+cross-validate {result.timings_ms['fit_cv_ms']:.1f} ms"
     )
     if table:
-        lines += ["", "Table III (all points):", f"{'point':>5}{'X cal':>11}{'Y cal':>11}{'X':>9}{'Y':>9}{'dX':>9}{'dY':>9}"]
+        lines += [
+            "",
+            "Table III (all points):",
+            f"{'point':>5}{'X cal':>11}{'Y cal':>11}{'X':>9}{'Y':>9}{'dX':>9}{'dY':>9}",
+        ]
         for r in sorted(table3_rows(result) + missing_rows(result), key=lambda r: r["point"]):
             if "X_cal_mm" not in r:
                 lines.append(f"{r['point']:>5}{'not found':>22}{r['X_mm']:>9.1f}{r['Y_mm']:>9.1f}")
@@ -131,7 +136,16 @@ def annotate_plate(image: np.ndarray, result: CalibrationResult) -> np.ndarray:
                 continue
             c = (int(round(x)), int(round(y)))
             cv2.circle(out, c, 8, (0, 0, 255), 1, cv2.LINE_AA)
-            cv2.putText(out, f"{r['point']}?", (c[0] + 4, c[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 255), 1, cv2.LINE_AA)
+            cv2.putText(
+                out,
+                f"{r['point']}?",
+                (c[0] + 4, c[1] - 4),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                scale,
+                (0, 0, 255),
+                1,
+                cv2.LINE_AA,
+            )
     return out
 
 
@@ -181,7 +195,12 @@ def deviation_png(result: CalibrationResult) -> bytes:
 def write_report(image: np.ndarray, result: CalibrationResult, report_dir: Path) -> list[Path]:
     """All report files into `report_dir`; returns their paths."""
     ensure_folder(report_dir)
-    paths = [report_dir / "table3.csv", report_dir / "plate_numbered.png", report_dir / "deviation.png", report_dir / "report.txt"]
+    paths = [
+        report_dir / "table3.csv",
+        report_dir / "plate_numbered.png",
+        report_dir / "deviation.png",
+        report_dir / "report.txt",
+    ]
     write_csv(result, paths[0])
     write_image_atomic(paths[1], annotate_plate(image, result))
     deviation_plot(result, paths[2])

@@ -3,6 +3,7 @@
 Whatever model maps the points, the file also carries the camera pose (from the camera
 model fit), because part-height (parallax) correction needs to know where the camera is.
 """
+
 from __future__ import annotations
 
 import json
@@ -70,9 +71,7 @@ class Calibration:
             "coefficients": self.model.to_dict(),
             "image_size": list(self.image_size),
             "camera": None if self.camera is None else self.camera.to_dict(),
-            "camera_center_table_mm": None
-            if self.camera is None
-            else self.camera.center_table_mm.tolist(),
+            "camera_center_table_mm": None if self.camera is None else self.camera.center_table_mm.tolist(),
             "pattern": self.pattern,
             "image_sha256": self.image_sha256,
             "created_utc": self.created_utc,
@@ -97,8 +96,9 @@ class Calibration:
         except (KeyError, TypeError, ValueError, cv2.error) as e:
             raise InputError(f"{source}: corrupt calibration ({type(e).__name__}: {e})") from None
         if not (MIN_IMAGE_PX <= w <= MAX_IMAGE_PX and MIN_IMAGE_PX <= h <= MAX_IMAGE_PX):
-            raise InputError(f"{source}: corrupt calibration (image size {w} x {h} px is outside "
-                             f"{MIN_IMAGE_PX}..{MAX_IMAGE_PX} px)")
+            raise InputError(
+                f"{source}: corrupt calibration (image size {w} x {h} px is outside {MIN_IMAGE_PX}..{MAX_IMAGE_PX} px)"
+            )
         if camera is not None:
             _check_camera(camera, (w, h), source)
         corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [w / 2, h / 2]], dtype=np.float64)
@@ -149,12 +149,16 @@ def _non_finite(value, where: str) -> str | None:
 def _check_camera(camera: CameraModel, image_size: tuple[int, int], source: str) -> None:
     """The pose must put the camera above the table, looking at it, with the image's size."""
     if (camera.width_px, camera.height_px) != tuple(image_size):
-        raise InputError(f"{source}: corrupt calibration (camera model is {camera.width_px} x {camera.height_px} px, "
-                         f"the calibration {image_size[0]} x {image_size[1]} px)")
+        raise InputError(
+            f"{source}: corrupt calibration (camera model is {camera.width_px} x {camera.height_px} px, "
+            f"the calibration {image_size[0]} x {image_size[1]} px)"
+        )
     centre = camera.center_table_mm
     if not np.all(np.isfinite(centre)) or centre[2] <= 0 or camera.tvec[2] <= 0:
-        raise InputError(f"{source}: corrupt calibration (camera at {np.round(centre, 1).tolist()} mm with the "
-                         f"table {camera.tvec[2]:.1f} mm in front of it: not above the table, looking at it)")
+        raise InputError(
+            f"{source}: corrupt calibration (camera at {np.round(centre, 1).tolist()} mm with the "
+            f"table {camera.tvec[2]:.1f} mm in front of it: not above the table, looking at it)"
+        )
     f = camera.camera_matrix[0, 0], camera.camera_matrix[1, 1]
     if min(f) <= 0:
         raise InputError(f"{source}: corrupt calibration (focal length {f} px is not positive)")

@@ -1,4 +1,5 @@
 """argparse value types shared by the commands: what a float on the command line may be."""
+
 from __future__ import annotations
 
 import argparse

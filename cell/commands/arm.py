@@ -1,4 +1,5 @@
 """`run-cell ports`, `run-cell jog` and `run-cell home`: the operator's hands on the arm."""
+
 from __future__ import annotations
 
 import argparse
@@ -26,7 +27,9 @@ def register(sub) -> None:
     j = sub.add_parser("jog", help="move the gripper to a robot-frame point, or open/close it")
     add_arm_arguments(j)
     what = j.add_mutually_exclusive_group(required=True)
-    what.add_argument("--to", nargs=3, type=finite_float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame")
+    what.add_argument(
+        "--to", nargs=3, type=finite_float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame"
+    )
     what.add_argument("--gripper", choices=["open", "close"])
     j.add_argument("--angle", type=finite_float, metavar="DEG", help="gripper angle about the vertical, with --to")
     j.set_defaults(func=cmd_jog)
@@ -49,8 +52,12 @@ def arm_config_from_args(args: argparse.Namespace):
     return with_overrides(load_config(config).arm, kind=getattr(args, "arm", None), port=getattr(args, "port", None))
 
 
-def jog(arm: Arm, to_mm: tuple[float, float, float] | None = None, angle_deg: float | None = None,
-        gripper: str | None = None) -> None:
+def jog(
+    arm: Arm,
+    to_mm: tuple[float, float, float] | None = None,
+    angle_deg: float | None = None,
+    gripper: str | None = None,
+) -> None:
     """One jog on a connected arm, returning once it is done; what `run-cell teach` repeats."""
     if to_mm is not None:
         arm.move_to(*to_mm, angle_deg=angle_deg)
@@ -93,7 +100,10 @@ def cmd_home(args: argparse.Namespace) -> int:
 
 def _describe(arm: Arm) -> str:
     s = arm.status()
-    where = "position unknown" if s.pose is None else (
-        f"x={s.pose.x_mm:.2f} y={s.pose.y_mm:.2f} z={s.pose.z_mm:.2f} mm, angle {s.pose.angle_deg:.1f} deg")
+    where = (
+        "position unknown"
+        if s.pose is None
+        else (f"x={s.pose.x_mm:.2f} y={s.pose.y_mm:.2f} z={s.pose.z_mm:.2f} mm, angle {s.pose.angle_deg:.1f} deg")
+    )
     grip = {None: "", True: ", gripper closed", False: ", gripper open"}[s.gripper_closed]
     return f"arm on {arm.port}: {s.state}, {where}{grip}"

@@ -1,5 +1,6 @@
 """`run-cell map` (pixels -> table mm), `run-cell check-calibration` (a fresh plate image through
 the calibration in use) and `run-cell calibrate-demo` (a rendered plate, calibrated)."""
+
 from __future__ import annotations
 
 import argparse
@@ -100,8 +101,10 @@ def cmd_map(args: argparse.Namespace) -> int:
     table = cal.pixel_to_table_mm(pixels) if len(pixels) else np.zeros((0, 2))
     if not np.all(np.isfinite(table)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(table), axis=1))[0])
-        raise InputError(f"{args.calibration}: maps pixel ({pixels[bad][0]:g}, {pixels[bad][1]:g}) to no finite "
-                         "table position (a corrupt calibration?)")
+        raise InputError(
+            f"{args.calibration}: maps pixel ({pixels[bad][0]:g}, {pixels[bad][1]:g}) to no finite "
+            "table position (a corrupt calibration?)"
+        )
     rows = [
         {"x_px": float(p[0]), "y_px": float(p[1]), "X_mm": float(t[0]), "Y_mm": float(t[1])}
         for p, t in zip(pixels, table, strict=True)
@@ -122,8 +125,10 @@ def _check_inside(pixels: np.ndarray, image_size: tuple[int, int], source: Path 
     if outside.any():
         i = int(np.flatnonzero(outside)[0])
         where = f"{source}: point {i + 1}: " if source else ""
-        raise InputError(f"{where}pixel ({pixels[i][0]:g}, {pixels[i][1]:g}) is outside the calibrated "
-                         f"{w} x {h} px image; {int(outside.sum())} such point(s)")
+        raise InputError(
+            f"{where}pixel ({pixels[i][0]:g}, {pixels[i][1]:g}) is outside the calibrated "
+            f"{w} x {h} px image; {int(outside.sum())} such point(s)"
+        )
 
 
 def cmd_check_calibration(args: argparse.Namespace) -> int:
@@ -137,7 +142,11 @@ def cmd_check_calibration(args: argparse.Namespace) -> int:
     print(check_text(result, str(args.image)))
     log.info(
         "calibration check of %s on %s: RMS %.4f mm, max %.4f mm, %s",
-        path, args.image, result.rms_mm, result.max_mm, "pass" if result.passed else "FAIL",
+        path,
+        args.image,
+        result.rms_mm,
+        result.max_mm,
+        "pass" if result.passed else "FAIL",
     )
     return 0 if result.passed else CHECK_FAILED
 
@@ -161,5 +170,7 @@ def cmd_calibrate_demo(args: argparse.Namespace) -> int:
     print("\n== paper preset (HSV threshold, whole-pixel moments, quadratic) ==")
     print(summary_text(paper_result, table=False))
     write_report(image, paper_result, args.out_dir / "paper")
-    print(f"\nreports in {args.out_dir}/default and {args.out_dir}/paper; calibration: {args.out_dir / 'calibration.json'}")
+    print(
+        f"\nreports in {args.out_dir}/default and {args.out_dir}/paper; calibration: {args.out_dir / 'calibration.json'}"
+    )
     return 0

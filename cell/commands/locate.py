@@ -1,4 +1,5 @@
 """`run-cell locate`: find, classify and locate the parts in one image (the paper's Table IV, Fig. 6)."""
+
 from __future__ import annotations
 
 import argparse
@@ -31,7 +32,9 @@ def register(sub) -> None:
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
     p.add_argument("--preset", choices=get_args(Preset), help="override parts.preset")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled")
+    p.add_argument(
+        "--annotate", type=Path, metavar="OUT.png", help="write the image with each part outlined and labelled"
+    )
     p.set_defaults(func=cmd_locate)
 
 
@@ -97,7 +100,9 @@ def format_table(result: LocateResult) -> str:
     w, h = result.image_size
     lines = [f"{len(result.objects)} objects in a {w} x {h} image ({result.elapsed_ms:.1f} ms)"]
     lines += [f"warning: {text}" for text in result.warnings]
-    lines.append(f"{'No.':>4}  {'Object':<8}{'x (px)':>9}{'y (px)':>9}{'X (mm)':>10}{'Y (mm)':>10}{'Angle':>8}  Pick  Reason")
+    lines.append(
+        f"{'No.':>4}  {'Object':<8}{'x (px)':>9}{'y (px)':>9}{'X (mm)':>10}{'Y (mm)':>10}{'Angle':>8}  Pick  Reason"
+    )
     for p in result.objects:
         angle = "" if p.angle_deg is None else f"{p.angle_deg:.1f}"
         lines.append(

@@ -1,5 +1,6 @@
 """`run-cell --config FILE` / `run-cell --dry-run` (the cell itself), `run-cell teach`
 (fit the table -> robot frame from jogged points) and `run-cell diagram`."""
+
 from __future__ import annotations
 
 import argparse
@@ -42,16 +43,26 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
     g = parser.add_argument_group("running the cell (no sub-command)")
     g.add_argument("--config", dest="run_config", type=Path, help="cell config (TOML); required unless --dry-run")
-    g.add_argument("--dry-run", action="store_true",
-                   help="rehearse: a mock arm that records and checks every command and moves nothing; "
-                        "with no --config, the built-in simulated cell")
-    g.add_argument("--arm", choices=get_args(ArmKind),
-                   help="override arm.kind; with the simulated camera, serial|dynamixel drives the real driver "
-                        "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
-                        "configs/sim-grbl.toml or configs/sim-dynamixel.toml)")
+    g.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="rehearse: a mock arm that records and checks every command and moves nothing; "
+        "with no --config, the built-in simulated cell",
+    )
+    g.add_argument(
+        "--arm",
+        choices=get_args(ArmKind),
+        help="override arm.kind; with the simulated camera, serial|dynamixel drives the real driver "
+        "against an emulated arm on a pseudo-terminal (with --dry-run and no --config: "
+        "configs/sim-grbl.toml or configs/sim-dynamixel.toml)",
+    )
     g.add_argument("--port", help="override arm.port")
-    g.add_argument("--offset-x-mm", type=finite_float, default=0.0,
-                   help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)")
+    g.add_argument(
+        "--offset-x-mm",
+        type=finite_float,
+        default=0.0,
+        help="add to planning.offset_x_mm (rehearse a wrong offset: the sim must miss)",
+    )
     g.add_argument("--offset-y-mm", type=finite_float, default=0.0, help="add to planning.offset_y_mm")
     g.add_argument("--log-dir", type=Path, help="override run.log_dir")
 
@@ -59,13 +70,25 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def register(sub) -> None:
     t = sub.add_parser("teach", help="fit the table -> robot transform from points jogged onto plate circles")
     t.add_argument("--config", type=Path, help="cell config (TOML); default: built-in")
-    t.add_argument("--point", nargs=3, action="append", metavar=("CIRCLE", "X_MM", "Y_MM"), default=[],
-                   help="plate circle number (1 = point 1, row by row) and the robot X Y the gripper was jogged to")
-    t.add_argument("--circles", nargs="+", type=int, metavar="CIRCLE",
-                   help="jog the configured arm onto each of these circles now and record its pose")
+    t.add_argument(
+        "--point",
+        nargs=3,
+        action="append",
+        metavar=("CIRCLE", "X_MM", "Y_MM"),
+        default=[],
+        help="plate circle number (1 = point 1, row by row) and the robot X Y the gripper was jogged to",
+    )
+    t.add_argument(
+        "--circles",
+        nargs="+",
+        type=int,
+        metavar="CIRCLE",
+        help="jog the configured arm onto each of these circles now and record its pose",
+    )
     # SUPPRESS: the same options given before `teach` (run-cell's own --arm/--port) still count.
-    t.add_argument("--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS,
-                   help="override arm.kind (with --circles)")
+    t.add_argument(
+        "--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS, help="override arm.kind (with --circles)"
+    )
     t.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (with --circles)")
     t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
     t.set_defaults(func=cmd_teach)
@@ -98,17 +121,21 @@ def cmd_teach(args: argparse.Namespace) -> int:
             points.append(TaughtPoint(n, circle_table_mm(n, config), (rx, ry)))
     fit, residuals = fit_points(points, config)
     for p, r in zip(points, residuals, strict=True):
-        print(f"circle {p.circle:3d}: table ({p.table_mm[0]:7.2f}, {p.table_mm[1]:7.2f}) mm -> "
-              f"robot ({p.robot_mm[0]:7.2f}, {p.robot_mm[1]:7.2f}) mm, residual {r:.3f} mm")
-    print(f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
-          f"scale {fit.scale:.5f}; largest residual {residuals.max():.3f} mm")
+        print(
+            f"circle {p.circle:3d}: table ({p.table_mm[0]:7.2f}, {p.table_mm[1]:7.2f}) mm -> "
+            f"robot ({p.robot_mm[0]:7.2f}, {p.robot_mm[1]:7.2f}) mm, residual {r:.3f} mm"
+        )
+    print(
+        f"rotation {fit.rotation_deg:+.3f} deg, translation ({fit.tx_mm:.2f}, {fit.ty_mm:.2f}) mm, "
+        f"scale {fit.scale:.5f}; largest residual {residuals.max():.3f} mm"
+    )
     check_fit(points, residuals, config)
     if args.dry_run:
         print("dry run: nothing written")
         return 0
     with holding(config.planning.taught_path, "taught frame file", wait_s=config.calibration.lock_wait_s):
         save_taught(config.planning.taught_path, fit, [p.to_dict() for p in points], residuals)
-    print(f"wrote {config.planning.taught_path}; set planning.frame = \"taught\" to use it")
+    print(f'wrote {config.planning.taught_path}; set planning.frame = "taught" to use it')
     return 0
 
 
@@ -130,8 +157,11 @@ def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack)
     after the run (an emulated arm) goes on `resources`."""
     if config.camera.source == "sim":
         if sim_arm_kind(config.arm) != "sim" and config.arm.port:
-            log.warning("camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
-                        config.arm.kind, config.arm.port)
+            log.warning(
+                "camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
+                config.arm.kind,
+                config.arm.port,
+            )
         sim = resources.enter_context(sim_cell(config))
         return sim.camera, sim.arm, sim.calibration, True, sim
     calibration = Calibration.load(config.calibration.active_path)
@@ -165,8 +195,10 @@ def run_cell(args: argparse.Namespace) -> int:
         try:
             log_to_file(f"{stem}.log", exclusive=True)
         except OSError as e:
-            raise ConfigError(f"run.log_dir {stem.parent}: cannot create the operator log: {e.strerror or e}",
-                              hint="set run.log_dir (or --log-dir) to a writable folder with free space") from None
+            raise ConfigError(
+                f"run.log_dir {stem.parent}: cannot create the operator log: {e.strerror or e}",
+                hint="set run.log_dir (or --log-dir) to a writable folder with free space",
+            ) from None
         return _run_job(args, config, audit, controls)
     finally:
         with controls.shielded():
@@ -178,29 +210,46 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
     resources = contextlib.ExitStack()
     try:
         try:
-            audit.event("config", source=str(args.run_config or "built-in"), dry_run=args.dry_run,
-                        config=config.model_dump(mode="json"))
+            audit.event(
+                "config",
+                source=str(args.run_config or "built-in"),
+                dry_run=args.dry_run,
+                config=config.model_dump(mode="json"),
+            )
             camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run, resources)
             planner = Planner(config.planning, table_to_robot(config.planning))
             if sim is not None:
                 say(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
             if sim is not None and sim.emulated is not None:
                 emu = sim.emulated
-                say(f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
-                    f"(motion {emu.speed_scale:g}x faster than the arm's)")
-            say(f"pid {os.getpid()}: Ctrl-C, SIGTERM or SIGHUP stop safely; "
-                f"`kill -USR1 {os.getpid()}` pauses and resumes")
+                say(
+                    f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
+                    f"(motion {emu.speed_scale:g}x faster than the arm's)"
+                )
+            say(
+                f"pid {os.getpid()}: Ctrl-C, SIGTERM or SIGHUP stop safely; "
+                f"`kill -USR1 {os.getpid()}` pauses and resumes"
+            )
         except BaseException as e:
             with controls.shielded():
                 audit.best_effort = True
                 _log_fault(audit, args, e)
             raise
         with controls.shielded():  # from here the runner decides what a signal interrupts
-            runner = Runner(camera, arm, lambda frame: locate(frame, calibration, config), planner,
-                            config.run, audit, controls, expect_motion, progress=say,
-                            truth=None if sim is None else lambda: sim_truth(sim.world),
-                            sim_motion_s=None if sim is None else sim.motion_time_s,
-                            drift_watch=_drift_watch(config, calibration, sim))
+            runner = Runner(
+                camera,
+                arm,
+                lambda frame: locate(frame, calibration, config),
+                planner,
+                config.run,
+                audit,
+                controls,
+                expect_motion,
+                progress=say,
+                truth=None if sim is None else lambda: sim_truth(sim.world),
+                sim_motion_s=None if sim is None else sim.motion_time_s,
+                drift_watch=_drift_watch(config, calibration, sim),
+            )
             runner.run()
             return _report(runner, audit, sim)
     finally:
@@ -214,9 +263,13 @@ def _report(runner: Runner, audit: AuditLog, sim) -> int:
     summary = runner.summary
     lines = summary.lines()
     if sim is not None:
-        lines.append("simulated truth: " + "; ".join(
-            f"{where}: " + ", ".join(f"{n} {kind}" for kind, n in kinds.items())
-            for where, kinds in sim_truth(sim.world).items()))
+        lines.append(
+            "simulated truth: "
+            + "; ".join(
+                f"{where}: " + ", ".join(f"{n} {kind}" for kind, n in kinds.items())
+                for where, kinds in sim_truth(sim.world).items()
+            )
+        )
     for line in lines:
         say(line)
     say(f"audit log: {audit.path}")
@@ -244,8 +297,10 @@ def _open_audit(path: Path) -> AuditLog:
     try:
         return AuditLog(path)
     except OSError as e:
-        raise ConfigError(f"run.log_dir {path.parent}: cannot create the audit log {path.name}: {e.strerror or e}",
-                          hint="set run.log_dir (or --log-dir) to a writable folder with free space") from None
+        raise ConfigError(
+            f"run.log_dir {path.parent}: cannot create the audit log {path.name}: {e.strerror or e}",
+            hint="set run.log_dir (or --log-dir) to a writable folder with free space",
+        ) from None
 
 
 def _log_early_fault(log_dir: Path, args: argparse.Namespace, e: BaseException) -> None:
@@ -285,4 +340,3 @@ def sim_truth(world) -> dict:
         where = out.setdefault(p.where, {})
         where[p.spec.kind] = where.get(p.spec.kind, 0) + 1
     return out
-

@@ -1,5 +1,6 @@
 """`run-cell serve`: the cell as a long-running line service, driven over OPC UA (and the
 operator screen); SIGTERM and SIGINT stop it safely (any job halted, arm safe)."""
+
 from __future__ import annotations
 
 import argparse
@@ -34,17 +35,26 @@ def register(sub) -> None:
     p = sub.add_parser("serve", help="run the cell as a line service: OPC UA server, continuous mode, a whole shift")
     # SUPPRESS: the same options given before `serve` (run-cell's own) still count.
     p.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
-    p.add_argument("--dry-run", action="store_true", default=argparse.SUPPRESS,
-                   help="a mock arm over the config's camera; with no --config, the built-in simulated shift")
-    p.add_argument("--arm", choices=get_args(ArmKind), default=argparse.SUPPRESS,
-                   help="override arm.kind (with --dry-run and no --config: the emulated arm's sim config)")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="a mock arm over the config's camera; with no --config, the built-in simulated shift",
+    )
+    p.add_argument(
+        "--arm",
+        choices=get_args(ArmKind),
+        default=argparse.SUPPRESS,
+        help="override arm.kind (with --dry-run and no --config: the emulated arm's sim config)",
+    )
     p.add_argument("--log-dir", type=Path, default=argparse.SUPPRESS, help="override run.log_dir")
     p.add_argument("--opcua-port", type=int, help="override service.opcua_port")
     p.add_argument("--http-port", type=int, help="override service.http_port (the operator screen)")
     p.set_defaults(func=cmd_serve)
 
-    h = sub.add_parser("hash-password",
-                       help="read a password (twice, not echoed) and print its hash for service.password_hash")
+    h = sub.add_parser(
+        "hash-password", help="read a password (twice, not echoed) and print its hash for service.password_hash"
+    )
     h.set_defaults(func=cmd_hash_password)
 
 
@@ -81,8 +91,14 @@ def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitSt
         camera = FedCamera(sim.camera, feeder)
         devices.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
     audit = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
-    service = LineService(config, devices, audit, lambda frame, cal: locate(frame, cal, config), camera,
-                          drift_watch=lambda cal: _drift_watch(config, cal, sim))
+    service = LineService(
+        config,
+        devices,
+        audit,
+        lambda frame, cal: locate(frame, cal, config),
+        camera,
+        drift_watch=lambda cal: _drift_watch(config, cal, sim),
+    )
     resources.callback(service.close)
     return service
 
@@ -111,9 +127,11 @@ def _check_port_free(host: str, port: int, option: str) -> None:
         try:
             s.bind((host, port))
         except OSError as e:
-            raise ConfigError(f"cannot listen on {host}:{port}: {e.strerror or e}",
-                              hint=f"another program holds the port, or the address is not this machine's: "
-                                   f"choose another with {option} or service.host") from None
+            raise ConfigError(
+                f"cannot listen on {host}:{port}: {e.strerror or e}",
+                hint=f"another program holds the port, or the address is not this machine's: "
+                f"choose another with {option} or service.host",
+            ) from None
 
 
 async def _serve(config: CellConfig, service: LineService) -> int:

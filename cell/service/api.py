@@ -8,6 +8,7 @@ No interface touches the runner, the arm or the camera directly.
 The outward state follows OPC 40100-1 (Machine Vision): Preoperational, Halted, Error,
 and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable

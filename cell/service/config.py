@@ -1,5 +1,6 @@
 """`[service]`: where `run-cell serve` listens, how clients prove who they are, how it paces
 continuous mode and rotates its shift log."""
+
 from __future__ import annotations
 
 import ipaddress
@@ -15,12 +16,19 @@ from drivers.config import Strict
 class ServiceConfig(Strict):
     host: str = Field("127.0.0.1", description="address both interfaces listen on; beyond loopback needs security")
     opcua_port: int = Field(4840, ge=1, le=65535)
-    opcua_path: str = Field("cell", pattern=r"^[A-Za-z0-9_-]{1,32}$", description="endpoint path: opc.tcp://HOST:PORT/PATH")
+    opcua_path: str = Field(
+        "cell", pattern=r"^[A-Za-z0-9_-]{1,32}$", description="endpoint path: opc.tcp://HOST:PORT/PATH"
+    )
     http_port: int = Field(8080, ge=1, le=65535, description="the operator screen's port")
     capture_interval_s: float = Field(
-        1.0, gt=0, le=3600, description="continuous mode: a fresh frame this often while the table holds nothing to pick"
+        1.0,
+        gt=0,
+        le=3600,
+        description="continuous mode: a fresh frame this often while the table holds nothing to pick",
     )
-    user: str | None = Field(None, min_length=1, max_length=64, description="the one OPC UA user (required off loopback)")
+    user: str | None = Field(
+        None, min_length=1, max_length=64, description="the one OPC UA user (required off loopback)"
+    )
     password_hash: str | None = Field(
         None, description="pbkdf2_sha256$ITERATIONS$SALT_HEX$HASH_HEX (`run-cell hash-password` makes one)"
     )

@@ -1,5 +1,6 @@
 """The shift's counters, kept up event by event from the audit stream; the same counts as
 cell.summary.counts_from_log, so reading the shift's log back after a restart gives them again."""
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -41,5 +42,12 @@ class ShiftCounts:
         return counts
 
     def counters(self) -> Counters:
-        return Counters(self.picked.get("bolt", 0), self.picked.get("nut", 0), self.misses, self.retries,
-                        self.failed, self.unreachable, self.unknown_left)
+        return Counters(
+            self.picked.get("bolt", 0),
+            self.picked.get("nut", 0),
+            self.misses,
+            self.retries,
+            self.failed,
+            self.unreachable,
+            self.unknown_left,
+        )

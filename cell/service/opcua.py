@@ -7,6 +7,7 @@ the cell stays as it was. Service events (from the cell's worker thread) only ma
 values dirty; one task on the server's loop writes what changed, and the heartbeat, so
 a slow client never holds the cell up. Node tree and types: docs/opcua.md.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -36,17 +37,30 @@ _EPOCH = datetime(1601, 1, 1, tzinfo=UTC)  # OPC UA's "no time"
 
 # BrowseName -> (type, array?) ; the values come from a Snapshot in _values().
 VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
-    "VisionState": (_T.String, False), "CellState": (_T.String, False),
-    "Paused": (_T.Boolean, False), "WaitingForParts": (_T.Boolean, False),
-    "PickedBolts": (_T.UInt32, False), "PickedNuts": (_T.UInt32, False), "Misses": (_T.UInt32, False),
-    "Retries": (_T.UInt32, False), "Failed": (_T.UInt32, False), "Unreachable": (_T.UInt32, False),
-    "UnknownLeft": (_T.UInt32, False), "PartsPerMinute": (_T.Double, False),
-    "LastPickClass": (_T.String, False), "LastPickTableMm": (_T.Double, True), "LastPickRobotMm": (_T.Double, True),
-    "LastPickAngleDeg": (_T.Double, False), "LastPickOutcome": (_T.String, False),
+    "VisionState": (_T.String, False),
+    "CellState": (_T.String, False),
+    "Paused": (_T.Boolean, False),
+    "WaitingForParts": (_T.Boolean, False),
+    "PickedBolts": (_T.UInt32, False),
+    "PickedNuts": (_T.UInt32, False),
+    "Misses": (_T.UInt32, False),
+    "Retries": (_T.UInt32, False),
+    "Failed": (_T.UInt32, False),
+    "Unreachable": (_T.UInt32, False),
+    "UnknownLeft": (_T.UInt32, False),
+    "PartsPerMinute": (_T.Double, False),
+    "LastPickClass": (_T.String, False),
+    "LastPickTableMm": (_T.Double, True),
+    "LastPickRobotMm": (_T.Double, True),
+    "LastPickAngleDeg": (_T.Double, False),
+    "LastPickOutcome": (_T.String, False),
     "LastPickTime": (_T.DateTime, False),
-    "ActiveAlarm": (_T.String, False), "Heartbeat": (_T.UInt32, False),
-    "CalibrationModel": (_T.String, False), "CalibrationCvRmsMm": (_T.Double, False),
-    "CalibrationCvMaxMm": (_T.Double, False), "CalibrationTime": (_T.DateTime, False),
+    "ActiveAlarm": (_T.String, False),
+    "Heartbeat": (_T.UInt32, False),
+    "CalibrationModel": (_T.String, False),
+    "CalibrationCvRmsMm": (_T.Double, False),
+    "CalibrationCvMaxMm": (_T.Double, False),
+    "CalibrationTime": (_T.DateTime, False),
 }
 
 
@@ -54,10 +68,17 @@ def _values(s: Snapshot) -> dict:
     c, last, cal = s.counters, (s.last_picks[-1] if s.last_picks else None), s.calibration
     alarm = "" if s.alarm is None else f"{s.alarm.reason} (hint: {s.alarm.hint})"
     return {
-        "VisionState": s.vision_state.value, "CellState": s.cell_state, "Paused": s.paused,
+        "VisionState": s.vision_state.value,
+        "CellState": s.cell_state,
+        "Paused": s.paused,
         "WaitingForParts": s.waiting_for_parts,
-        "PickedBolts": c.picked_bolts, "PickedNuts": c.picked_nuts, "Misses": c.misses, "Retries": c.retries,
-        "Failed": c.failed, "Unreachable": c.unreachable, "UnknownLeft": c.unknown_left,
+        "PickedBolts": c.picked_bolts,
+        "PickedNuts": c.picked_nuts,
+        "Misses": c.misses,
+        "Retries": c.retries,
+        "Failed": c.failed,
+        "Unreachable": c.unreachable,
+        "UnknownLeft": c.unknown_left,
         "PartsPerMinute": round(s.parts_per_min, 3),
         "LastPickClass": last.cls if last else "",
         "LastPickTableMm": [float(v) for v in last.table_mm] if last else [],
@@ -65,7 +86,8 @@ def _values(s: Snapshot) -> dict:
         "LastPickAngleDeg": float(last.angle_deg) if last and last.angle_deg is not None else 0.0,
         "LastPickOutcome": last.outcome if last else "",
         "LastPickTime": last.time_utc if last else _EPOCH,
-        "ActiveAlarm": alarm, "Heartbeat": s.heartbeat,
+        "ActiveAlarm": alarm,
+        "Heartbeat": s.heartbeat,
         "CalibrationModel": cal.model if cal else "",
         "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
         "CalibrationCvMaxMm": _finite(cal.cv_max_mm) if cal else 0.0,
@@ -74,8 +96,14 @@ def _values(s: Snapshot) -> dict:
 
 
 # The PickEventType's own fields (besides BaseEventType's Message, Severity, Time ...).
-PICK_EVENT_FIELDS = [("TrackId", _T.UInt32), ("PartClass", _T.String), ("TableMm", _T.Double),
-                     ("RobotMm", _T.Double), ("AngleDeg", _T.Double), ("Outcome", _T.String)]
+PICK_EVENT_FIELDS = [
+    ("TrackId", _T.UInt32),
+    ("PartClass", _T.String),
+    ("TableMm", _T.Double),
+    ("RobotMm", _T.Double),
+    ("AngleDeg", _T.Double),
+    ("Outcome", _T.String),
+]
 _PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
 
 
@@ -132,13 +160,15 @@ class OpcUaServer:
         cell = await s.nodes.objects.add_object(ua.NodeId("Cell", ns), ua.QualifiedName("Cell", ns))
         values = _values(self.service.snapshot())
         for name, (vtype, array) in VARIABLES.items():
-            var = await cell.add_variable(ua.NodeId(name, ns), ua.QualifiedName(name, ns),
-                                          ua.Variant(values[name], vtype, is_array=array or None))
+            var = await cell.add_variable(
+                ua.NodeId(name, ns), ua.QualifiedName(name, ns), ua.Variant(values[name], vtype, is_array=array or None)
+            )
             self.nodes[name] = var.nodeid
             self._written[name] = values[name]
         for command in Command:
-            await cell.add_method(ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns),
-                                  self._method(command), [], [])
+            await cell.add_method(
+                ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns), self._method(command), [], []
+            )
         etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
         self._pick_events = await s.get_event_generator(etype, cell)
         loop = asyncio.get_running_loop()
@@ -148,20 +178,30 @@ class OpcUaServer:
         try:
             await s.start()
         except OSError as e:
-            raise ConfigError(f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
-                              hint="another program holds the port: choose another with --opcua-port") from None
+            raise ConfigError(
+                f"OPC UA: cannot listen on {self.cfg.host}:{self.cfg.opcua_port}: {e.strerror or e}",
+                hint="another program holds the port: choose another with --opcua-port",
+            ) from None
         finally:
             quiet.setLevel(logging.WARNING)
         self._task = asyncio.create_task(self._publish())
-        log.info("OPC UA server on %s (%s)", self.endpoint, "Basic256Sha256 SignAndEncrypt, user" if self.secure
-                 else "loopback, no security")
+        log.info(
+            "OPC UA server on %s (%s)",
+            self.endpoint,
+            "Basic256Sha256 SignAndEncrypt, user" if self.secure else "loopback, no security",
+        )
 
     async def _secure(self) -> None:
         self.cert_dir.mkdir(parents=True, exist_ok=True)
         key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
-        await setup_self_signed_certificate(key, cert, APP_URI, socket.gethostname(),
-                                            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
-                                            {"commonName": "pick-cell", "organizationName": "pick-cell"})
+        await setup_self_signed_certificate(
+            key,
+            cert,
+            APP_URI,
+            socket.gethostname(),
+            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+            {"commonName": "pick-cell", "organizationName": "pick-cell"},
+        )
         key.chmod(0o600)
         await self.server.load_certificate(str(cert))
         await self.server.load_private_key(str(key))
@@ -205,14 +245,16 @@ class OpcUaServer:
                     vtype, array = VARIABLES[name]
                     variant = ua.Variant(value, vtype, is_array=array or None)
                     await self.server.write_attribute_value(
-                        self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now))
+                        self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now)
+                    )
                     self._written[name] = value
 
     async def _fire(self, p: PickRecord) -> None:
         """One pick as a PickEventType event from Cell."""
         ev = self._pick_events.event
-        ev.Message = ua.LocalizedText(f"part {p.track_id} {p.cls} {p.outcome} at table "
-                                      f"({p.table_mm[0]:.1f}, {p.table_mm[1]:.1f}) mm")
+        ev.Message = ua.LocalizedText(
+            f"part {p.track_id} {p.cls} {p.outcome} at table ({p.table_mm[0]:.1f}, {p.table_mm[1]:.1f}) mm"
+        )
         ev.Severity = 100 if p.outcome in ("picked", "rehearsed") else 500
         ev.TrackId, ev.PartClass, ev.Outcome = ua.Variant(p.track_id, _T.UInt32), p.cls, p.outcome
         ev.TableMm, ev.RobotMm = [float(v) for v in p.table_mm], [float(v) for v in p.robot_mm]

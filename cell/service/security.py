@@ -4,6 +4,7 @@ otherwise, and then only with encryption and a user whose password is checked he
 Passwords are kept as PBKDF2-SHA256 hashes (`run-cell hash-password`), or read from an
 environment variable named in the config (for systemd's credentials or a secret store).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -30,8 +31,10 @@ def _parse_hash(stored: str) -> tuple[int, bytes, bytes]:
             raise ValueError(scheme)
         return int(iterations), bytes.fromhex(salt), bytes.fromhex(digest)
     except ValueError:
-        raise ConfigError("service.password_hash is not a pbkdf2_sha256$ITERATIONS$SALT$HASH string",
-                          hint="make one with `run-cell hash-password`") from None
+        raise ConfigError(
+            "service.password_hash is not a pbkdf2_sha256$ITERATIONS$SALT$HASH string",
+            hint="make one with `run-cell hash-password`",
+        ) from None
 
 
 def password_ok(cfg: ServiceConfig, user: str | None, password: str | None) -> bool:
@@ -58,10 +61,13 @@ def check_exposure(cfg: ServiceConfig) -> None:
     if cfg.loopback:
         return
     if not credentials_configured(cfg):
-        missing = "service.user" if not cfg.user else (
-            f"the environment variable {cfg.password_env}" if cfg.password_env else "service.password_hash")
+        missing = (
+            "service.user"
+            if not cfg.user
+            else (f"the environment variable {cfg.password_env}" if cfg.password_env else "service.password_hash")
+        )
         raise ConfigError(
             f"service.host {cfg.host!r} is beyond loopback and {missing} is not set: refusing to listen unauthenticated",
             hint="set service.user and service.password_hash (run-cell hash-password) or service.password_env, "
-                 "or listen on 127.0.0.1",
+            "or listen on 127.0.0.1",
         )

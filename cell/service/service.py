@@ -12,6 +12,7 @@ job homed the arm); SingleExecution / ContinuousExecution while a job runs; Halt
 Halt (the runner's safe stop: arm safe, torque released); Error after a fault. Both of
 the last two need an explicit Reset.
 """
+
 from __future__ import annotations
 
 import logging
@@ -74,8 +75,13 @@ def calibration_info(cal: Calibration, source_image: str = "") -> CalibrationInf
         made = datetime.fromisoformat(cal.created_utc) if cal.created_utc else None
     except ValueError:
         made = None
-    return CalibrationInfo(cal.model_name, float(cv.get("rms_mm", float("nan"))), float(cv.get("max_mm", float("nan"))),
-                           made, source_image or (cal.image_sha256[:12] and f"sha256 {cal.image_sha256[:12]}"))
+    return CalibrationInfo(
+        cal.model_name,
+        float(cv.get("rms_mm", float("nan"))),
+        float(cv.get("max_mm", float("nan"))),
+        made,
+        source_image or (cal.image_sha256[:12] and f"sha256 {cal.image_sha256[:12]}"),
+    )
 
 
 def _split_hint(reason: str) -> tuple[str, str]:
@@ -89,9 +95,15 @@ def _split_hint(reason: str) -> tuple[str, str]:
 class LineService:
     """Implements cell.service.api.LineServiceAPI."""
 
-    def __init__(self, config: CellConfig, devices: Devices, audit: ShiftLog,
-                 locate: Callable[[np.ndarray, Calibration], object], camera: Camera | None = None,
-                 drift_watch: Callable[[Calibration], Callable | None] | None = None):
+    def __init__(
+        self,
+        config: CellConfig,
+        devices: Devices,
+        audit: ShiftLog,
+        locate: Callable[[np.ndarray, Calibration], object],
+        camera: Camera | None = None,
+        drift_watch: Callable[[Calibration], Callable | None] | None = None,
+    ):
         self.config, self.devices, self.audit = config, devices, audit
         self._locate = locate
         self._drift_watch = drift_watch or (lambda calibration: None)  # per job, for the calibration in use
@@ -127,8 +139,12 @@ class LineService:
     # ---- life -----------------------------------------------------------------------
     def start(self) -> None:
         c = self._counts.counters()
-        self.audit.event("service_start", counters=c.__dict__, calibration=self._cal_info.model,
-                         capture_interval_s=self.capture_interval_s)
+        self.audit.event(
+            "service_start",
+            counters=c.__dict__,
+            calibration=self._cal_info.model,
+            capture_interval_s=self.capture_interval_s,
+        )
         self._worker.start()
         self._set_state(V.READY, "service started")
         self._publish("state")
@@ -166,9 +182,19 @@ class LineService:
             rate = 0.0
             if len(self._pick_times) >= 2 and self._pick_times[-1] > self._pick_times[0]:
                 rate = 60.0 * (len(self._pick_times) - 1) / (self._pick_times[-1] - self._pick_times[0])
-            return Snapshot(self._vstate, self._cell_state, paused, self._cell_state == State.WAIT.name,
-                            self._counts.counters(), rate, tuple(self._picks), self._alarm, self._cal_info,
-                            self.heartbeat, allowed(self._vstate, paused))
+            return Snapshot(
+                self._vstate,
+                self._cell_state,
+                paused,
+                self._cell_state == State.WAIT.name,
+                self._counts.counters(),
+                rate,
+                tuple(self._picks),
+                self._alarm,
+                self._cal_info,
+                self.heartbeat,
+                allowed(self._vstate, paused),
+            )
 
     @property
     def heartbeat(self) -> int:
@@ -202,8 +228,13 @@ class LineService:
         self._need_still("install_calibration")
         with self._lock:
             self._calibration, self._cal_info = calibration, info
-        self.audit.event("calibration", model=info.model, cv_rms_mm=info.cv_rms_mm, cv_max_mm=info.cv_max_mm,
-                         source_image=info.source_image)
+        self.audit.event(
+            "calibration",
+            model=info.model,
+            cv_rms_mm=info.cv_rms_mm,
+            cv_max_mm=info.cv_max_mm,
+            source_image=info.source_image,
+        )
         self._publish("calibration")
 
     # ---- commands (under the lock, already allowed) -----------------------------------
@@ -250,9 +281,15 @@ class LineService:
         self._job_camera = _Locked(self._camera, self._device_lock)
         try:
             self._runner = Runner(
-                self._job_camera, self.devices.arm,
-                lambda frame: self._locate(frame, self._calibration), self._planner, self.config.run, self.audit,
-                controls, self.devices.expect_motion, progress=lambda line: log.info("%s", line),
+                self._job_camera,
+                self.devices.arm,
+                lambda frame: self._locate(frame, self._calibration),
+                self._planner,
+                self.config.run,
+                self.audit,
+                controls,
+                self.devices.expect_motion,
+                progress=lambda line: log.info("%s", line),
                 sim_motion_s=None if sim is None else sim.motion_time_s,
                 drift_watch=self._drift_watch(self._calibration),
                 continuous_interval_s=self.capture_interval_s if state == V.CONTINUOUS_EXECUTION else None,
@@ -308,8 +345,15 @@ class LineService:
         if t is None or t["track"] != e["track"]:
             return
         outcome = "failed" if e["kind"] == "failed" else e["result"]
-        record = PickRecord(datetime.fromisoformat(e["t_utc"]), e["track"], t["cls"], tuple(t["table_mm"]),
-                            tuple(t["robot_mm"]), t["jaw_angle_deg"], outcome)
+        record = PickRecord(
+            datetime.fromisoformat(e["t_utc"]),
+            e["track"],
+            t["cls"],
+            tuple(t["table_mm"]),
+            tuple(t["robot_mm"]),
+            t["jaw_angle_deg"],
+            outcome,
+        )
         with self._lock:
             self._picks.append(record)
             if outcome == "picked":

@@ -5,6 +5,7 @@ A roll happens only between two events, so every file holds whole lines. The fil
 day are that day's shift: the service reads them back at start to carry its counters over
 a restart. Listeners hear every event as it is written (the service's view of the runner).
 """
+
 from __future__ import annotations
 
 import json

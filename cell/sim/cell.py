@@ -6,6 +6,7 @@ The calibration is fitted, not copied from the camera model, so the dry run carr
 same mapping error the line would. The arm is the geometric SimArm (arm.kind sim), or
 the real serial or Dynamixel driver against its emulated firmware on a pseudo-terminal.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -37,12 +38,23 @@ log = logging.getLogger(__name__)
 
 # The paper's Table IV: object class and world position (mm), rows 1-17.
 PAPER_TABLE4_MM = [
-    ("nut", 259.809, 14.600), ("bolt", 61.768, 27.991), ("bolt", 174.146, 23.477),
-    ("nut", 226.089, 48.039), ("nut", 86.853, 54.084), ("nut", 157.383, 60.966),
-    ("bolt", 255.871, 79.293), ("bolt", 73.889, 90.566), ("bolt", 186.030, 87.026),
-    ("nut", 205.624, 117.387), ("nut", 54.439, 127.731), ("nut", 127.538, 128.567),
-    ("bolt", 262.846, 124.786), ("nut", 255.676, 137.408), ("bolt", 67.780, 158.343),
-    ("bolt", 234.450, 164.004), ("bolt", 130.297, 167.991),
+    ("nut", 259.809, 14.600),
+    ("bolt", 61.768, 27.991),
+    ("bolt", 174.146, 23.477),
+    ("nut", 226.089, 48.039),
+    ("nut", 86.853, 54.084),
+    ("nut", 157.383, 60.966),
+    ("bolt", 255.871, 79.293),
+    ("bolt", 73.889, 90.566),
+    ("bolt", 186.030, 87.026),
+    ("nut", 205.624, 117.387),
+    ("nut", 54.439, 127.731),
+    ("nut", 127.538, 128.567),
+    ("bolt", 262.846, 124.786),
+    ("nut", 255.676, 137.408),
+    ("bolt", 67.780, 158.343),
+    ("bolt", 234.450, 164.004),
+    ("bolt", 130.297, 167.991),
 ]
 _NUT_SIZES = ["M6", "M8", "M5", "M10"]
 MIN_GAP_MM = 3.0  # between part outlines in a layout: closer, the camera may see one blob
@@ -66,6 +78,7 @@ class SimCell:
 
 def _outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
     """Smallest distance between two top-view outlines (sampled), mm."""
+
     def dense(p: PartSpec) -> np.ndarray:
         poly = p.top_view_outline_mm()
         nxt = np.roll(poly, -1, axis=0)
@@ -101,8 +114,9 @@ def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None
             return min(_outline_gap_mm(c, q) for q in others)
 
         if base_table_mm is None:
-            parts[i] = max((PartSpec("bolt", p.size, p.x_mm, p.y_mm, a + jitter, p.length_mm)
-                            for a in range(0, 360, 30)), key=room)
+            parts[i] = max(
+                (PartSpec("bolt", p.size, p.x_mm, p.y_mm, a + jitter, p.length_mm) for a in range(0, 360, 30)), key=room
+            )
         else:
             parts[i] = _square_to_base(p, base_table_mm, room)
     grid = itertools.product(np.arange(20.0, 250.0, 5.0), np.arange(15.0, 165.0, 5.0))
@@ -126,7 +140,10 @@ def _square_to_base(bolt: PartSpec, base_mm: tuple[float, float], room) -> PartS
     for shift_mm in range(-12, 13, 2):
         for a in (bearing + 90.0, bearing - 90.0):
             ar = math.radians(a)
-            centre = (bolt.x_mm + shift_mm * ux - middle * math.cos(ar), bolt.y_mm + shift_mm * uy - middle * math.sin(ar))
+            centre = (
+                bolt.x_mm + shift_mm * ux - middle * math.cos(ar),
+                bolt.y_mm + shift_mm * uy - middle * math.sin(ar),
+            )
             spec = PartSpec("bolt", bolt.size, *centre, a, bolt.length_mm)
             candidates.append((room(spec), shift_mm, spec))
     return max(candidates, key=lambda c: (c[0] >= MIN_GAP_MM, -abs(c[1]), c[0]))[2]
@@ -136,7 +153,6 @@ def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
     """The same camera moved parallel to the table: its calibration no longer holds."""
     t = model.tvec - model.rotation @ np.array([shift_mm[0], shift_mm[1], 0.0])
     return CameraModel(model.width_px, model.height_px, model.camera_matrix, model.dist_coeffs, model.rvec, t)
-
 
 
 def sim_arm_kind(arm: ArmConfig) -> str:
@@ -159,8 +175,15 @@ def plate_calibration(config: CellConfig, model: CameraModel) -> tuple[Calibrati
     settings, so a process that builds the cell again (a line service starting job after
     job, the test suite) renders and fits it once.
     """
-    key = json.dumps([model.to_dict(), config.sim.seed, config.plate.model_dump(mode="json"),
-                      config.detection.model_dump(mode="json"), config.calibration.model_dump(mode="json")])
+    key = json.dumps(
+        [
+            model.to_dict(),
+            config.sim.seed,
+            config.plate.model_dump(mode="json"),
+            config.detection.model_dump(mode="json"),
+            config.calibration.model_dump(mode="json"),
+        ]
+    )
     if key not in _PLATE_FITS:
         result = calibrate(render_plate(model, config.plate, seed=config.sim.seed), config)
         model.cache.clear()  # the plate's ray maps are not needed again
@@ -196,14 +219,18 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     else:
         parts = paper_layout(sim.seed)
     plan = config.planning
-    bins = [Bin("bolt", plan.bolt.bin_robot_mm[:2], sim.bin_half_size_mm),
-            Bin("nut", plan.nut.bin_robot_mm[:2], sim.bin_half_size_mm)]
-    tolerance = JawTolerance(sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm,
-                             sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg)
+    bins = [
+        Bin("bolt", plan.bolt.bin_robot_mm[:2], sim.bin_half_size_mm),
+        Bin("nut", plan.nut.bin_robot_mm[:2], sim.bin_half_size_mm),
+    ]
+    tolerance = JawTolerance(
+        sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm, sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg
+    )
     world = World(parts, truth, bins, tolerance)
     marks = config.drift.marks_mm or sim.reference_marks_mm
-    camera = SimCamera(world, model, seed=sim.seed, marks_mm=np.array(marks), mark_diameter_mm=config.drift.mark_diameter_mm,
-                       bump=bump)
+    camera = SimCamera(
+        world, model, seed=sim.seed, marks_mm=np.array(marks), mark_diameter_mm=config.drift.mark_diameter_mm, bump=bump
+    )
     log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
     if sim_arm_kind(config.arm) != "sim":
         with emulated_arm(config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips) as emulated:
@@ -212,6 +239,8 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     arm = SimArm(
         world,
         plan.workspace,
-        speed_mm_s=sim.speed_mm_s, gripper_s=sim.gripper_s, realtime=sim.realtime,
+        speed_mm_s=sim.speed_mm_s,
+        gripper_s=sim.gripper_s,
+        realtime=sim.realtime,
     )
     yield SimCell(world, camera, arm, calibration, note, None, marks)

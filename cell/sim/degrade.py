@@ -3,6 +3,7 @@
 Each variant is a function of a grey image and a seed, so tests and benchmarks can compare
 detectors on the same hard image without storing it.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable

@@ -8,6 +8,7 @@ machine has an A axis turning the gripper (without arm.serial.commands.rotate th
 refuses the angle a bolt needs); the emulated bus knows the arm's config, so its tool pose
 comes from the servos' present positions through the arm's kinematics.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -80,7 +81,8 @@ def _for_emulator(cfg: ArmConfig, path: str) -> ArmConfig:
     shares the CPU with the cell (and a test run's workers), so it gets a status wait of a
     loaded machine rather than a U2D2's 16 ms latency timer."""
     dxl = cfg.dynamixel.model_copy(
-        update={"latency_timer_ms": max(cfg.dynamixel.latency_timer_ms, EMULATED_LATENCY_TIMER_MS)})
+        update={"latency_timer_ms": max(cfg.dynamixel.latency_timer_ms, EMULATED_LATENCY_TIMER_MS)}
+    )
     return cfg.model_copy(update={"port": path, "dynamixel": dxl})
 
 
@@ -90,8 +92,15 @@ def _acting_on(world: World) -> ToolListener:
     def on_gripper(closed: bool, x_mm: float, y_mm: float, z_mm: float, angle_deg: float) -> None:
         xyz = (x_mm, y_mm, z_mm)
         what = world.grip(xyz, angle_deg).reason if closed else world.release(xyz)
-        log.debug("emulated gripper %s at (%.2f, %.2f, %.2f) mm, %.2f deg: %s",
-                  "closed" if closed else "opened", x_mm, y_mm, z_mm, angle_deg, what)
+        log.debug(
+            "emulated gripper %s at (%.2f, %.2f, %.2f) mm, %.2f deg: %s",
+            "closed" if closed else "opened",
+            x_mm,
+            y_mm,
+            z_mm,
+            angle_deg,
+            what,
+        )
 
     return on_gripper
 

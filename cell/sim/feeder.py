@@ -9,6 +9,7 @@ Parts that reach a bin, and parts left on the table past `clear_after_s` (the wa
 cell leaves), are taken out of the world and tallied, so a long shift holds no more than
 what lies on the table.
 """
+
 from __future__ import annotations
 
 import logging
@@ -67,8 +68,11 @@ class Feeder:
         for p in self.world.parts:
             if p.where.startswith("bin:"):
                 self.binned[p.spec.kind] = self.binned.get(p.spec.kind, 0) + 1
-            elif p.where == "floor" or (p.where == "table" and self.cfg.clear_after_s
-                                         and now - self._landed.get(p.id, now) > self.cfg.clear_after_s):
+            elif p.where == "floor" or (
+                p.where == "table"
+                and self.cfg.clear_after_s
+                and now - self._landed.get(p.id, now) > self.cfg.clear_after_s
+            ):
                 self.cleared += 1
             else:
                 keep.append(p)
@@ -122,8 +126,13 @@ class Feeder:
 
     def account(self) -> dict:
         """What the feeder did, for the log."""
-        return {"dropped": self.dropped, "skipped": self.skipped, "binned": dict(self.binned), "cleared": self.cleared,
-                "on_table": len(self.world.on_table())}
+        return {
+            "dropped": self.dropped,
+            "skipped": self.skipped,
+            "binned": dict(self.binned),
+            "cleared": self.cleared,
+            "on_table": len(self.world.on_table()),
+        }
 
 
 class FedCamera(Camera):

@@ -18,6 +18,7 @@ Typical use (helper code for the simulated cell reuses these):
     opacity = scene_opacity(camera, parts)              # float 0..1, to composite
     truth = [(p.kind, p.footprint_centre_mm, p.axis_angle_deg) for p in parts]
 """
+
 from __future__ import annotations
 
 import math
@@ -153,8 +154,16 @@ class PartSpec:
             k, e = d["head_height"], d["across_flats"] * 2 / math.sqrt(3)
             L, r = self.length_mm, d["shaft"] / 2
             uv = np.array(
-                [[u0 - k, -e / 2], [u0, -e / 2], [u0, -r], [u0 + L, -r],
-                 [u0 + L, r], [u0, r], [u0, e / 2], [u0 - k, e / 2]]
+                [
+                    [u0 - k, -e / 2],
+                    [u0, -e / 2],
+                    [u0, -r],
+                    [u0 + L, -r],
+                    [u0 + L, r],
+                    [u0, r],
+                    [u0, e / 2],
+                    [u0 - k, e / 2],
+                ]
             )
             return self._to_table(uv)
         radius = (d["outer"] if self.kind == "washer" else d["diameter"]) / 2
@@ -323,8 +332,12 @@ def random_scene(
                 size = str(rng.choice(list(NUTS_MM if kind == "nut" else WASHERS_MM)))
                 length = None
             p = PartSpec(
-                kind, size, float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)),
-                float(rng.uniform(0, 360)), length,
+                kind,
+                size,
+                float(rng.uniform(x0, x1)),
+                float(rng.uniform(y0, y1)),
+                float(rng.uniform(0, 360)),
+                length,
             )
             outline = p.top_view_outline_mm()
             if outline[:, 0].min() < x0 or outline[:, 0].max() > x1:

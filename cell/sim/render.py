@@ -5,6 +5,7 @@ plane above it) through the camera model, so perspective and lens distortion are
 Edges are anti-aliased analytically (signed distance divided by the local scale), which
 keeps sub-pixel truth without supersampling the whole frame.
 """
+
 from __future__ import annotations
 
 import functools
@@ -51,9 +52,7 @@ def table_maps(camera: CameraModel, height_mm: float = 0.0):
         xy = camera.pixel_to_table(np.column_stack([u.ravel(), v.ravel()]), height_mm)
         X = xy[:, 0].reshape(h, w)
         Y = xy[:, 1].reshape(h, w)
-        J = np.stack(
-            [np.gradient(X, axis=1), np.gradient(X, axis=0), np.gradient(Y, axis=1), np.gradient(Y, axis=0)]
-        )
+        J = np.stack([np.gradient(X, axis=1), np.gradient(X, axis=0), np.gradient(Y, axis=1), np.gradient(Y, axis=0)])
         if len(cache) >= 4:
             cache.pop(next(iter(cache)))
         cache[height_mm] = (X, Y, J)
@@ -156,7 +155,9 @@ def render_plate(
     return expose(camera, opacity, optics, np.random.default_rng(seed), exposure)
 
 
-def plate_field_error_mm(camera: CameraModel, calibration, plate: PlateGeometry, step_mm: float = 2.0) -> tuple[float, float]:
+def plate_field_error_mm(
+    camera: CameraModel, calibration, plate: PlateGeometry, step_mm: float = 2.0
+) -> tuple[float, float]:
     """RMS and max error of a calibration over the plate field, against this camera's exact truth.
 
     Points every `step_mm` across the plate, most of them between circles, so the figure is

@@ -1,4 +1,5 @@
 """The built-in simulated rig: a webcam-like camera above the paper's plate."""
+
 from __future__ import annotations
 
 from cell.camera_model import CameraModel

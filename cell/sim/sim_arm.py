@@ -4,6 +4,7 @@ Moves are instant unless `realtime`; the time a real arm would take (straight-li
 distance at a constant tool speed, plus the gripper's open/close time) is added up in
 `motion_time_s` so the cell can report it apart from its own software time.
 """
+
 from __future__ import annotations
 
 import logging
@@ -76,7 +77,9 @@ class SimArm(Arm):
         if why := self.workspace.violation(x_mm, y_mm, z_mm):
             raise OutOfReach(f"target ({x_mm:.1f}, {y_mm:.1f}, {z_mm:.1f}) mm refused: {why}", port=self.port)
 
-    def move_to(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True) -> None:
+    def move_to(
+        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True
+    ) -> None:
         self._need("move_to")
         self.check_target(x_mm, y_mm, z_mm, angle_deg)
         table_z = self.world.truth.table_z_mm

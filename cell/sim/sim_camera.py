@@ -8,6 +8,7 @@ spent, which the cell reports apart from its own software time.
 The table may carry printed reference marks (dark dots that never move), and the camera
 may be bumped: from a chosen frame on, it sees through a moved camera model.
 """
+
 from __future__ import annotations
 
 import time

@@ -10,6 +10,7 @@ beside it, not on it: +-1.5 mm. Along the jaw faces a nut or washer must sit und
 pads' middle: +-1.0 mm. A bolt is held wherever the jaws close on its body, at least
 2 mm from either end, but only with the jaws across the axis within 5 degrees.
 """
+
 from __future__ import annotations
 
 import math
@@ -123,8 +124,10 @@ class World:
             head_end = spec._bolt_axis_offset_mm() - spec.dims["head_height"]
             tip_end = spec._bolt_axis_offset_mm() + spec.length_mm
             if not head_end + tol.bolt_end_margin_mm <= u <= tip_end - tol.bolt_end_margin_mm:
-                return False, (f"jaws {u:+.1f} mm along the axis, off the body "
-                               f"[{head_end:+.1f}, {tip_end:+.1f}] mm less {tol.bolt_end_margin_mm:g} mm at each end")
+                return False, (
+                    f"jaws {u:+.1f} mm along the axis, off the body "
+                    f"[{head_end:+.1f}, {tip_end:+.1f}] mm less {tol.bolt_end_margin_mm:g} mm at each end"
+                )
             return True, ""
         if abs(across) > tol.across_mm:
             return False, f"{across:+.2f} mm off across the jaws (tolerance {tol.across_mm:g})"

@@ -5,6 +5,7 @@ parts cut by the border, debris, parts in an unexpected pose) is unknown and nev
 A nut lies flat: a hexagon with one centred round hole. A bolt lies on its side: a
 straight shaft of constant width with a clearly wider head at one end.
 """
+
 from __future__ import annotations
 
 import math

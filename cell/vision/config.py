@@ -1,5 +1,6 @@
 """Settings for finding and classifying parts. Sizes are table millimetres, never pixels:
 the calibration's local scale converts them, so one config fits any camera distance."""
+
 from __future__ import annotations
 
 from typing import Literal

@@ -5,6 +5,7 @@ unbiased to a small fraction of a pixel. Hexagonality is the outline's sixth ang
 harmonic relative to a regular hexagon's: about 1 for a hexagon, near 0 for circles,
 squares and thin rectangles.
 """
+
 from __future__ import annotations
 
 import math

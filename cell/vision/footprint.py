@@ -14,6 +14,7 @@ the footprint from them, all on the plane of the bolt's axis:
 The view slope comes from the camera pose the calibration stores; without one it is
 taken as zero (a camera straight above).
 """
+
 from __future__ import annotations
 
 import math

@@ -5,6 +5,7 @@ from faces up to its full height, which a camera off to one side sees displaced 
 So each centroid is mapped on the plane at the part's reference height (half its height
 by default), which needs the class first and the camera pose the calibration stores.
 """
+
 from __future__ import annotations
 
 import logging
@@ -62,7 +63,9 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     .parts); None for the defaults.
     """
     cfg = _parts_config(config)
-    mapper = PixelScale(calibration_or_scale) if isinstance(calibration_or_scale, (int, float)) else calibration_or_scale
+    mapper = (
+        PixelScale(calibration_or_scale) if isinstance(calibration_or_scale, (int, float)) else calibration_or_scale
+    )
     image = np.asarray(image_bgr)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or image.size == 0:
         raise InputError(f"expected an 8-bit grey or BGR image, got {image.dtype} with shape {image.shape}")

@@ -6,6 +6,7 @@ pixel is part where it is darker than a fraction of that level. This adapts to e
 vignetting and an uneven backlight without a reference frame. The paper preset is the
 paper's HSV range, inverted, with external contours only (no holes).
 """
+
 from __future__ import annotations
 
 import logging
@@ -53,7 +54,9 @@ def segment(image: np.ndarray, config: PartsConfig, part_width_px: float, noise_
     return _segment_default(image, config, part_width_px, noise_area_px)
 
 
-def _segment_default(image: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float) -> Segmentation:
+def _segment_default(
+    image: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float
+) -> Segmentation:
     gray = to_gray(image)
     h, w = gray.shape
     radius_px = max(part_width_px / 2 + 2, 3)

@@ -5,6 +5,7 @@ A bolt's footprint is rebuilt from where its width crosses a level along the axi
 its ends; at 0.3 mm/px a whole-pixel outline puts those up to half a pixel (0.15 mm) off,
 and the footprint centre inherits it. The paper level is the median grey around the part.
 """
+
 from __future__ import annotations
 
 import cv2

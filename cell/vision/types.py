@@ -1,4 +1,5 @@
 """What the vision step hands to planning: one record per blob on the table."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

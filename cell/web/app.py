@@ -1,5 +1,6 @@
 """The operator screen's routes (Starlette). Every request is checked by `Access`; controls
 are POSTs that go to the service's command table and nowhere else."""
+
 from __future__ import annotations
 
 import asyncio
@@ -31,8 +32,11 @@ STATIC = {
     "/static/screen.js": ("screen.js", "text/javascript; charset=utf-8"),
 }
 SECURITY_HEADERS = [
-    (b"content-security-policy", b"default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
-                                 b"connect-src 'self'; frame-ancestors 'none'; form-action 'self'; base-uri 'none'"),
+    (
+        b"content-security-policy",
+        b"default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+        b"connect-src 'self'; frame-ancestors 'none'; form-action 'self'; base-uri 'none'",
+    ),
     (b"x-frame-options", b"DENY"),
     (b"x-content-type-options", b"nosniff"),
     (b"referrer-policy", b"no-referrer"),
@@ -115,13 +119,15 @@ class ScreenApp:
     async def session(self, request: Request) -> Response:
         sid = self._sid(request)
         can_control = self.access.may_control(sid)
-        return JSONResponse({
-            "login_required": self.access.login_required,
-            "logged_in": self.access.session(sid) is not None,
-            "can_view": self.access.may_view(sid),
-            "can_control": can_control,
-            "csrf": self.access.csrf_for(sid) if can_control else None,
-        })
+        return JSONResponse(
+            {
+                "login_required": self.access.login_required,
+                "logged_in": self.access.session(sid) is not None,
+                "can_view": self.access.may_view(sid),
+                "can_control": can_control,
+                "csrf": self.access.csrf_for(sid) if can_control else None,
+            }
+        )
 
     async def login(self, request: Request) -> Response:
         origin = request.headers.get("origin")
@@ -146,8 +152,9 @@ class ScreenApp:
         sid, csrf = self.access.new_session()
         log.info("screen: login from %s", request.client.host if request.client else "?")
         reply = JSONResponse({"csrf": csrf})
-        reply.set_cookie(SESSION_COOKIE, sid, max_age=int(self.web.session_h * 3600), httponly=True,
-                         samesite="strict", path="/")
+        reply.set_cookie(
+            SESSION_COOKIE, sid, max_age=int(self.web.session_h * 3600), httponly=True, samesite="strict", path="/"
+        )
         return reply
 
     async def logout(self, request: Request) -> Response:
@@ -181,8 +188,9 @@ class ScreenApp:
         screen = self.hub.open_screen()
         if screen is None:
             return _error(503, f"{self.web.max_screens} screens are already open (service.web.max_screens)")
-        return StreamingResponse(self._stream(screen), media_type="text/event-stream",
-                                 headers={"x-accel-buffering": "no"})
+        return StreamingResponse(
+            self._stream(screen), media_type="text/event-stream", headers={"x-accel-buffering": "no"}
+        )
 
     async def _stream(self, screen):
         try:

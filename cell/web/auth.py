@@ -7,6 +7,7 @@ With a password (required for a non-loopback bind; the line service's user and p
 shared with OPC UA): a login gives an HttpOnly, SameSite=Strict session cookie and a CSRF
 token bound to that session.
 """
+
 from __future__ import annotations
 
 import hmac

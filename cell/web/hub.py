@@ -5,6 +5,7 @@ the listener only keeps the newest frame and wakes an encoder thread; the JPEG i
 and handed to the web server's event loop, where each screen keeps only the newest state and
 frame (a slow screen skips frames, it never holds up the cell or the other screens).
 """
+
 from __future__ import annotations
 
 import asyncio

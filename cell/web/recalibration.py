@@ -6,6 +6,7 @@ and atomic replacement as scripts/recalibrate.py, then service.install_calibrati
 from the request names a file: an upload is bytes decoded as an image, the report's pictures
 live in memory under a random id, and the files written are the config's.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -53,8 +54,10 @@ class Report:
             "fit_max_mm": round(fit.max_mm, 4),
             "cv_rms_mm": round(cv.rms_mm, 4),
             "cv_max_mm": round(cv.max_mm, 4),
-            "models": [{"model": s.label, "cv_rms_mm": round(s.cv.rms_mm, 4), "cv_max_mm": round(s.cv.max_mm, 4)}
-                       for s in r.scores],
+            "models": [
+                {"model": s.label, "cv_rms_mm": round(s.cv.rms_mm, 4), "cv_max_mm": round(s.cv.max_mm, 4)}
+                for s in r.scores
+            ],
             "passes": self.gate_failure is None,
             "gate_failure": self.gate_failure,
         }
@@ -137,8 +140,14 @@ class RecalibrationDesk:
             result = calibrate(image, self.config)  # PlateNotFound is an InputError-like CellError
             plate = annotate_plate(image, result)
             ok, jpeg = cv2.imencode(".jpg", plate, [cv2.IMWRITE_JPEG_QUALITY, 85])
-            report = Report(secrets.token_urlsafe(16), result, source, jpeg.tobytes(), deviation_png(result),
-                            gate_failure(result, self.config))
+            report = Report(
+                secrets.token_urlsafe(16),
+                result,
+                source,
+                jpeg.tobytes(),
+                deviation_png(result),
+                gate_failure(result, self.config),
+            )
             self.open = report
             log.info("recalibration report %s from %s: %s", report.id, source, result.why)
             return report
@@ -167,8 +176,12 @@ class RecalibrationDesk:
             self.active_pictures = {"plate.jpg": report.plate_jpeg, "deviation.png": report.deviation_png}
             self.active_time = info.time_utc
             self.open = None
-            log.info("recalibration %s accepted from the screen: %s written%s", report_id, path,
-                     f", previous kept as {backup}" if backup else "")
+            log.info(
+                "recalibration %s accepted from the screen: %s written%s",
+                report_id,
+                path,
+                f", previous kept as {backup}" if backup else "",
+            )
             return info
 
 

@@ -3,6 +3,7 @@
 The socket is bound here, before the thread starts, so a port in use or an address this
 machine does not have is a one-line error at start, not a log line in a thread.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -71,16 +72,29 @@ class ScreenInterface:
 class WebServer:
     """Start, address, stop. Stopping ends every open event stream and joins the thread."""
 
-    def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig, host: str, port: int,
-                 check_password: Callable[[str, str], bool] | None = None):
+    def __init__(
+        self,
+        service: LineServiceAPI,
+        config: CellConfig,
+        web: WebConfig,
+        host: str,
+        port: int,
+        check_password: Callable[[str, str], bool] | None = None,
+    ):
         self.access = Access(host, web, check_password)  # refuses a non-loopback bind without a password
         self.app = build_app(service, config, web, self.access)
         self.host = host
         self._sock = bind(host, port)
         self.port = self._sock.getsockname()[1]
-        self._server = uvicorn.Server(uvicorn.Config(
-            self.app, log_config=None, access_log=False, lifespan="on", timeout_graceful_shutdown=2,
-        ))
+        self._server = uvicorn.Server(
+            uvicorn.Config(
+                self.app,
+                log_config=None,
+                access_log=False,
+                lifespan="on",
+                timeout_graceful_shutdown=2,
+            )
+        )
         self._thread: threading.Thread | None = None
 
     @property
@@ -89,8 +103,9 @@ class WebServer:
         return f"http://{host}:{self.port}/"
 
     def start(self, timeout_s: float = 10.0) -> None:
-        self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [self._sock]},
-                                        name="screen-http", daemon=True)
+        self._thread = threading.Thread(
+            target=self._server.run, kwargs={"sockets": [self._sock]}, name="screen-http", daemon=True
+        )
         self._thread.start()
         deadline = threading.Event()
         for _ in range(int(timeout_s / 0.02)):
@@ -100,8 +115,11 @@ class WebServer:
         if not self._server.started:
             self.stop()
             raise ConfigError(f"screen: the HTTP server on {self.url} did not start within {timeout_s:g} s")
-        log.info("screen listening on %s (login %s)", self.url,
-                 "required" if self.access.login_required else "not required: loopback only")
+        log.info(
+            "screen listening on %s (login %s)",
+            self.url,
+            "required" if self.access.login_required else "not required: loopback only",
+        )
 
     def stop(self) -> None:
         self.app.screen.hub.close()  # ends the event streams, so shutdown need not wait for them

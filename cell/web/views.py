@@ -1,4 +1,5 @@
 """The service's snapshot as the JSON the page renders: what the operator sees, in their words."""
+
 from __future__ import annotations
 
 from dataclasses import asdict
@@ -60,7 +61,9 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "counters": asdict(s.counters),
         "parts_per_min": round(s.parts_per_min, 1),
         "last_picks": [pick_json(p) for p in reversed(s.last_picks)],  # newest first
-        "alarm": None if s.alarm is None else {"reason": s.alarm.reason, "hint": s.alarm.hint, "time": _time(s.alarm.time_utc)},
+        "alarm": None
+        if s.alarm is None
+        else {"reason": s.alarm.reason, "hint": s.alarm.hint, "time": _time(s.alarm.time_utc)},
         "calibration": None
         if cal is None
         else {

@@ -1,4 +1,5 @@
 """The arm interface the cell programs against; each driver alone knows its wire protocol."""
+
 from __future__ import annotations
 
 import abc

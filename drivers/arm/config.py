@@ -3,6 +3,7 @@
 Lengths in mm, angles in degrees, times in seconds; servo quantities in the servo's own
 units (ticks), named so. Every model forbids unknown keys so a typo names itself.
 """
+
 from __future__ import annotations
 
 import math
@@ -182,7 +183,9 @@ class DynamixelArmConfig(Strict):
             if lo >= hi:
                 raise ValueError(f"joint {j}: joint_min_deg ({lo:g} deg) must be below joint_max_deg ({hi:g} deg)")
             if lo < -180 or hi > 180:
-                raise ValueError(f"joint {j}: joint_min_deg/joint_max_deg must lie within -180..180 deg (one servo turn)")
+                raise ValueError(
+                    f"joint {j}: joint_min_deg/joint_max_deg must lie within -180..180 deg (one servo turn)"
+                )
         for j, (d, h) in enumerate(zip(self.joint_directions, self.home_joints_deg, strict=True), start=1):
             if d not in (1, -1):
                 raise ValueError(f"joint_directions: joint {j} is {d}, must be 1 or -1")

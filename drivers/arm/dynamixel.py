@@ -4,6 +4,7 @@ The only module that knows the servos' control table. Goals go out in one GroupS
 (all joints start together), positions come back through GroupSyncRead. On any fault the
 torque is released, as the brief for this cell requires, and the error names the servo.
 """
+
 from __future__ import annotations
 
 import logging
@@ -55,8 +56,13 @@ HARDWARE_ERRORS = {
     0x20: "overload error",
 }
 STATUS_ERRORS = {
-    1: "result fail", 2: "instruction error", 3: "CRC error", 4: "data range error",
-    5: "data length error", 6: "data limit error", 7: "access error",
+    1: "result fail",
+    2: "instruction error",
+    3: "CRC error",
+    4: "data range error",
+    5: "data length error",
+    6: "data limit error",
+    7: "access error",
 }
 BUS_HINT = "check the servos' power, and arm.port / arm.dynamixel.baud / ids (`run-cell ports`)"
 
@@ -77,8 +83,9 @@ class ExclusivePortHandler(PortHandler):
     def setupPort(self, cflag_baud):
         if self.is_open:
             self.closePort()
-        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS, timeout=0,
-                                 exclusive=True)
+        self.ser = serial.Serial(
+            port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS, timeout=0, exclusive=True
+        )
         self.is_open = True
         self.ser.reset_input_buffer()
         self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
@@ -127,21 +134,30 @@ class DynamixelArm(Arm):
         try:
             opened = self.ph.openPort()
         except (serial.SerialException, OSError, ValueError) as e:
-            raise ConnectionLost(f"cannot open the servo bus: {e}", port=self.port,
-                                 hint="check the port path (`run-cell ports`) and that no other program holds it") from None
+            raise ConnectionLost(
+                f"cannot open the servo bus: {e}",
+                port=self.port,
+                hint="check the port path (`run-cell ports`) and that no other program holds it",
+            ) from None
         if not opened or not self.ph.setBaudRate(self.cfg.baud):
             self._close()
-            raise ConnectionLost(f"cannot set {self.cfg.baud} baud on the servo bus", port=self.port,
-                                 hint="arm.dynamixel.baud must be a rate the adapter supports (e.g. 57600, 1000000)")
+            raise ConnectionLost(
+                f"cannot set {self.cfg.baud} baud on the servo bus",
+                port=self.port,
+                hint="arm.dynamixel.baud must be a rate the adapter supports (e.g. 57600, 1000000)",
+            )
         self._connected = True
         self._lost = False
         self._torque_off = True
         try:
             with self._guard("connect"):
                 self._check_servos()
-                self._sync_write(ADDR_PROFILE_ACCELERATION, 8, {
-                    i: [*_le(self.cfg.profile_acceleration), *_le(self.cfg.profile_velocity)] for i in self.all_ids
-                }, "profile acceleration and velocity")
+                self._sync_write(
+                    ADDR_PROFILE_ACCELERATION,
+                    8,
+                    {i: [*_le(self.cfg.profile_acceleration), *_le(self.cfg.profile_velocity)] for i in self.all_ids},
+                    "profile acceleration and velocity",
+                )
                 self._torque_on()
         except ArmError:
             self._close()
@@ -232,17 +248,25 @@ class DynamixelArm(Arm):
     def _check_servos(self) -> None:
         for i in self.all_ids:
             model = self._call(lambda: self.packet.ping(self.ph, i), f"ping servo {i}", i)
-            mode = self._call(lambda: self.packet.read1ByteTxRx(self.ph, i, ADDR_OPERATING_MODE),
-                              f"read operating mode of servo {i}", i)
+            mode = self._call(
+                lambda: self.packet.read1ByteTxRx(self.ph, i, ADDR_OPERATING_MODE),
+                f"read operating mode of servo {i}",
+                i,
+            )
             log.debug("servo %d: model %d, operating mode %d", i, model, mode)
             if mode not in POSITION_MODES:
-                raise ErrorResponse(f"servo {i} is in operating mode {mode}, not a position mode", port=self.port,
-                                    hint="set Operating Mode (address 11) to 3 (position) with the Dynamixel Wizard")
+                raise ErrorResponse(
+                    f"servo {i} is in operating mode {mode}, not a position mode",
+                    port=self.port,
+                    hint="set Operating Mode (address 11) to 3 (position) with the Dynamixel Wizard",
+                )
 
     def _move_joints(self, goals: list[int], wait: bool, what: str) -> None:
         with self._guard(what):
             self._ready()
-            self._sync_write(ADDR_GOAL_POSITION, 4, {i: _le(t) for i, t in zip(self.cfg.joint_ids, goals, strict=True)}, what)
+            self._sync_write(
+                ADDR_GOAL_POSITION, 4, {i: _le(t) for i, t in zip(self.cfg.joint_ids, goals, strict=True)}, what
+            )
             self._state = "moving"
             if wait:
                 self._wait_arrival(dict(zip(self.cfg.joint_ids, goals, strict=True)), what)
@@ -272,7 +296,8 @@ class DynamixelArm(Arm):
                 raise NoResponse(
                     f"servos did not arrive within {self.cfg.move_timeout_s} s "
                     f"(servo {worst} is {off[worst]} ticks from its goal)",
-                    port=self.port, command=what,
+                    port=self.port,
+                    command=what,
                     hint="check for an obstruction; raise arm.dynamixel.move_timeout_s for slow profiles",
                 )
             time.sleep(self.cfg.poll_interval_s)
@@ -297,8 +322,12 @@ class DynamixelArm(Arm):
         out = {}
         for i in self.all_ids:
             if not self._read.isAvailable(i, ADDR_PRESENT_POSITION, 4):
-                raise NoResponse(f"servo {i} missing from the sync read", port=self.port,
-                                 command="sync read present position", hint=BUS_HINT)
+                raise NoResponse(
+                    f"servo {i} missing from the sync read",
+                    port=self.port,
+                    command="sync read present position",
+                    hint=BUS_HINT,
+                )
             pos = self._read.getData(i, ADDR_PRESENT_POSITION, 4)
             out[i] = (self._read.getData(i, ADDR_MOVING, 1), pos - (1 << 32) if pos & 0x80000000 else pos)
         return out
@@ -310,8 +339,12 @@ class DynamixelArm(Arm):
 
     def _fault_error(self, errors: dict[int, int], what: str) -> HardwareFault:
         text = "; ".join(f"servo {i}: {decode_hardware_error(b)}" for i, b in errors.items())
-        return HardwareFault(f"servo hardware error ({text})", port=self.port, command=what,
-                             reply=", ".join(f"{i}: 0x{b:02x}" for i, b in errors.items()))
+        return HardwareFault(
+            f"servo hardware error ({text})",
+            port=self.port,
+            command=what,
+            reply=", ".join(f"{i}: 0x{b:02x}" for i, b in errors.items()),
+        )
 
     def _sync_write(self, addr: int, size: int, data: dict[int, list[int]], what: str) -> None:
         group = GroupSyncWrite(self.ph, self.packet, addr, size)
@@ -336,20 +369,30 @@ class DynamixelArm(Arm):
             result, error, value = _unpack(out)
             if result == COMM_SUCCESS:
                 if error & 0x80 and dxl_id is not None:
-                    raise HardwareFault(f"servo {dxl_id} reports a hardware error", port=self.port, command=what,
-                                        reply=f"error byte 0x{error:02x}")
+                    raise HardwareFault(
+                        f"servo {dxl_id} reports a hardware error",
+                        port=self.port,
+                        command=what,
+                        reply=f"error byte 0x{error:02x}",
+                    )
                 if error & 0x7F:
                     code = error & 0x7F
-                    raise ErrorResponse(f"servo {dxl_id} refused: {STATUS_ERRORS.get(code, 'unknown error')}",
-                                        code=code, port=self.port, command=what, reply=f"error byte 0x{error:02x}")
+                    raise ErrorResponse(
+                        f"servo {dxl_id} refused: {STATUS_ERRORS.get(code, 'unknown error')}",
+                        code=code,
+                        port=self.port,
+                        command=what,
+                        reply=f"error byte 0x{error:02x}",
+                    )
                 return value
             if result not in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT) or attempt == self.cfg.comm_retries:
                 break
             log.debug("%s: %s, retrying", what, self.packet.getTxRxResult(result))
         who = f"servo {dxl_id}" if dxl_id is not None else "the servos"
         reason = "no status packet" if result == COMM_RX_TIMEOUT else self.packet.getTxRxResult(result)
-        raise NoResponse(f"{who}: {reason}", port=self.port, command=what,
-                         reply=self.packet.getTxRxResult(result), hint=BUS_HINT)
+        raise NoResponse(
+            f"{who}: {reason}", port=self.port, command=what, reply=self.packet.getTxRxResult(result), hint=BUS_HINT
+        )
 
     def _link_lost(self) -> None:
         self._close()

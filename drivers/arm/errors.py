@@ -1,5 +1,6 @@
 """Typed arm errors: each carries the port, the command sent and the device's own reply,
 so the one-line message the operator sees says what failed, where, and what to do."""
+
 from __future__ import annotations
 
 from drivers.errors import DeviceError

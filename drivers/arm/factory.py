@@ -1,4 +1,5 @@
 """Build the configured arm; the one place that maps a config kind to a driver class."""
+
 from __future__ import annotations
 
 from drivers.arm.base import Arm
@@ -21,8 +22,10 @@ def make_arm(cfg: ArmConfig) -> Arm:
     if cfg.kind == "mock":
         return MockArm(cfg)
     if cfg.kind == "sim":
-        raise ConfigError("arm.kind 'sim' is the simulated cell's arm: it needs camera.source 'sim'",
-                          hint="use arm.kind 'mock' to check commands without moving, or 'serial'/'dynamixel'")
+        raise ConfigError(
+            "arm.kind 'sim' is the simulated cell's arm: it needs camera.source 'sim'",
+            hint="use arm.kind 'mock' to check commands without moving, or 'serial'/'dynamixel'",
+        )
     if not cfg.port:
         raise ConfigError(
             f"arm.port is empty but arm.kind is {cfg.kind!r}",

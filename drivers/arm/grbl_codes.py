@@ -1,4 +1,5 @@
 """GRBL 1.1 error and alarm codes, with what they mean to an operator."""
+
 from __future__ import annotations
 
 ERRORS = {

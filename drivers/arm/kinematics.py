@@ -5,6 +5,7 @@ turns x toward y), 2-4 = shoulder, elbow and wrist pitch about y (positive tips 
 down). At all zeros the upper arm stands up (offset forward), forearm and gripper point
 forward. Angles in radians, lengths in mm, points in the robot base frame.
 """
+
 from __future__ import annotations
 
 import math

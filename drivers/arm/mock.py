@@ -1,5 +1,6 @@
 """An arm that moves nothing: it validates every command exactly as the real driver it stands
 in for would (same planning code), records it, and tracks where the arm would be."""
+
 from __future__ import annotations
 
 import logging

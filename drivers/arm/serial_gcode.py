@@ -6,6 +6,7 @@ time; `?` (no newline) is answered by `<State|MPos:x,y,z|...>`; `!` holds the fe
 resets and is answered by the banner `Grbl 1.1h ['$' for help]`. The driver never sends
 `$X`: an alarm is for the operator to clear.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,20 +36,26 @@ FEED_HOLD = b"!"
 STATUS_QUERY = b"?"
 _BANNER = re.compile(r"Grbl (\S+)")
 _STATUS = re.compile(r"<([A-Za-z]+)(?::\d+)?\|(.*)>")
-_STATES = {"Idle": "idle", "Run": "moving", "Jog": "moving", "Home": "moving", "Hold": "hold",
-           "Door": "hold", "Alarm": "alarm", "Check": "fault", "Sleep": "fault"}
+_STATES = {
+    "Idle": "idle",
+    "Run": "moving",
+    "Jog": "moving",
+    "Home": "moving",
+    "Hold": "hold",
+    "Door": "hold",
+    "Alarm": "alarm",
+    "Check": "fault",
+    "Sleep": "fault",
+}
 BAUD_HINT = "the device answers but not in GRBL's language: check arm.serial.baud and the firmware"
 
 
-def plan_move(
-    cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None
-) -> list[str]:
+def plan_move(cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> list[str]:
     """The G-code lines for a move, after checking the target; OutOfReach if refused."""
     where = f"target ({x_mm}, {y_mm}, {z_mm}) mm"
     if why := cfg.workspace.violation(x_mm, y_mm, z_mm):
         raise OutOfReach(f"{where}: {why} (arm.serial.workspace)")
-    fields = dict(x_mm=x_mm, y_mm=y_mm, z_mm=z_mm, angle_deg=angle_deg or 0.0,
-                  feed_mm_min=cfg.speed_mm_s * 60.0)
+    fields = dict(x_mm=x_mm, y_mm=y_mm, z_mm=z_mm, angle_deg=angle_deg or 0.0, feed_mm_min=cfg.speed_mm_s * 60.0)
     lines = []
     if angle_deg is not None:
         if not math.isfinite(angle_deg):
@@ -115,8 +122,10 @@ class SerialGcodeArm(Arm):
                 self._command(cmd, self.cfg.motion_timeout_s)
             except ErrorResponse as e:
                 if e.code == 5:
-                    e.hint = ("homing is disabled on the controller ($22=0): enable it, or set "
-                              "arm.serial.commands.home = \"\" to move to arm.serial.home_position_mm")
+                    e.hint = (
+                        "homing is disabled on the controller ($22=0): enable it, or set "
+                        'arm.serial.commands.home = "" to move to arm.serial.home_position_mm'
+                    )
                 raise
             self._state = "idle"
             self._setup()
@@ -247,8 +256,11 @@ class SerialGcodeArm(Arm):
 
     def _gripper(self, cmd: str, closed: bool) -> None:
         if not cmd:
-            raise ArmError("this arm has no gripper command configured", port=self.port,
-                           hint="set arm.serial.commands.gripper_open / gripper_close")
+            raise ArmError(
+                "this arm has no gripper command configured",
+                port=self.port,
+                hint="set arm.serial.commands.gripper_open / gripper_close",
+            )
         with self._guard(cmd):
             self._ready()
             # GRBL runs spindle commands in order with motion: the ok may wait for moves to end.
@@ -265,8 +277,13 @@ class SerialGcodeArm(Arm):
                 return
             if m := re.fullmatch(r"error:(\d+)", reply):
                 code = int(m.group(1))
-                raise ErrorResponse(f"arm refused a command: error:{code}: {error_meaning(code)}",
-                                    code=code, port=self.port, command=cmd, reply=reply)
+                raise ErrorResponse(
+                    f"arm refused a command: error:{code}: {error_meaning(code)}",
+                    code=code,
+                    port=self.port,
+                    command=cmd,
+                    reply=reply,
+                )
             self._note(reply, cmd)
         raise NoResponse(f"no reply within {timeout_s} s", port=self.port, command=cmd)
 
@@ -277,21 +294,25 @@ class SerialGcodeArm(Arm):
         if m := re.fullmatch(r"ALARM:(\d+)", reply):
             code = int(m.group(1))
             self._state = "alarm"
-            raise AlarmResponse(f"arm alarm {code}: {alarm_meaning(code)}", code=code,
-                                port=self.port, command=cmd, reply=reply)
+            raise AlarmResponse(
+                f"arm alarm {code}: {alarm_meaning(code)}", code=code, port=self.port, command=cmd, reply=reply
+            )
         if _BANNER.search(reply):
             self._connected = False
             self._lost = True
-            raise ConnectionLost("the arm controller restarted unexpectedly (power dip or USB reset); "
-                                 "its position is lost", port=self.port, command=cmd, reply=reply)
+            raise ConnectionLost(
+                "the arm controller restarted unexpectedly (power dip or USB reset); its position is lost",
+                port=self.port,
+                command=cmd,
+                reply=reply,
+            )
         if m := _STATUS.fullmatch(reply):
             self._parse_status(m)
             return
         if reply.startswith("[") and reply.endswith("]"):
             log.info("%s: %s", self.port, reply)
             return
-        raise NoResponse("unreadable reply from the arm", port=self.port, command=cmd,
-                         reply=reply[:80], hint=BAUD_HINT)
+        raise NoResponse("unreadable reply from the arm", port=self.port, command=cmd, reply=reply[:80], hint=BAUD_HINT)
 
     def _parse_status(self, m: re.Match) -> str:
         self._state = _STATES.get(m.group(1), "fault")
@@ -335,16 +356,26 @@ class SerialGcodeArm(Arm):
                     break
                 if reply is not None and (m := re.fullmatch(r"error:(\d+)", reply)):
                     code = int(m.group(1))
-                    raise ErrorResponse(f"arm refused the wait command: error:{code}: {error_meaning(code)}",
-                                        code=code, port=self.port, command=wait_cmd, reply=reply)
+                    raise ErrorResponse(
+                        f"arm refused the wait command: error:{code}: {error_meaning(code)}",
+                        code=code,
+                        port=self.port,
+                        command=wait_cmd,
+                        reply=reply,
+                    )
                 if reply is not None:
                     self._note(reply, wait_cmd)
                     if self._state == "alarm":
-                        raise AlarmResponse("arm went into alarm while moving", port=self.port,
-                                            command=wait_cmd, reply=reply)
+                        raise AlarmResponse(
+                            "arm went into alarm while moving", port=self.port, command=wait_cmd, reply=reply
+                        )
                 if time.monotonic() >= deadline:
-                    raise NoResponse(f"motion not finished within {timeout_s} s", port=self.port,
-                                     command=wait_cmd, hint="raise arm.serial.motion_timeout_s if the move is long")
+                    raise NoResponse(
+                        f"motion not finished within {timeout_s} s",
+                        port=self.port,
+                        command=wait_cmd,
+                        hint="raise arm.serial.motion_timeout_s if the move is long",
+                    )
                 if self.cfg.status_query and time.monotonic() >= next_poll:
                     self.line.write(STATUS_QUERY, "?")
                     next_poll = time.monotonic() + self.cfg.poll_interval_s
@@ -358,8 +389,13 @@ class SerialGcodeArm(Arm):
             if state == "Alarm":
                 raise AlarmResponse("arm went into alarm while moving", port=self.port, command="?", reply=state)
             if time.monotonic() >= deadline:
-                raise NoResponse(f"arm not idle within {timeout_s} s (state {state})", port=self.port,
-                                 command="?", reply=state, hint="raise arm.serial.motion_timeout_s if the move is long")
+                raise NoResponse(
+                    f"arm not idle within {timeout_s} s (state {state})",
+                    port=self.port,
+                    command="?",
+                    reply=state,
+                    hint="raise arm.serial.motion_timeout_s if the move is long",
+                )
             time.sleep(self.cfg.poll_interval_s)
 
     def _link_lost(self) -> None:

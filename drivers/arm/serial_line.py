@@ -2,6 +2,7 @@
 
 Knows nothing of G-code; turns every pyserial/OS failure into ConnectionLost naming the port.
 """
+
 from __future__ import annotations
 
 import logging
@@ -42,8 +43,9 @@ class SerialLine:
         self.close()
         try:
             # exclusive: a second program opening the port is refused, never let in to reset the controller
-            self._ser = serial.serial_for_url(self.port, baudrate=self.baud, timeout=0.01, write_timeout=1.0,
-                                              exclusive=True)
+            self._ser = serial.serial_for_url(
+                self.port, baudrate=self.baud, timeout=0.01, write_timeout=1.0, exclusive=True
+            )
         except (*_PORT_ERRORS, ValueError) as e:
             raise ConnectionLost(
                 f"cannot open serial port: {e}",

@@ -3,6 +3,7 @@
 Every frame is checked here, once for all sources: a missing frame or one of the wrong
 size is a CameraError with the reason, never an exception from deep inside OpenCV.
 """
+
 from __future__ import annotations
 
 import abc
@@ -33,17 +34,22 @@ class Camera(Device):
             raise CameraError("capture before connect", source=self.source)
         frame = self._grab()
         if frame is None or not isinstance(frame, np.ndarray) or frame.size == 0:
-            raise CameraError("returned no frame", source=self.source,
-                              hint="check the cable, the device index or URL, and that no other program holds the camera")
+            raise CameraError(
+                "returned no frame",
+                source=self.source,
+                hint="check the cable, the device index or URL, and that no other program holds the camera",
+            )
         if frame.ndim == 2:
             frame = np.repeat(frame[:, :, None], 3, axis=2)
         if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
-            raise CameraError(f"frame is {frame.dtype} with shape {frame.shape}, expected 8-bit BGR",
-                              source=self.source)
+            raise CameraError(
+                f"frame is {frame.dtype} with shape {frame.shape}, expected 8-bit BGR", source=self.source
+            )
         h, w = frame.shape[:2]
         if (w, h) != (self.width_px, self.height_px):
             raise CameraError(
                 f"frame is {w}x{h} px, expected {self.width_px}x{self.height_px} px",
-                source=self.source, hint="set camera.width_px/height_px to a mode the camera supports",
+                source=self.source,
+                hint="set camera.width_px/height_px to a mode the camera supports",
             )
         return frame

@@ -1,4 +1,5 @@
 """Camera configuration: where frames come from, validated like the rest of the cell's TOML."""
+
 from __future__ import annotations
 
 from pydantic import Field
@@ -13,7 +14,9 @@ class CameraConfig(Strict):
     width_px: int = Field(1920, ge=16, le=20000)
     height_px: int = Field(1080, ge=16, le=20000)
     timeout_s: float = Field(5.0, gt=0, le=120)
-    focus: float | None = Field(None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)")
+    focus: float | None = Field(
+        None, ge=0, description="fixed focus (device units); None: leave as is (autofocus is off)"
+    )
     exposure: float | None = Field(None, description="fixed exposure (device units); None: leave auto-exposure on")
     warmup_frames: int = Field(5, ge=0, le=100, description="frames dropped after opening, while exposure settles")
     loop: bool = Field(False, description="video file or image folder: start again at the end")

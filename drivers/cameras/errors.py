@@ -1,4 +1,5 @@
 """Camera failures the operator sees as one line: which source, what went wrong."""
+
 from __future__ import annotations
 
 from drivers.errors import DeviceError

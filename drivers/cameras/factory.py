@@ -1,4 +1,5 @@
 """Which frame source a camera config names: a device index, a URL, a folder or a video file."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -17,15 +18,20 @@ def make_camera(cfg: CameraConfig) -> Camera:
     if source == "sim":
         raise CameraError("the simulated camera comes with the simulated cell", source=source)
     if source.isdigit():
-        return OpenCVCamera(int(source), cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure,
-                            cfg.warmup_frames)
+        return OpenCVCamera(
+            int(source), cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure, cfg.warmup_frames
+        )
     if "://" in source:
-        return OpenCVCamera(source, cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure,
-                            cfg.warmup_frames)
+        return OpenCVCamera(
+            source, cfg.width_px, cfg.height_px, cfg.timeout_s, cfg.focus, cfg.exposure, cfg.warmup_frames
+        )
     path = Path(source)
     if path.is_dir():
         return FolderCamera(path, cfg.width_px, cfg.height_px, cfg.loop)
     if path.is_file():
         return VideoFileCamera(path, cfg.width_px, cfg.height_px, cfg.loop)
-    raise CameraError("no such device, URL, folder or video file", source=source,
-                      hint="camera.source is 'sim', a device index (0), a URL (rtsp://...), a folder or a video file")
+    raise CameraError(
+        "no such device, URL, folder or video file",
+        source=source,
+        hint="camera.source is 'sim', a device index (0), a URL (rtsp://...), a folder or a video file",
+    )

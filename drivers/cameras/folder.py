@@ -1,4 +1,5 @@
 """Frames from a folder of images, in name order: stills replayed through the cell."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -51,8 +52,11 @@ class FolderCamera(Camera):
         except (UnknownFormat, OSError) as e:
             raise CameraError(f"{path.name}: not a readable image ({e})", source=self.source) from None
         if size != (self.width_px, self.height_px):  # refused from the header: a huge file is never decoded
-            raise CameraError(f"{path.name}: frame is {size[0]}x{size[1]} px, expected {self.width_px}x{self.height_px} "
-                              "px; not decoded", source=self.source)
+            raise CameraError(
+                f"{path.name}: frame is {size[0]}x{size[1]} px, expected {self.width_px}x{self.height_px} "
+                "px; not decoded",
+                source=self.source,
+            )
         frame = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if frame is None:
             raise CameraError(f"{path.name}: not a readable image", source=self.source)

@@ -4,6 +4,7 @@
 Reads PNG, JPEG, BMP, TIFF, WebP and PNM (PGM/PPM) headers: the formats a camera or an
 operator hands the cell. Anything else is reported as an unknown format.
 """
+
 from __future__ import annotations
 
 import struct

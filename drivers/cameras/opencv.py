@@ -4,6 +4,7 @@ The paper's webcam (Logitech C525) has autofocus and auto-exposure: either may d
 between the calibration and the job and move every located part, so both are locked
 where the backend allows it; what the camera would not accept is logged, not hidden.
 """
+
 from __future__ import annotations
 
 import logging
@@ -53,13 +54,20 @@ class OpenCVCamera(CaptureCamera):
         self.warmup_frames = warmup_frames
 
     def connect(self) -> None:
-        params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.timeout_s * 1000),
-                  cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self.timeout_s * 1000)]
+        params = [
+            cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+            int(self.timeout_s * 1000),
+            cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+            int(self.timeout_s * 1000),
+        ]
         cap = cv2.VideoCapture(self._target, cv2.CAP_ANY, params)
         if not cap.isOpened():
             cap.release()
-            raise CameraError("cannot open", source=self.source,
-                              hint="check the device index (ls /dev/video*) or the URL, and that no other program holds it")
+            raise CameraError(
+                "cannot open",
+                source=self.source,
+                hint="check the device index (ls /dev/video*) or the URL, and that no other program holds it",
+            )
         self._cap = cap
         self._set(cv2.CAP_PROP_FRAME_WIDTH, self.width_px, "width")
         self._set(cv2.CAP_PROP_FRAME_HEIGHT, self.height_px, "height")

@@ -1,4 +1,5 @@
 """Frames from a video file, in order: a recorded job replayed through the cell."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -6,6 +6,7 @@ profile velocity (speed_scale > 1 runs faster). When given the arm config it als
 which servos are joints and gripper, so it can tell a simulated world the tool pose and
 call listeners on gripper open/close. Faults can be injected.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,14 +26,56 @@ ALERT = 0x80
 # XM430-W350 control table: address -> (size in bytes, default).
 XM430_MODEL = 1020
 TABLE = {
-    0: (2, XM430_MODEL), 6: (1, 52), 7: (1, 1), 8: (1, 1), 9: (1, 250), 10: (1, 0), 11: (1, 3),
-    12: (1, 255), 13: (1, 2), 20: (4, 0), 24: (4, 10), 31: (1, 80), 32: (2, 160), 34: (2, 95),
-    36: (2, 885), 38: (2, 1193), 44: (4, 200), 48: (4, 4095), 52: (4, 0), 63: (1, 52),
-    64: (1, 0), 65: (1, 0), 68: (1, 2), 69: (1, 0), 70: (1, 0), 76: (2, 1920), 78: (2, 100),
-    80: (2, 0), 82: (2, 0), 84: (2, 800), 88: (2, 0), 90: (2, 0), 98: (1, 0), 100: (2, 885),
-    102: (2, 1193), 104: (4, 0), 108: (4, 0), 112: (4, 0), 116: (4, 2048), 120: (2, 0),
-    122: (1, 0), 123: (1, 0), 124: (2, 0), 126: (2, 0), 128: (4, 0), 132: (4, 2048),
-    136: (4, 0), 140: (4, 0), 144: (2, 120), 146: (1, 35),
+    0: (2, XM430_MODEL),
+    6: (1, 52),
+    7: (1, 1),
+    8: (1, 1),
+    9: (1, 250),
+    10: (1, 0),
+    11: (1, 3),
+    12: (1, 255),
+    13: (1, 2),
+    20: (4, 0),
+    24: (4, 10),
+    31: (1, 80),
+    32: (2, 160),
+    34: (2, 95),
+    36: (2, 885),
+    38: (2, 1193),
+    44: (4, 200),
+    48: (4, 4095),
+    52: (4, 0),
+    63: (1, 52),
+    64: (1, 0),
+    65: (1, 0),
+    68: (1, 2),
+    69: (1, 0),
+    70: (1, 0),
+    76: (2, 1920),
+    78: (2, 100),
+    80: (2, 0),
+    82: (2, 0),
+    84: (2, 800),
+    88: (2, 0),
+    90: (2, 0),
+    98: (1, 0),
+    100: (2, 885),
+    102: (2, 1193),
+    104: (4, 0),
+    108: (4, 0),
+    112: (4, 0),
+    116: (4, 2048),
+    120: (2, 0),
+    122: (1, 0),
+    123: (1, 0),
+    124: (2, 0),
+    126: (2, 0),
+    128: (4, 0),
+    132: (4, 2048),
+    136: (4, 0),
+    140: (4, 0),
+    144: (2, 120),
+    146: (1, 35),
 }
 TABLE_SIZE = 147
 TORQUE_ENABLE, HW_ERROR, GOAL_POSITION, MOVING, PRESENT_POSITION = 64, 70, 116, 122, 132
@@ -153,7 +196,9 @@ class DxlBusEmulator(EmulatedDevice):
         self.speed_scale = speed_scale
         ids = ids or (*self.arm.joint_ids, self.arm.gripper_id)
         start = self.arm.home_joints_deg if start_joints_deg is None else start_joints_deg
-        joint_ticks = dict(zip(self.arm.joint_ids, self.kinematics.to_ticks([math.radians(v) for v in start]), strict=True))
+        joint_ticks = dict(
+            zip(self.arm.joint_ids, self.kinematics.to_ticks([math.radians(v) for v in start]), strict=True)
+        )
         self.servos = {
             i: Servo(i, joint_ticks.get(i, self.arm.gripper_open_ticks if i == self.arm.gripper_id else 2048))
             for i in ids
@@ -220,7 +265,9 @@ class DxlBusEmulator(EmulatedDevice):
     def tick(self, now_s: float) -> bytes:
         dt = 0.0 if self._last_s is None else max(0.0, now_s - self._last_s)
         self._last_s = now_s
-        moving_before = any(s.table[MOVING] or s.get(GOAL_POSITION, 4) != round(s.position) for s in self.servos.values() if s.torque)
+        moving_before = any(
+            s.table[MOVING] or s.get(GOAL_POSITION, 4) != round(s.position) for s in self.servos.values() if s.torque
+        )
         # Servos move together: the bus was moving for as long as its longest-moving servo.
         self.motion_time_s += max(s.advance(dt * self.speed_scale) for s in self.servos.values())
         if moving_before:

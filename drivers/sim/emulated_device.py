@@ -1,4 +1,5 @@
 """What both emulated arms share: the pty server's hooks, tool listeners and armed faults."""
+
 from __future__ import annotations
 
 import logging

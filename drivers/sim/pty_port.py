@@ -3,6 +3,7 @@
 The path handed out is a symlink to the pty's slave, kept stable across a simulated
 unplug/replug the way /dev/serial/by-id/... is for a real USB adapter.
 """
+
 from __future__ import annotations
 
 import contextlib
