@@ -107,6 +107,7 @@ def test_limit_comes_from_the_config(work, tmp_path):
         ("missing calibration", "calibration file not found"),
         ("wrong size", "1280 x 720"),
         ("other plate", "plate.columns"),
+        ("huge image", "more than camera.max_image_px"),
     ],
 )
 def test_bad_input_is_one_line_exit_2(work, tmp_path, case, message):
@@ -119,6 +120,9 @@ def test_bad_input_is_one_line_exit_2(work, tmp_path, case, message):
     elif case == "wrong size":
         cv2.imwrite(str(work / "small.png"), np.full((480, 640, 3), 200, np.uint8))
         image = "small.png"
+    elif case == "huge image":  # 20000 x 20000 in its header: refused before it is decoded
+        cv2.imwrite(str(work / "huge.png"), np.zeros((20000, 20000), np.uint8))
+        image = "huge.png"
     else:
         cfg = tmp_path / "plate.toml"
         cfg.write_text("[camera]\nwidth_px = 1280\nheight_px = 720\n[plate]\ncolumns = 12\n")

@@ -138,7 +138,9 @@ def cmd_check_calibration(args: argparse.Namespace) -> int:
         raise InputError(f"cannot open log {args.log}: {e}") from None
     config = load_config(args.config)
     path = args.calibration or config.calibration.active_path
-    result = check_calibration(read_image(args.image), Calibration.load(path), config)
+    calibration = Calibration.load(path)
+    image = read_image(args.image, config.camera.max_image_px, calibration.image_size)  # header checked first
+    result = check_calibration(image, calibration, config)
     print(check_text(result, str(args.image)))
     log.info(
         "calibration check of %s on %s: RMS %.4f mm, max %.4f mm, %s",

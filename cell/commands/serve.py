@@ -19,6 +19,7 @@ from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _device
 from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
 from cell.oplog import log_to_file
+from cell.service.api import Command, InvalidState
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import Devices, LineService
 from cell.service.shiftlog import ShiftLog
@@ -134,6 +135,16 @@ def _check_port_free(host: str, port: int, option: str) -> None:
             ) from None
 
 
+def _toggle_pause(service: LineService) -> None:
+    """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
+    command = Command.RESUME if service.snapshot().paused else Command.PAUSE
+    try:
+        service.command(command)
+        log.info("SIGUSR1: %s", command.value)
+    except InvalidState as e:
+        log.warning("SIGUSR1 ignored: %s", e)
+
+
 async def _serve(config: CellConfig, service: LineService) -> int:
     """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down.
 
@@ -144,9 +155,10 @@ async def _serve(config: CellConfig, service: LineService) -> int:
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}  # cell.signals' handlers, back afterwards
+    previous = {sig: signal.getsignal(sig) for sig in (*STOP_SIGNALS, signal.SIGUSR1)}  # back afterwards
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
+    loop.add_signal_handler(signal.SIGUSR1, _toggle_pause, service)
     interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
     try:
         for interface in interfaces:
