@@ -92,6 +92,7 @@ class Runner:
         self.tracker = Tracker(cfg.verify_radius_mm)
         self.frame: np.ndarray | None = None
         self.result: LocateResult | None = None
+        self.pick_order: list[int] | None = None  # ids of the frame's parts in the order PLAN chose; None: not planned
         self.target: Target | None = None
         self.track: Track | None = None
         self.holding = False
@@ -286,6 +287,7 @@ class Runner:
     def _locate(self) -> Step:
         t0 = time.perf_counter()
         self.result = self.locate(self.frame)
+        self.pick_order = None
         self.summary.locate_s += time.perf_counter() - t0
         objects, warnings = self.result.objects, self.result.warnings
         self.audit.event(
@@ -364,7 +366,9 @@ class Runner:
             self.tracker.keep_only(seen)
         status = self.arm.status()
         here = (status.pose.x_mm, status.pose.y_mm) if status.pose is not None else None
-        return [pending[id(p)] for p in self.planner.order([o for o, _ in pending.values()], here)]
+        chosen = [pending[id(p)] for p in self.planner.order([o for o, _ in pending.values()], here)]
+        self.pick_order = [o.id for o, _ in chosen]
+        return chosen
 
     def _reachable(self, part: LocatedPart, track: Track) -> Target | None:
         """The part's target if the planner and the arm accept every point of it; else the
@@ -379,6 +383,7 @@ class Runner:
         except (Unreachable, OutOfReach) as e:
             track.status = PartStatus.UNREACHABLE
             self.summary.unreachable += 1
+            self.pick_order.remove(part.id)  # skipped: it gets no number on the screen
             self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
             self.progress(
                 f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "

@@ -5,6 +5,7 @@ carried over a restart, and nothing left running after close."""
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import threading
 import time
@@ -93,8 +94,35 @@ def test_continuous_picks_pauses_resumes_and_stops_into_ready(tmp_path):
         assert {"state", "pick", "frame", "counters"} <= set(kinds)
         frame = service.latest_frame()
         assert frame.image_bgr.shape == (540, 960, 3) and frame.seq >= 18
+        assert frame.seq == sum(e["kind"] == "frame" for e in read_shift(tmp_path / "logs"))  # one per frame, pause too
         assert [p.outcome for p in snap.last_picks] == ["picked"] * len(snap.last_picks)
         assert len(snap.last_picks) == 17 and snap.last_picks[-1].cls in ("bolt", "nut")
+
+
+def test_the_frame_numbers_the_parts_in_the_order_the_runner_picks_them(tmp_path):
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        seen = []  # audit frames, the screen's frames and the runner's targets, in the worker's order
+        service.subscribe(lambda e: e.kind == "frame" and seen.append(("view", e.frame)))
+        service.audit.listeners.append(lambda e: e["kind"] in ("frame", "target") and seen.append((e["kind"], e)))
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: service.snapshot().waiting_for_parts, what="the table cleared and the cell waiting")
+        service.command(Command.STOP)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
+    frames = [e for kind, e in seen if kind == "frame"]
+    views = [v for kind, v in seen if kind == "view"]
+    assert len(views) == len(frames) >= 18 and [v.seq for v in views] == list(range(1, len(views) + 1))
+    targets = 0
+    for i, (kind, e) in enumerate(seen):
+        if kind != "target":
+            continue
+        targets += 1
+        (_, view), (_, frame) = seen[i - 1], seen[i - 2]  # the frame goes out as PLAN chose, before the arm moves
+        parts = {d["id"]: d for d in frame["detections"]}
+        assert view.pick_order and all(parts[n]["pick"] for n in view.pick_order)
+        nearest = min(parts.values(), key=lambda d: math.dist(d["table_mm"], e["table_mm"]))
+        assert nearest["id"] == view.pick_order[0], f"the arm goes for part {nearest['id']}, numbered 1 is another"
+    assert targets == 17 and views[-1].pick_order == ()  # the last frame: nothing left to pick
 
 
 def test_halt_then_reset_and_nothing_but_reset_in_halted(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import get_args
 
@@ -112,12 +113,14 @@ def format_table(result: LocateResult) -> str:
     return "\n".join(lines)
 
 
-def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
+def annotate(image: np.ndarray, result: LocateResult, order: Sequence[int] | None = None) -> np.ndarray:
     """The image with each part outlined, numbered and labelled (the paper's Fig. 6): bolts with
-    the line the jaws close along, unknown parts with the reason they are left."""
+    the line the jaws close along, unknown parts with the reason they are left. `order` (part
+    ids in the order the cell will pick them) puts a badge 1, 2, 3... beside those parts."""
     out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     scale = max(out.shape[1] / 1280, 0.6)
     thick = max(1, round(2 * scale))
+    rank = {part_id: n for n, part_id in enumerate(order or (), start=1)}
     for p in result.objects:
         colour = _COLOURS_BGR[p.cls]
         if p.outline_px is not None:
@@ -130,7 +133,22 @@ def annotate(image: np.ndarray, result: LocateResult) -> np.ndarray:
         org = (x + round(8 * scale), y - round(8 * scale))
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), thick + 2, cv2.LINE_AA)
         cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, thick, cv2.LINE_AA)
+        if p.id in rank:
+            _draw_rank(out, (x, y), rank[p.id], scale, thick)
     return out
+
+
+def _draw_rank(out: np.ndarray, centre: tuple[int, int], n: int, scale: float, thick: int) -> None:
+    """The pick order as a white disc with a black number, up and left of the part's centre."""
+    r = round(13 * scale)
+    c = (centre[0] - round(1.6 * r), centre[1] - round(1.6 * r))
+    cv2.circle(out, c, r, (255, 255, 255), -1, cv2.LINE_AA)
+    cv2.circle(out, c, r, (0, 0, 0), max(1, thick // 2), cv2.LINE_AA)
+    text = str(n)
+    size = 0.55 * scale if n < 10 else 0.42 * scale
+    (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, size, thick)
+    org = (c[0] - w // 2, c[1] + h // 2)
+    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, size, (0, 0, 0), thick, cv2.LINE_AA)
 
 
 def _draw_jaws(out: np.ndarray, part, thick: int) -> None:

@@ -145,6 +145,7 @@ class FrameView:
     seq: int  # +1 per captured frame
     capture_monotonic_s: float  # time.monotonic() at capture, for latency measurement
     image_bgr: np.ndarray  # the annotated frame (outlines, class, pick order, jaw direction, reasons)
+    pick_order: tuple[int, ...] = ()  # the drawn order: part ids as PLAN chose them; empty if not planned
 
 
 @dataclass(frozen=True)

@@ -126,6 +126,7 @@ class LineService:
         self._last_target: dict | None = None
         self._frame: FrameView | None = None
         self._frame_seq = 0
+        self._located: tuple[np.ndarray, object, float] | None = None  # frame, result, capture time: awaiting PLAN
         self._job_camera: _Locked | None = None
         self._listeners: list[Callable[[ServiceEvent], None]] = []
         self._jobs: queue.Queue = queue.Queue()
@@ -299,6 +300,7 @@ class LineService:
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
             log.exception("job ended by an internal error")
             outcome, reason = "fault", f"internal error: {type(e).__name__}: {e}"
+        self._publish_frame()  # a frame located just before the job ended is still shown
         with self._lock:
             self._controls = self._runner = None
             if outcome == "fault":
@@ -315,13 +317,16 @@ class LineService:
         """The runner's events (worker thread): state, counters, picks, frames, alarms."""
         kind = e["kind"]
         if kind == "state":
+            if State(e["target"]) not in (State.VERIFY, State.PLAN):  # PLAN ran, or will not for this frame
+                self._publish_frame()
             with self._lock:
                 self._cell_state = State(e["target"]).name
             self._publish("state")
         elif kind == "target":
             self._last_target = e
+            self._publish_frame()  # PLAN chose: the frame goes out with its order before the arm moves
         elif kind == "frame":
-            self._frame_event(e)
+            self._hold_frame()
         if kind in ("verify", "failed"):
             self._pick_event(e)
         with self._lock:
@@ -331,13 +336,24 @@ class LineService:
         if changed:
             self._publish("counters")
 
-    def _frame_event(self, e: dict) -> None:
+    def _hold_frame(self) -> None:
+        """A located frame waits for PLAN, so the screen can number the parts in the order picked."""
         runner = self._runner
         if runner is None or runner.frame is None or runner.result is None:
             return
-        self._frame_seq += 1
+        self._publish_frame()  # never more than one frame waiting
         captured_s = self._job_camera.captured_s if self._job_camera is not None else time.monotonic()
-        self._frame = FrameView(self._frame_seq, captured_s, annotate(runner.frame, runner.result))
+        self._located = (runner.frame, runner.result, captured_s)
+
+    def _publish_frame(self) -> None:
+        """The waiting frame, numbered with the runner's pick order if PLAN ran for it (else without numbers)."""
+        if self._located is None:
+            return
+        (frame, result, captured_s), self._located = self._located, None
+        order = None if self._runner is None else self._runner.pick_order
+        order = tuple(order) if order is not None else ()
+        self._frame_seq += 1
+        self._frame = FrameView(self._frame_seq, captured_s, annotate(frame, result, order), order)
         self._publish("frame", frame=self._frame)
 
     def _pick_event(self, e: dict) -> None:
