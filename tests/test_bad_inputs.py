@@ -292,22 +292,22 @@ def test_teach_refuses_points_that_cannot_fix_the_frame(tmp_path, capsys, points
 
 
 # ---- other outputs ---------------------------------------------------------------------------
+def locate_annotate(work: Path, out) -> list[str]:
+    """`run-cell locate` on the plate with its annotated image written to `out`."""
+    return [
+        "locate",
+        "--image",
+        str(work / "plate.png"),
+        "--calibration",
+        str(work / "cal.json"),
+        "--annotate",
+        str(out),
+    ]
+
+
 def test_locate_annotate_with_an_unknown_extension(work, tmp_path, capsys):
     out = tmp_path / "out.xyz"
-    assert (
-        main(
-            [
-                "locate",
-                "--image",
-                str(work / "plate.png"),
-                "--calibration",
-                str(work / "cal.json"),
-                "--annotate",
-                str(out),
-            ]
-        )
-        == 2
-    )
+    assert main(locate_annotate(work, out)) == 2
     assert (
         one_line(capsys.readouterr().err) == f"run-cell locate: error: {out}: cannot write an image as '.xyz' "
         "(hint: use .png or .jpg)"
@@ -325,20 +325,7 @@ def test_locate_annotate_and_calibrate_demo_on_a_failing_disk(work, tmp_path, ca
         return real_open(file, mode, *a, **k)
 
     monkeypatch.setattr("builtins.open", failing_open)
-    assert (
-        main(
-            [
-                "locate",
-                "--image",
-                str(work / "plate.png"),
-                "--calibration",
-                str(work / "cal.json"),
-                "--annotate",
-                str(tmp_path / "a.png"),
-            ]
-        )
-        == code
-    )
+    assert main(locate_annotate(work, tmp_path / "a.png")) == code
     assert os.strerror(failure) in one_line(capsys.readouterr().err)
     assert main(["calibrate-demo", "--out-dir", str(tmp_path / "demo")]) == code
     err = capsys.readouterr().err

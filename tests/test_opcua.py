@@ -18,6 +18,7 @@ import pytest
 from asyncua import Client, ua
 
 from cell.audit import read_events
+from tests.serve_process import free_port
 
 pytestmark = pytest.mark.timeout(240)  # runs run-cell serve as a subprocess
 
@@ -42,12 +43,6 @@ VARIABLES = [
     "CalibrationTime",
 ]
 METHODS = ["StartSingleJob", "StartContinuous", "Stop", "Pause", "Resume", "Halt", "Reset"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Serve:

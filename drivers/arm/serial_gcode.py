@@ -275,17 +275,21 @@ class SerialGcodeArm(Arm):
         while (reply := self.line.read_line(deadline, cmd)) is not None:
             if reply == "ok":
                 return
-            if m := re.fullmatch(r"error:(\d+)", reply):
-                code = int(m.group(1))
-                raise ErrorResponse(
-                    f"arm refused a command: error:{code}: {error_meaning(code)}",
-                    code=code,
-                    port=self.port,
-                    command=cmd,
-                    reply=reply,
-                )
+            self._raise_if_refused(reply, cmd, "a command")
             self._note(reply, cmd)
         raise NoResponse(f"no reply within {timeout_s} s", port=self.port, command=cmd)
+
+    def _raise_if_refused(self, reply: str, cmd: str, what: str) -> None:
+        """GRBL's `error:N` to the command `cmd` as an ErrorResponse carrying its meaning."""
+        if m := re.fullmatch(r"error:(\d+)", reply):
+            code = int(m.group(1))
+            raise ErrorResponse(
+                f"arm refused {what}: error:{code}: {error_meaning(code)}",
+                code=code,
+                port=self.port,
+                command=cmd,
+                reply=reply,
+            )
 
     def _note(self, reply: str, cmd: str) -> None:
         """Handle a line that is not the answer awaited: push messages, status, alarms, garbage."""
@@ -354,16 +358,8 @@ class SerialGcodeArm(Arm):
                 reply = self.line.read_line(min(deadline, next_poll), wait_cmd)
                 if reply == "ok":
                     break
-                if reply is not None and (m := re.fullmatch(r"error:(\d+)", reply)):
-                    code = int(m.group(1))
-                    raise ErrorResponse(
-                        f"arm refused the wait command: error:{code}: {error_meaning(code)}",
-                        code=code,
-                        port=self.port,
-                        command=wait_cmd,
-                        reply=reply,
-                    )
                 if reply is not None:
+                    self._raise_if_refused(reply, wait_cmd, "the wait command")
                     self._note(reply, wait_cmd)
                     if self._state == "alarm":
                         raise AlarmResponse(
