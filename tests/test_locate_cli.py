@@ -107,7 +107,7 @@ def test_bad_config_names_the_key(files, capsys):
 
 
 def test_annotate_draws_the_pick_order_only_beside_the_ordered_parts():
-    from cell.commands.locate import annotate
+    from cell.vision.annotate import annotate
     from cell.vision.types import LocatedPart, LocateResult
 
     image = np.full((H, W, 3), 90, np.uint8)

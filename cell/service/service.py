@@ -27,7 +27,6 @@ from datetime import UTC, datetime
 import numpy as np
 
 from cell.calibration.store import Calibration
-from cell.commands.locate import annotate
 from cell.config import CellConfig
 from cell.planning import Planner, table_to_robot
 from cell.runner import Runner
@@ -47,6 +46,7 @@ from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.signals import Controls
 from cell.statemachine import State
+from cell.vision.annotate import annotate
 from drivers.arm.base import Arm
 from drivers.cameras.base import Camera
 
