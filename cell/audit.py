@@ -5,9 +5,10 @@ A run killed at any moment leaves a valid file (at worst a last line cut short, 
 `seq`, `t_utc`, `t_run_s`, `kind` and `state`; the rest depends on the kind.
 
 The file is created exclusively (never another run's). A write that fails (a full disk)
-raises AuditWriteFailed once, so the run faults and stops safely; from then on, and
-always once `best_effort` is set (while making safe and ending the run), events that
-cannot be written are dropped: the record never stands in the way of the safe stop.
+raises AuditWriteFailed, so the run faults and stops safely, and so does every later one
+(nothing runs without its record); once `best_effort` is set (while making safe and ending
+the run) events that cannot be written are dropped instead: the record never stands in
+the way of the safe stop.
 """
 
 from __future__ import annotations
@@ -18,29 +19,11 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-import numpy as np
-
 from cell.errors import CellError
+from cell.events import Event, StateChanged, to_json
 from cell.recordfile import RecordFile
 
 log = logging.getLogger(__name__)
-
-
-def _plain(value):
-    """JSON-safe copy: numpy scalars and arrays, tuples, enums, paths."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return getattr(value, "value", None) or str(value)
 
 
 class AuditWriteFailed(CellError):
@@ -50,7 +33,13 @@ class AuditWriteFailed(CellError):
 
 
 class AuditLog:
-    """Append-only JSON-lines writer; `state` is stamped on every event by the runner."""
+    """Append-only JSON-lines writer of the cell's events (cell.events); the runner's state is
+    stamped on every line (`state`: the state the event happened in).
+
+    It is the event stream's synchronous record (cell.eventbus): `record(event)` writes one
+    line before the emitter goes on, so what the arm is about to do is on disk first. It can
+    stand in for a whole bus (`emit`) where nothing else listens (tests, benches).
+    """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -65,6 +54,18 @@ class AuditLog:
         """The write error that broke the log, if any (later events were dropped)."""
         return self._file.failed
 
+    def record(self, event: Event) -> dict:
+        """Write one typed event; a StateChanged moves the stamped state on after its own line."""
+        fields = event.record()
+        if event.job_id is not None:
+            fields = {"job": event.job_id, **fields}
+        line = self.event(event.kind, **fields)
+        if isinstance(event, StateChanged):
+            self.state = event.target
+        return line
+
+    emit = record  # an AuditLog is a bus with one record and no subscribers
+
     def event(self, kind: str, **fields) -> dict:
         self._seq += 1
         record = {
@@ -73,11 +74,10 @@ class AuditLog:
             "t_run_s": round(time.monotonic() - self._t0, 4),
             "kind": kind,
             "state": self.state,
-            **_plain(fields),
+            **to_json(fields),
         }
-        broken_before = self.failed is not None
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
-            if not (broken_before or self.best_effort):
+            if not self.best_effort:  # every write, not only the first: nothing runs without its record
                 raise AuditWriteFailed(
                     f"audit log {self.path}: cannot write event {self._seq} ({kind}): "
                     f"{self.failed.strerror or self.failed}",

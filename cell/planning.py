@@ -134,6 +134,7 @@ class Target:
     approach_z_mm: float
     jaw_angle_deg: float | None
     bin_robot_mm: tuple[float, float, float]
+    pixel: tuple[float, float] = (math.nan, math.nan)  # where the part was seen in the frame
 
     def pick_points(self) -> list[tuple[float, float, float]]:
         """Above the part, then down to it: the moves that turn the jaws to jaw_angle_deg."""
@@ -180,6 +181,7 @@ class Planner:
             z + plan.approach_above_table_mm,
             angle,
             plan.bin_robot_mm,
+            (float(part.pixel[0]), float(part.pixel[1])),
         )
         if not all(math.isfinite(v) for v in (*t.robot_mm, t.approach_z_mm, *(() if angle is None else (angle,)))):
             raise Unreachable(f"target {t.robot_mm} mm, jaws {angle} deg: not a finite number (calibration?)")

@@ -26,11 +26,31 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
-from cell.audit import AuditLog
 from cell.errors import REPORTED_ERRORS, CellError, ConfigError
+from cell.events import (
+    ArmCommanded,
+    Event,
+    FaultRaised,
+    FrameLocated,
+    FrameRef,
+    PartFailed,
+    PartUnreachable,
+    PickOrderChosen,
+    PickVerified,
+    RunEnded,
+    RunStarted,
+    RunSummarized,
+    SafeStepDone,
+    SimTruth,
+    StateChanged,
+    TargetChosen,
+    new_job_id,
+    pick_id,
+)
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.signals import Controls, StopRequested
@@ -50,6 +70,16 @@ EXIT_DONE, EXIT_INCOMPLETE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 130
 Step = tuple[State, str]  # what a state handler returns: the next state and why
 
 
+class EventSink(Protocol):
+    """Where the runner's events go: the event bus (cell.eventbus), or an AuditLog alone.
+    `emit` writes the record before returning (and raises when it cannot: the job faults);
+    with `best_effort` set it never raises (making safe, ending)."""
+
+    best_effort: bool
+
+    def emit(self, event: Event) -> object: ...
+
+
 class Runner:
     """One run of the cell, from connecting the devices to the summary.
 
@@ -65,7 +95,7 @@ class Runner:
         locate: Callable[[np.ndarray], LocateResult],
         planner: Planner,
         cfg: RunConfig,
-        audit: AuditLog,
+        events: EventSink,
         controls: Controls | None = None,
         expect_motion: bool = True,
         progress: Callable[[str], None] | None = None,
@@ -73,10 +103,14 @@ class Runner:
         sim_motion_s: Callable[[], float] | None = None,
         drift_watch: Callable[[np.ndarray], object] | None = None,
         continuous_interval_s: float | None = None,
+        job_id: str | None = None,
+        calibration_id: Callable[[], str] | None = None,
     ):
         self.camera, self.arm, self.locate, self.planner = camera, arm, locate, planner
         self.cfg = cfg
-        self.audit = audit
+        self.events = events
+        self.job_id = job_id or new_job_id()
+        self.calibration_id = calibration_id or (lambda: "")  # the calibration locate used, for the record
         self.controls = controls or Controls()
         self.expect_motion = expect_motion  # False: a mock arm over a real table, nothing can move
         self.progress = progress or (lambda line: None)
@@ -92,6 +126,9 @@ class Runner:
         self.tracker = Tracker(cfg.verify_radius_mm)
         self.frame: np.ndarray | None = None
         self.result: LocateResult | None = None
+        self.frame_ref: FrameRef | None = None  # the last frame and what was found on it, for the record
+        self._captured_s = 0.0
+        self._target_t0 = 0.0
         self.pick_order: list[int] | None = None  # ids of the frame's parts in the order PLAN chose; None: not planned
         self.target: Target | None = None
         self.track: Track | None = None
@@ -116,8 +153,8 @@ class Runner:
         t0 = time.perf_counter()
         with self.controls.shielded():
             try:
-                self.audit.event(
-                    "run_start",
+                self._emit(
+                    RunStarted,
                     expect_motion=self.expect_motion,
                     camera=self.camera.source,
                     arm=type(self.arm).__name__,
@@ -128,7 +165,7 @@ class Runner:
             except CellError as e:  # the audit log failed before the first step
                 self._finish(S.FAULT, f"{type(e).__name__}: {e}")
             finally:
-                self.audit.best_effort = True
+                self.events.best_effort = True
                 self._end(t0)
         return self.summary
 
@@ -159,9 +196,20 @@ class Runner:
         if self.sm.state == S.DONE:
             s.exit_code = EXIT_DONE if not (s.failed or s.unreachable) else EXIT_INCOMPLETE
         if self.truth is not None:
-            self.audit.event("sim_truth", where=self.truth())
-        self.audit.event("summary", **s.to_dict())
-        self.audit.event("run_end", outcome=s.outcome, exit_code=s.exit_code, reason=s.reason)
+            self._emit(SimTruth, where=self.truth())
+        self._emit(RunSummarized, summary=s.to_dict())
+        self._emit(
+            RunEnded,
+            outcome=s.outcome,
+            exit_code=s.exit_code,
+            reason=s.reason,
+            unknown_left=s.unknown_left,
+            ref=self.frame_ref,
+        )
+
+    def _emit(self, kind: type[Event], **fields) -> None:
+        """One event of this job on the stream (its record written before this returns)."""
+        self.events.emit(kind(job_id=self.job_id, **fields))
 
     def _step(self) -> None:
         state = self.sm.state
@@ -181,8 +229,7 @@ class Runner:
             self.sm.go(target, reason)
 
     def _on_transition(self, t: Transition) -> None:
-        self.audit.event("state", source=t.source.value, target=t.target.value, reason=t.reason)
-        self.audit.state = t.target.value
+        self._emit(StateChanged, source=t.source.value, target=t.target.value, reason=t.reason)
         log.info("%s -> %s: %s", t.source.name, t.target.name, t.reason)
 
     def _finish(self, state: State, reason: str) -> None:
@@ -191,17 +238,18 @@ class Runner:
         if self.sm.finished:  # a signal that came as the last step ended
             return
         with self.controls.shielded():
-            self.audit.best_effort = True
+            self.events.best_effort = True
+            where = self.sm.state.name
             s = self.summary
             s.outcome, s.reason = state.value, reason
             s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
             finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
             steps = self._make_safe(reason, park_only=state == S.DONE or finishing)
             if state == S.FAULT:
-                self.audit.event("fault", reason=reason)
-                log.error("fault in %s: %s", self.sm.state.name, reason)
+                self._emit(FaultRaised, reason=reason, where=where, ref=self.frame_ref)
+                log.error("fault in %s: %s", where, reason)
             for name, error in steps:
-                self.audit.event("safe_step", step=name, ok=error is None, **({"error": error} if error else {}))
+                self._emit(SafeStepDone, step=name, ok=error is None, error=error)
             self.sm.go(state, reason)
 
     def _make_safe(self, reason: str, park_only: bool) -> list[tuple[str, str | None]]:
@@ -244,7 +292,7 @@ class Runner:
 
     # ---- devices, timed -------------------------------------------------------------
     def _arm(self, method: str, *args, **kw) -> None:
-        self.audit.event("arm", command=method, args=args)
+        self._emit(ArmCommanded, command=method, args=args)
         t0 = time.perf_counter()
         try:
             getattr(self.arm, method)(*args, **kw)
@@ -279,6 +327,7 @@ class Runner:
         t0 = time.perf_counter()
         try:
             self.frame = self.camera.capture()
+            self._captured_s = time.monotonic()
         finally:
             self.summary.capture_s += time.perf_counter() - t0
         self.summary.frames += 1
@@ -290,12 +339,15 @@ class Runner:
         self.pick_order = None
         self.summary.locate_s += time.perf_counter() - t0
         objects, warnings = self.result.objects, self.result.warnings
-        self.audit.event(
-            "frame",
+        self.frame_ref = FrameRef(self.summary.frames, self.frame, self.result, self._captured_s)
+        self._emit(
+            FrameLocated,
             frame=self.summary.frames,
             locate_ms=round(self.result.elapsed_ms, 3),
-            warnings=warnings,
-            detections=[_detection(o) for o in objects],
+            warnings=tuple(warnings),
+            detections=tuple(_detection(o) for o in objects),
+            calibration_id=self.calibration_id(),
+            ref=self.frame_ref,
         )
         if warnings and not objects:  # blind, not empty: never "table clear" or "part gone"
             raise CellError("cannot see the table: " + "; ".join(warnings))
@@ -320,20 +372,34 @@ class Runner:
         else:
             result = "missed"
             self.summary.misses += 1
-        self.audit.event(
-            "verify",
+        self._emit(
+            PickVerified,
+            pick_id=pick_id(self.job_id, self.summary.attempts),
             track=track.id,
             cls=track.cls,
             attempt=track.attempts,
             result=result,
-            table_mm=track.table_mm,
-            still_at_mm=[o.table_mm for o in still],
+            pixel=target.pixel,
+            table_mm=target.table_mm,
+            robot_mm=target.robot_mm,
+            jaw_angle_deg=target.jaw_angle_deg,
+            still_at_mm=tuple(tuple(o.table_mm) for o in still),
+            calibration_id=self.calibration_id(),
+            cycle_ms=round(1e3 * (time.monotonic() - self._target_t0), 1),
+            ref=self.frame_ref,
         )
         reason = f"part {track.id} {result}"
         if result == "missed" and track.attempts > self.cfg.max_retries:
             track.status = PartStatus.FAILED
             self.summary.failed += 1
-            self.audit.event("failed", track=track.id, cls=track.cls, attempts=track.attempts)
+            self._emit(
+                PartFailed,
+                track=track.id,
+                cls=track.cls,
+                attempts=track.attempts,
+                pick_id=pick_id(self.job_id, self.summary.attempts),
+                ref=self.frame_ref,
+            )
             reason += f", failed after {track.attempts} attempts"
         elif result == "missed":
             reason += ", will retry"
@@ -349,8 +415,10 @@ class Runner:
         for part, track in self._choose():
             target = self._reachable(part, track)
             if target is not None:
+                self._announce_order()
                 self._start_attempt(track, target)
                 return S.PICK, f"part {track.id} ({target.cls}), attempt {track.attempts}"
+        self._announce_order()
         failed, unreachable = self.tracker.count(PartStatus.FAILED), self.tracker.count(PartStatus.UNREACHABLE)
         if self.continuous_interval_s is not None:
             self._attempt_mark = self.summary.attempts
@@ -370,6 +438,11 @@ class Runner:
         self.pick_order = [o.id for o, _ in chosen]
         return chosen
 
+    def _announce_order(self) -> None:
+        """The frame's pick order as PLAN left it (unreachable parts taken out), for the screen."""
+        if self.pick_order is not None:
+            self._emit(PickOrderChosen, frame=self.summary.frames, order=tuple(self.pick_order))
+
     def _reachable(self, part: LocatedPart, track: Track) -> Target | None:
         """The part's target if the planner and the arm accept every point of it; else the
         part is marked unreachable (before any motion) and None returned."""
@@ -384,7 +457,7 @@ class Runner:
             track.status = PartStatus.UNREACHABLE
             self.summary.unreachable += 1
             self.pick_order.remove(part.id)  # skipped: it gets no number on the screen
-            self.audit.event("unreachable", track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
+            self._emit(PartUnreachable, track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
             self.progress(
                 f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "
                 f"unreachable, skipped: {e}"
@@ -397,16 +470,20 @@ class Runner:
         self.summary.attempts += 1
         self.summary.retries += track.attempts > 1
         self.target, self.track = target, track
-        self.audit.event(
-            "target",
+        self._target_t0 = time.monotonic()
+        self._emit(
+            TargetChosen,
+            pick_id=pick_id(self.job_id, self.summary.attempts),
             track=track.id,
             cls=target.cls,
             attempt=track.attempts,
+            pixel=target.pixel,
             table_mm=target.table_mm,
             robot_mm=target.robot_mm,
             approach_z_mm=target.approach_z_mm,
             jaw_angle_deg=target.jaw_angle_deg,
             bin_robot_mm=target.bin_robot_mm,
+            calibration_id=self.calibration_id(),
         )
 
     def _pick(self) -> Step:

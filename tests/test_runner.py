@@ -284,8 +284,8 @@ def test_fault_in_verify_ends_in_fault_with_the_arm_safe(tmp_path):
 def _run_writes(tmp_path) -> int:
     runner, *_ = make_runner(tmp_path / "ref")
     runner.run()
-    runner.audit.close()
-    return len(read_events(runner.audit.path))
+    runner.events.close()
+    return len(read_events(runner.events.path))
 
 
 def test_a_full_disk_at_every_audit_write_faults_with_the_arm_safe(tmp_path, monkeypatch):

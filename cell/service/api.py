@@ -1,9 +1,13 @@
-"""The line service's interface: what OPC UA, the web screen and the CLI may ask of the cell.
+"""The line service's interface: what OPC UA, the web screen, MQTT, signals and the CLI may ask of
+the cell, and the one command table they all obey.
 
-Every interface holds a `LineServiceAPI` and nothing else: commands go in as `Command`
-events, which the service checks against its command table (`allowed()`) and hands to the
-one state machine; state comes out as immutable `Snapshot`s and pushed `ServiceEvent`s.
-No interface touches the runner, the arm or the camera directly.
+Every interface holds a `LineServiceAPI` and nothing else: a command goes in with its
+`Origin` (interface, user, role, address) and comes back accepted (a `CommandResult`) or
+refused (`CommandRefused` with a `Refusal` code and the reason in words). The same command
+in the same state gets the same answer whoever sends it. State comes out as immutable
+`Snapshot`s; what happens comes out as typed events (cell.events) to which interfaces
+subscribe, each on its own thread (cell.eventbus). No interface touches the runner, the arm
+or the camera directly.
 
 The outward state follows OPC 40100-1 (Machine Vision): Preoperational, Halted, Error,
 and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution.
@@ -11,13 +15,16 @@ and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
 from enum import Enum
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
+
+from cell.eventbus import SubscriberStats, Subscription
+from cell.events import SERVICE_ORIGIN, Event, Origin, Role
 
 
 class VisionState(Enum):
@@ -39,46 +46,176 @@ class VisionState(Enum):
     """Capturing at the configured interval and picking whatever appears, until Stop."""
 
 
+V = VisionState
+RUNNING = frozenset({V.SINGLE_EXECUTION, V.CONTINUOUS_EXECUTION})
+
+
 class Command(Enum):
     """A client's request; the value is the OPC UA method's BrowseName."""
 
     START_SINGLE = "StartSingleJob"
     START_CONTINUOUS = "StartContinuous"
     STOP = "Stop"  # end the job at a safe point, arm homed, back to Ready
+    ABORT = "Abort"  # end the job now: the safe stop (arm safe), back to Ready without a Reset
     PAUSE = "Pause"  # hold at a safe point with no part in the gripper
     RESUME = "Resume"
     HALT = "Halt"  # the safe stop, into Halted
     RESET = "Reset"  # from Halted or Error back to Ready
+    CAPTURE_PLATE = "CapturePlate"  # a frame for recalibration; the cell stays at rest meanwhile
+    INSTALL_CALIBRATION = "InstallCalibration"  # use a calibration that passed the gate
+    PREPARE_RECIPE = "PrepareRecipe"  # make a recipe the active one
+    UNPREPARE_RECIPE = "UnprepareRecipe"  # back to the built-in recipe
+    ADD_RECIPE = "AddRecipe"
+    REMOVE_RECIPE = "RemoveRecipe"
 
 
-_RUNNING = frozenset({Command.STOP, Command.HALT})
-_ALLOWED: dict[VisionState, frozenset[Command]] = {
-    VisionState.PREOPERATIONAL: frozenset(),
-    VisionState.HALTED: frozenset({Command.RESET}),
-    VisionState.ERROR: frozenset({Command.RESET}),
-    VisionState.INITIALIZED: frozenset({Command.HALT}),
-    VisionState.READY: frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.HALT}),
-    VisionState.SINGLE_EXECUTION: _RUNNING,
-    VisionState.CONTINUOUS_EXECUTION: _RUNNING,
+class Refusal(Enum):
+    """Why a command was refused (OPC UA maps each to a status code, the screen to an HTTP status)."""
+
+    INVALID_STATE = "invalid_state"  # not in this state, or a guard holds (a recalibration awaiting its answer)
+    ACCESS_DENIED = "access_denied"  # the user's role may not
+    SHUTTING_DOWN = "shutting_down"  # the service is stopping: it takes no more commands
+    BAD_ARGUMENT = "bad_argument"  # e.g. an unknown recipe
+    NOT_RECORDED = "not_recorded"  # the record could not be written, so nothing is done
+
+
+# The command table: the states each command is allowed in (pausing and guards below), and the
+# least role that may send it.
+_AT_REST = frozenset({V.READY, V.HALTED, V.ERROR})  # the arm parked or made safe
+_TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
+    Command.START_SINGLE: (frozenset({V.READY}), Role.OPERATOR),
+    Command.START_CONTINUOUS: (frozenset({V.READY}), Role.OPERATOR),
+    Command.STOP: (RUNNING, Role.OPERATOR),
+    Command.ABORT: (RUNNING, Role.OPERATOR),
+    Command.PAUSE: (RUNNING, Role.OPERATOR),
+    Command.RESUME: (RUNNING, Role.OPERATOR),
+    Command.HALT: (frozenset({V.INITIALIZED, V.READY}) | RUNNING, Role.VIEWER),
+    Command.RESET: (frozenset({V.HALTED, V.ERROR}), Role.OPERATOR),
+    Command.CAPTURE_PLATE: (_AT_REST | RUNNING, Role.ENGINEER),
+    Command.INSTALL_CALIBRATION: (_AT_REST | RUNNING, Role.ENGINEER),
+    Command.PREPARE_RECIPE: (frozenset({V.READY}), Role.ENGINEER),
+    Command.UNPREPARE_RECIPE: (frozenset({V.READY}), Role.ENGINEER),
+    Command.ADD_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
+    Command.REMOVE_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
 }
+# Commands that need the cell at rest: Ready, Halted, Error, or a job paused at a safe point (not pausing).
+STILL_COMMANDS = frozenset({Command.CAPTURE_PLATE, Command.INSTALL_CALIBRATION})
+# Commands a hold (a recalibration awaiting its answer) refuses: nothing may start or move on.
+HELD_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.RESUME})
+JOB_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS})
+STATE_COMMANDS = (
+    Command.START_SINGLE,
+    Command.START_CONTINUOUS,
+    Command.STOP,
+    Command.ABORT,
+    Command.PAUSE,
+    Command.RESUME,
+    Command.HALT,
+    Command.RESET,
+)
 
 
-def allowed(state: VisionState, paused: bool) -> frozenset[Command]:
-    """The command table every interface obeys (and tests check): a job may be paused or
-    resumed, never both; Reset only clears Halted or Error."""
-    extra = frozenset()
-    if state in (VisionState.SINGLE_EXECUTION, VisionState.CONTINUOUS_EXECUTION):
-        extra = frozenset({Command.RESUME if paused else Command.PAUSE})
-    return _ALLOWED[state] | extra
+def needed_role(command: Command) -> Role:
+    return _TABLE[command][1]
 
 
-class InvalidState(Exception):
-    """The command is not allowed in the current state (OPC UA: BadInvalidState)."""
+@dataclass(frozen=True)
+class Rest:
+    """Where the cell stands for the command table: the outward state, whether a pause was asked
+    for (`pausing`) and whether the job has reached it (`paused`: at rest, nothing moves)."""
 
-    def __init__(self, command: Command, state: VisionState, paused: bool):
-        self.command, self.state, self.paused = command, state, paused
-        where = f"{state.value}{' (paused)' if paused else ''}"
-        super().__init__(f"{command.value} is not allowed in {where}")
+    state: VisionState
+    pausing: bool = False
+    paused: bool = False
+
+
+def allowed(state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = "") -> frozenset[Command]:
+    """The commands the state accepts (any role), as every interface shows them (buttons enabled)."""
+    rest = Rest(state, pausing, pausing if paused is None else paused)
+    return frozenset(c for c in STATE_COMMANDS if state_refusal(c, rest, hold) is None)
+
+
+def state_refusal(command: Command, rest: Rest, hold: str = "") -> str | None:
+    """Why the command is not allowed where the cell stands (None: it is)."""
+    states, _ = _TABLE[command]
+    where = f"{rest.state.value}{' (paused)' if rest.paused else ' (pausing)' if rest.pausing else ''}"
+    if rest.state not in states:
+        return f"{command.value} is not allowed in {where}"
+    if command is Command.PAUSE and rest.pausing:
+        return f"{command.value} is not allowed in {where}: already pausing"
+    if command is Command.RESUME and not rest.pausing:
+        return f"{command.value} is not allowed in {where}: not paused"
+    if command in STILL_COMMANDS and rest.state in RUNNING and not rest.paused:
+        why = "wait until it is paused" if rest.pausing else "pause or stop it first"
+        return f"{command.value} is not allowed in {where}: the cell is moving ({why})"
+    if command in HELD_COMMANDS and hold:
+        return f"{command.value} is not allowed now: {hold}"
+    return None
+
+
+class CommandRefused(Exception):
+    """A command the service did not accept; nothing changed. `reason` says which rule refused it."""
+
+    reason = Refusal.INVALID_STATE
+
+    def __init__(self, command: Command | str, message: str, state: VisionState | None = None):
+        self.command = command
+        self.state = state
+        super().__init__(message)
+
+
+class InvalidState(CommandRefused):
+    """Not allowed in the current state, or held by a guard (OPC UA: BadInvalidState; screen: 409)."""
+
+    reason = Refusal.INVALID_STATE
+
+
+class AccessDenied(CommandRefused):
+    """The user's role may not send this command (OPC UA: BadUserAccessDenied; screen: 403)."""
+
+    reason = Refusal.ACCESS_DENIED
+
+
+class ShuttingDown(CommandRefused):
+    """The service is stopping and takes no more commands (OPC UA: BadShutdown; screen: 503)."""
+
+    reason = Refusal.SHUTTING_DOWN
+
+
+class BadArgument(CommandRefused):
+    """An argument the command cannot take (OPC UA: BadInvalidArgument; screen: 422)."""
+
+    reason = Refusal.BAD_ARGUMENT
+
+
+class NotRecorded(CommandRefused):
+    """The command could not be recorded, so it was not carried out (OPC UA: BadResourceUnavailable)."""
+
+    reason = Refusal.NOT_RECORDED
+
+
+@dataclass(frozen=True)
+class JobRequest:
+    """OPC 40100-1 StartSingleJob / StartContinuous inputs; all optional. An empty recipe_id means
+    the prepared (active) recipe."""
+
+    recipe_id: str = ""
+    product_id: str = ""
+    part_id: str = ""
+    meas_id: str = ""
+    parameters: tuple[tuple[str, str], ...] = ()
+
+    def as_json(self) -> dict:
+        out: dict[str, Any] = {k: v for k, v in self.__dict__.items() if v and k != "parameters"}
+        if self.parameters:
+            out["parameters"] = dict(self.parameters)
+        return out
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    command: Command
+    job_id: str | None = None  # a start command's new job
 
 
 @dataclass(frozen=True)
@@ -97,12 +234,14 @@ class PickRecord:
     """One finished pick attempt, as the screen's table and OPC UA's LastPick* show it."""
 
     time_utc: datetime
-    track_id: int
+    track_id: int  # the part's number within its job
     cls: str  # bolt | nut
     table_mm: tuple[float, float]
     robot_mm: tuple[float, float, float]
     angle_deg: float | None  # jaw angle for bolts, None for nuts
     outcome: str  # picked | missed | failed | rehearsed
+    pick_id: str = ""  # unique across jobs and restarts (cell.events.pick_id)
+    job_id: str = ""
 
 
 @dataclass(frozen=True)
@@ -110,6 +249,9 @@ class Alarm:
     reason: str  # what failed and where
     hint: str  # what the operator can do about it
     time_utc: datetime
+    alarm_id: str = ""
+    severity: str = "fault"  # fault (needs Reset) | warning (shown until its cause is gone)
+    source: str = "job"
 
 
 @dataclass(frozen=True)
@@ -119,6 +261,7 @@ class CalibrationInfo:
     cv_max_mm: float
     time_utc: datetime | None  # when it was made
     source_image: str  # which image it was made from (a name for display, never a path to open)
+    calibration_id: str = ""  # content hash
 
 
 @dataclass(frozen=True)
@@ -126,55 +269,74 @@ class Snapshot:
     """Everything a client shows, consistent at one instant."""
 
     vision_state: VisionState
-    cell_state: str  # the runner's State name, e.g. CAPTURE, PICK, PAUSED, FAULT, STOPPED
-    paused: bool
+    cell_state: str  # the runner's State name (CAPTURE, PICK, PAUSED ...); between jobs IDLE, STOPPED or FAULT
+    paused: bool  # a job paused and at rest (nothing moves)
     waiting_for_parts: bool  # continuous mode with an empty table
     counters: Counters
-    parts_per_min: float
+    parts_per_min: float  # 0 when no job runs
     last_picks: tuple[PickRecord, ...]  # newest last, at most 20
-    alarm: Alarm | None
+    alarm: Alarm | None  # the fault alarm (needs Reset)
     calibration: CalibrationInfo | None
     heartbeat: int  # +1 a second while the service runs
     allowed: frozenset[Command]  # what the current state accepts (buttons enabled)
+    pausing: bool = False  # a pause was asked for; the last motion is finishing (paused once at rest)
+    job_id: str = ""
+    job_mode: str = ""  # single | continuous while a job runs
+    hold: str = ""  # a guard holding starts (e.g. a recalibration awaiting its answer)
+    warnings: tuple[Alarm, ...] = ()  # warning alarms (no Reset needed)
+    subscribers: tuple[SubscriberStats, ...] = ()  # every subscriber's delivered / dropped / failed
+    recipe: str = ""  # the prepared recipe's id
+    shift: str = ""  # the shift the counters count (e.g. 2026-12-01 early)
+    extra: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class FrameView:
-    """The latest captured frame with what the vision found, for the screen."""
+    """A located frame annotated for the screen (made off the control thread)."""
 
     seq: int  # +1 per captured frame
     capture_monotonic_s: float  # time.monotonic() at capture, for latency measurement
-    image_bgr: np.ndarray  # the annotated frame (outlines, class, pick order, jaw direction, reasons)
+    image_bgr: np.ndarray  # the annotated frame (outlines, class, pick order, jaw direction)
     pick_order: tuple[int, ...] = ()  # the drawn order: part ids as PLAN chose them; empty if not planned
 
 
-@dataclass(frozen=True)
-class ServiceEvent:
-    kind: str  # state | pick | frame | alarm | counters | calibration
-    snapshot: Snapshot
-    pick: PickRecord | None = None
-    frame: FrameView | None = None
-    extra: dict = field(default_factory=dict)
-
-
 class LineServiceAPI(Protocol):
-    """What every interface may call. All methods are thread-safe and return quickly."""
+    """What every interface may call. All methods are thread-safe and return quickly, except
+    `capture_plate_image` (a camera frame)."""
 
-    def command(self, command: Command) -> None:
-        """Accept the command or raise InvalidState; the work happens in the service's own thread."""
+    def command(
+        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | None = None
+    ) -> CommandResult:
+        """Accept the command or raise CommandRefused; the work happens in the service's own thread."""
+        ...
 
     def snapshot(self) -> Snapshot: ...
 
-    def latest_frame(self) -> FrameView | None: ...
+    def subscribe(
+        self,
+        name: str,
+        handler: Callable[[Event], None],
+        *,
+        kinds: Iterable[type[Event]] | None = None,
+        maxsize: int = 1024,
+    ) -> Subscription:
+        """`handler` gets every event (of `kinds`), on its own thread behind its own bounded queue;
+        `unsubscribe(subscription)` ends it."""
+        ...
 
-    def subscribe(self, listener: Callable[[ServiceEvent], None]) -> Callable[[], None]:
-        """Call `listener` on every event (from the service's thread: hand off, never block);
-        returns the function that unsubscribes."""
+    def unsubscribe(self, subscription: Subscription) -> None: ...
 
-    def capture_plate_image(self) -> np.ndarray:
-        """A frame from the cell's camera for recalibration; only while Ready, paused or Halted
-        (raises InvalidState otherwise). The cell stays where it is meanwhile."""
+    def hold(self, reason: str, origin: Origin = SERVICE_ORIGIN) -> Callable[[], None]:
+        """Hold starts and resumes (e.g. a recalibration awaiting its answer) until the returned
+        function is called; every interface then gets InvalidState with `reason`."""
+        ...
 
-    def install_calibration(self, calibration, info: CalibrationInfo) -> None:
-        """Use a calibration that already passed the quality gate and was written atomically to
-        the active path; only while Ready, paused or Halted (raises InvalidState otherwise)."""
+    def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
+        """A frame from the cell's camera for recalibration; only at rest (Ready, Halted, or a job
+        paused at a safe point), and Resume and Start wait until it is taken."""
+        ...
+
+    def install_calibration(self, calibration: Any, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
+        """Use a calibration that passed the quality gate and was written atomically to the active
+        path: locate and the drift watch change together; only at rest."""
+        ...

@@ -1,0 +1,223 @@
+"""One stream of typed events (cell.events), with two kinds of listener.
+
+- Records (`add_record`): called on the emitting thread, in order, before `emit` returns.
+  Only the audit log is one: safety needs the record written before the next motion, so it
+  stays synchronous and cheap (one JSON line). A record that fails raises into the emitter
+  (the job faults safely) unless `best_effort` is set (while making safe and ending).
+- Subscribers (`subscribe`): each on its own thread behind its own bounded queue. `emit`
+  only appends (never blocks, never raises for them); a subscriber that is slow loses the
+  newest events once its queue is full, one that raises is logged; both are counted
+  (`stats()`), and neither ever delays or faults a pick. Frames (FrameLocated) coalesce:
+  a subscriber that has not taken the last frame yet gets the newer one in its place.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+from cell.events import Event, FrameLocated
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[Event], None]
+_LOG_EVERY_S = 60.0  # a failing or overflowing subscriber is logged at most this often
+
+
+@dataclass(frozen=True)
+class SubscriberStats:
+    name: str
+    delivered: int
+    dropped: int  # queue full: events this subscriber never saw
+    failed: int  # events its handler raised on
+    queued: int
+
+
+class _Box:
+    """A queue slot whose event a newer frame may replace until it is taken."""
+
+    __slots__ = ("event", "taken")
+
+    def __init__(self, event: Event):
+        self.event, self.taken = event, False
+
+
+class Subscription:
+    """One subscriber: its queue, its thread, its counters."""
+
+    def __init__(
+        self,
+        name: str,
+        handler: Handler,
+        kinds: frozenset[type[Event]] | None,
+        maxsize: int,
+        coalesce: frozenset[type[Event]],
+    ):
+        self.name, self.handler, self.kinds, self.maxsize, self.coalesce = name, handler, kinds, maxsize, coalesce
+        self.delivered = self.dropped = self.failed = 0
+        self._queue: deque[_Box] = deque()
+        self._latest: dict[type[Event], _Box] = {}
+        self._cond = threading.Condition()
+        self._busy = False
+        self._closing = False
+        self._last_log = {"dropped": -_LOG_EVERY_S, "failed": -_LOG_EVERY_S}
+        self._thread = threading.Thread(target=self._run, name=f"events-{name}", daemon=True)
+        self._thread.start()
+
+    # ---- the emitter's side (never blocks) ---------------------------------------------
+    def offer(self, event: Event) -> None:
+        if self.kinds is not None and type(event) not in self.kinds:
+            return
+        with self._cond:
+            if self._closing:
+                return
+            kind = type(event)
+            box = self._latest.get(kind) if kind in self.coalesce else None
+            if box is not None and not box.taken:
+                box.event = event  # the older frame was never taken: the newer one goes in its place
+                return
+            if len(self._queue) >= self.maxsize:
+                self.dropped += 1
+                self._note("dropped", "queue full (%d events): dropping; %d dropped so far", self.maxsize, self.dropped)
+                return
+            box = _Box(event)
+            if kind in self.coalesce:
+                self._latest[kind] = box
+            self._queue.append(box)
+            self._cond.notify()
+
+    # ---- the subscriber's thread -------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                box = self._queue.popleft()
+                box.taken = True
+                self._busy = True
+            try:
+                self.handler(box.event)
+                self.delivered += 1
+            except Exception:
+                self.failed += 1
+                self._note("failed", "handler raised on a %s event (%d so far)", box.event.kind, self.failed, exc=True)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def _note(self, what: str, message: str, *args, exc: bool = False) -> None:
+        now = time.monotonic()
+        if now - self._last_log[what] >= _LOG_EVERY_S:
+            self._last_log[what] = now
+            log.warning("subscriber %s: " + message, self.name, *args, exc_info=exc)
+
+    # ---- control ------------------------------------------------------------------------
+    def wait_idle(self, timeout_s: float) -> bool:
+        """True once every event offered so far has been handled (for tests and orderly shutdown)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._queue or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def close(self, timeout_s: float = 5.0) -> bool:
+        """Stop taking events, deliver what is queued (up to the timeout), end the thread; True if it ended."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.warning("subscriber %s: still busy %.1f s after close; %d events undelivered", self.name, timeout_s, len(self._queue))
+            return False
+        return True
+
+    def stats(self) -> SubscriberStats:
+        with self._cond:
+            return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue))
+
+
+class EventBus:
+    """The one stream: `emit` from the runner or the service; records and subscribers listen."""
+
+    def __init__(self) -> None:
+        self._records: list[Callable[[Event], None]] = []
+        self._subs: tuple[Subscription, ...] = ()
+        self._lock = threading.Lock()
+        self._best_effort = False
+        self._record_objs: list[object] = []
+
+    # ---- listeners -----------------------------------------------------------------------
+    def add_record(self, record: Callable[[Event], None], owner: object | None = None) -> None:
+        """A synchronous record (the audit log): `owner.best_effort` follows the bus's."""
+        self._records.append(record)
+        if owner is not None:
+            self._record_objs.append(owner)
+            owner.best_effort = self._best_effort  # type: ignore[attr-defined]
+
+    def subscribe(
+        self,
+        name: str,
+        handler: Handler,
+        *,
+        kinds: Iterable[type[Event]] | None = None,
+        maxsize: int = 1024,
+        coalesce: Iterable[type[Event]] = (FrameLocated,),
+    ) -> Subscription:
+        sub = Subscription(
+            name, handler, None if kinds is None else frozenset(kinds), maxsize, frozenset(coalesce)
+        )
+        with self._lock:
+            self._subs = (*self._subs, sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription, timeout_s: float = 5.0) -> None:
+        with self._lock:
+            self._subs = tuple(s for s in self._subs if s is not sub)
+        sub.close(timeout_s)
+
+    # ---- emitting --------------------------------------------------------------------------
+    @property
+    def best_effort(self) -> bool:
+        return self._best_effort
+
+    @best_effort.setter
+    def best_effort(self, on: bool) -> None:
+        self._best_effort = on
+        for owner in self._record_objs:
+            owner.best_effort = on  # type: ignore[attr-defined]
+
+    def emit(self, event: Event) -> None:
+        """Records first (may raise: the record could not be kept), then every subscriber's queue."""
+        try:
+            for record in self._records:
+                record(event)
+        finally:
+            for sub in self._subs:
+                sub.offer(event)
+
+    # ---- state -----------------------------------------------------------------------------
+    def stats(self) -> tuple[SubscriberStats, ...]:
+        return tuple(s.stats() for s in self._subs)
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        return all(s.wait_idle(max(deadline - time.monotonic(), 0.0)) for s in self._subs)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """End every subscriber, each delivering what it has queued within the time left."""
+        with self._lock:
+            subs, self._subs = self._subs, ()
+        deadline = time.monotonic() + timeout_s
+        for s in subs:
+            s.close(max(deadline - time.monotonic(), 0.1))
