@@ -213,6 +213,17 @@ class JobRequest:
 
 
 @dataclass(frozen=True)
+class RecipeRequest:
+    """PrepareRecipe / UnprepareRecipe / RemoveRecipe name a recipe; AddRecipe also brings its TOML text."""
+
+    recipe_id: str
+    content: str = ""
+
+    def as_json(self) -> dict:
+        return {"recipe_id": self.recipe_id, **({"content_bytes": len(self.content)} if self.content else {})}
+
+
+@dataclass(frozen=True)
 class CommandResult:
     command: Command
     job_id: str | None = None  # a start command's new job
@@ -305,7 +316,7 @@ class LineServiceAPI(Protocol):
     `capture_plate_image` (a camera frame)."""
 
     def command(
-        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | None = None
+        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
     ) -> CommandResult:
         """Accept the command or raise CommandRefused; the work happens in the service's own thread."""
         ...
