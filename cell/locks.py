@@ -91,7 +91,7 @@ def device_locks(arm_cfg, camera_source: str | None = None) -> contextlib.ExitSt
     /dev/videoN), for a `with` block; a mock arm and a file or URL camera need none."""
     stack = contextlib.ExitStack()
     try:
-        if arm_cfg.kind != "mock" and arm_cfg.port:
+        if arm_cfg is not None and arm_cfg.kind != "mock" and arm_cfg.port:
             stack.enter_context(holding(arm_cfg.port, "port"))
         source = (camera_source or "").strip()
         device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None

@@ -133,6 +133,7 @@ class Runner:
         self.target: Target | None = None
         self.track: Track | None = None
         self.holding = False
+        self.released = False  # the part of the attempt in progress was let go over its bin, not yet verified
         self.homed = False
         self._handlers = {
             S.IDLE: self._idle,
@@ -245,6 +246,7 @@ class Runner:
             s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
             finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
             steps = self._make_safe(reason, park_only=state == S.DONE or finishing)
+            self._settle_released(state)
             if state == S.FAULT:
                 self._emit(FaultRaised, reason=reason, where=where, ref=self.frame_ref)
                 log.error("fault in %s: %s", where, reason)
@@ -261,7 +263,7 @@ class Runner:
         if self.holding and self.target is not None:
             bx, by, bz = self.target.bin_robot_mm
             steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, self.target.approach_z_mm))))
-            steps.append(("open gripper over bin", self.arm.open_gripper))
+            steps.append(("open gripper over bin", self._open_over_bin))
         elif not park_only:
             steps.append(("open gripper", self.arm.open_gripper))
         steps.append(("home", self.arm.home))
@@ -301,7 +303,46 @@ class Runner:
 
     def _release(self) -> None:
         self._arm("open_gripper")
-        self.holding = False
+        self.holding, self.released = False, True
+
+    def _open_over_bin(self) -> None:
+        """The safe sequence lets go of a held part over its bin: like a place, verified afterwards."""
+        self.arm.open_gripper()
+        self.released = True
+
+    def _settle_released(self, state: State) -> None:
+        """A part let go over its bin just before the job ended is verified on one more frame (the arm
+        is parked out of view by now); where no frame can be had, it is recorded as placed, unverified."""
+        if self.track is None or not self.released:
+            return
+        if state is not S.FAULT and self.expect_motion and self.camera.is_connected:
+            try:
+                self._capture()
+                self._locate()
+                self._verify()
+                return
+            except (*REPORTED_ERRORS, OSError) as e:
+                log.warning("the part released before the end could not be verified: %s", e)
+            except Exception:
+                log.exception("verifying the part released before the end")
+        track, target = self.track, self.target
+        self.track = None
+        if target is not None:
+            self._emit(
+                PickVerified,
+                pick_id=pick_id(self.job_id, self.summary.attempts),
+                track=track.id,
+                cls=track.cls,
+                attempt=track.attempts,
+                result="placed",
+                pixel=target.pixel,
+                table_mm=target.table_mm,
+                robot_mm=target.robot_mm,
+                jaw_angle_deg=target.jaw_angle_deg,
+                still_at_mm=(),
+                calibration_id=self.calibration_id(),
+                cycle_ms=round(1e3 * (time.monotonic() - self._target_t0), 1),
+            )
 
     # ---- state handlers -------------------------------------------------------------
     def _idle(self) -> Step:
@@ -470,6 +511,7 @@ class Runner:
         self.summary.attempts += 1
         self.summary.retries += track.attempts > 1
         self.target, self.track = target, track
+        self.released = False
         self._target_t0 = time.monotonic()
         self._emit(
             TargetChosen,
