@@ -30,7 +30,6 @@ from drivers.arm.config import ArmKind
 log = logging.getLogger(__name__)
 
 
-
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
     g = parser.add_argument_group("running the cell (no sub-command)")

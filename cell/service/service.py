@@ -353,7 +353,9 @@ class LineService:
             with self._lock:
                 self._still_ops -= 1
 
-    def install_calibration(self, calibration: Calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
+    def install_calibration(
+        self, calibration: Calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN
+    ) -> None:
         with self._lock:
             try:
                 self._check(Command.INSTALL_CALIBRATION, origin)

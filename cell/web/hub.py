@@ -25,6 +25,8 @@ from cell.vision.annotate import annotate
 
 log = logging.getLogger(__name__)
 _HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits through these for its pick order
+
+
 @dataclass(frozen=True)
 class EncodedFrame:
     seq: int
