@@ -224,7 +224,7 @@ def advice(view: CameraView, focus_share: float | None, limits: Limits = Limits(
         out.append(_cut_advice(view.partial))
         return out
     if p is None:
-        out.append(f"plate: not in view ({view.plate_note}): lay the calibration plate under the camera")
+        out.append("plate: not in view: lay the calibration plate under the camera to see its coverage and tilt")
         return out
     if not p.in_view:
         cut = f"{plural(len(p.missing), 'circle')} not seen" if p.missing else "its edge is outside the image"
