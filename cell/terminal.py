@@ -19,7 +19,8 @@ from typing import TextIO
 
 
 class StdoutGuard:
-    """A stand-in for sys.stdout that swallows a broken pipe, once noticed, for good."""
+    """A stand-in for sys.stdout that, once the reader is gone (a broken pipe, a hung-up
+    terminal), drops all further output instead of raising; any other error is raised."""
 
     def __init__(self, stream: TextIO):
         self.stream = stream
@@ -41,7 +42,7 @@ class StdoutGuard:
                 self._lose(e)
 
     def _lose(self, e: OSError) -> None:
-        if e.errno != errno.EPIPE:
+        if e.errno not in (errno.EPIPE, errno.EIO):  # the reader is gone: a closed pipe, a hung-up terminal
             raise e
         self.lost = e
         with contextlib.suppress(OSError, ValueError, AttributeError):

@@ -33,7 +33,9 @@ def register(sub) -> None:
     p = sub.add_parser(
         "camera", help="look through the camera: focus, exposure, plate coverage and tilt", description=DESCRIPTION
     )
-    p.add_argument("--config", type=Path, default=argparse.SUPPRESS, help="cell config TOML (default: built-in)")
+    p.add_argument(
+        "--config", type=Path, metavar="FILE", default=argparse.SUPPRESS, help="cell config TOML (default: built-in)"
+    )
     p.add_argument("--snapshot", type=Path, metavar="FILE", help="write the (last) frame to FILE (.png or .jpg)")
     p.add_argument("--live", action="store_true", help="a line per frame, the best focus so far in it, until Ctrl-C")
     p.add_argument("--frames", type=_positive_int, metavar="N", help="with --live: stop after N frames")

@@ -296,10 +296,14 @@ def plate_text(view: CameraView) -> str:
         return f"plate: not in view ({view.plate_note})"
     dx, dy = p.centre_offset_pct
     missing = f", missing {_numbers(p.missing)}" if p.missing else ""
+    centre = (
+        "centred"
+        if max(abs(dx), abs(dy)) < 0.5
+        else f"centre {abs(dx):.1f} % {'right' if dx >= 0 else 'left'}, {abs(dy):.1f} % {'down' if dy >= 0 else 'up'}"
+    )
     return (
         f"plate: {p.circles_found} of {p.circles_expected} circles{missing}; fills {p.coverage_pct:.1f} % of the view"
-        f"{'' if p.in_view else ' (not wholly in view)'}; centre {abs(dx):.1f} % {'right' if dx >= 0 else 'left'}, "
-        f"{abs(dy):.1f} % {'down' if dy >= 0 else 'up'}; camera {p.tilt_deg:.1f} deg from square"
+        f"{'' if p.in_view else ' (not wholly in view)'}; {centre}; camera {p.tilt_deg:.1f} deg from square"
         f"{f' ({p.nearer} side nearer)' if p.nearer else ''}; turned {p.turned_deg:+.1f} deg"
     )
 
