@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="run-cell",
         description="Vision-guided pick-and-place cell.",
+        epilog=SHORT_USAGE.split("\n\n", 1)[1].rsplit("\n\n", 1)[0],  # the common starts
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail to stderr")
     run.add_run_arguments(parser)

@@ -42,7 +42,9 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
     g = parser.add_argument_group("running the cell (no sub-command)")
-    g.add_argument("--config", dest="run_config", type=Path, help="cell config (TOML); required unless --dry-run")
+    g.add_argument(
+        "--config", dest="run_config", type=Path, metavar="FILE", help="cell config (TOML); required unless --dry-run"
+    )
     g.add_argument(
         "--dry-run",
         action="store_true",
