@@ -50,7 +50,7 @@ class StdoutGuard:
             os.dup2(devnull, self.stream.fileno())
             os.close(devnull)
 
-    def __getattr__(self, name: str):
+    def __getattr__(self, name: str) -> object:
         return getattr(self.stream, name)
 
 

@@ -29,7 +29,7 @@ DESCRIPTION = (
 )
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "camera", help="look through the camera: focus, exposure, plate coverage and tilt", description=DESCRIPTION
     )

@@ -251,7 +251,7 @@ def _nearest_free(
     return _box(boxes[best])
 
 
-def _box(row) -> Box:
+def _box(row: Sequence[float] | np.ndarray) -> Box:
     return int(row[0]), int(row[1]), int(row[2]), int(row[3])
 
 
@@ -325,7 +325,9 @@ def _draw_part(out: np.ndarray, p: LocatedPart, style: Style) -> None:
         _draw_jaws(out, p, style.thick)
 
 
-def _dashed(out: np.ndarray, points: np.ndarray, colour, thick: int, dash_px: int, closed: bool = True) -> None:
+def _dashed(
+    out: np.ndarray, points: np.ndarray, colour: tuple[int, int, int], thick: int, dash_px: int, closed: bool = True
+) -> None:
     """A polyline (closed: an outline) drawn as dashes of about `dash_px`."""
     pts = points.reshape(-1, 2)
     if closed:
@@ -402,5 +404,5 @@ def _draw_legend(out: np.ndarray, plan: Layout, style: Style) -> None:
         cv2.putText(out, text, org, FONT, scale, (255, 255, 255), thick, cv2.LINE_AA)
 
 
-def _pt(v) -> tuple[int, int]:
+def _pt(v: Sequence[float] | np.ndarray) -> tuple[int, int]:
     return int(round(float(v[0]))), int(round(float(v[1])))

@@ -186,7 +186,9 @@ def partial_plate(gray: np.ndarray, min_dots: int, max_dots: int) -> PartialPlat
     return PartialPlate(int(np.count_nonzero(like)), tuple(k for k, v in near.items() if v))
 
 
-def assess(image: np.ndarray, config: CellConfig, tracker: FocusTracker | None = None, limits: Limits = Limits()):
+def assess(
+    image: np.ndarray, config: CellConfig, tracker: FocusTracker | None = None, limits: Limits = Limits()
+) -> CameraView:
     """All the readings of one frame and what to adjust; `tracker` (updated here) gives focus its reference."""
     gray = to_gray(image)
     h, w = gray.shape[:2]
