@@ -58,6 +58,7 @@ from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
 from cell.tracking import PartStatus, Track, Tracker
 from cell.vision.types import LocatedPart, LocateResult
+from cell.wording import plural
 from drivers.arm.base import Arm
 from drivers.arm.errors import OutOfReach
 from drivers.cameras.base import Camera
@@ -393,7 +394,7 @@ class Runner:
         if warnings and not objects:  # blind, not empty: never "table clear" or "part gone"
             raise CellError("cannot see the table: " + "; ".join(warnings))
         n_pick = sum(o.pick for o in objects)
-        why = f"{len(objects)} parts, {n_pick} pickable"
+        why = f"{plural(len(objects), 'part')}, {n_pick} pickable"
         if self.track is not None:
             return S.VERIFY, f"{why}; checking part {self.track.id}"
         return S.PLAN, why
@@ -441,7 +442,7 @@ class Runner:
                 pick_id=pick_id(self.job_id, self.summary.attempts),
                 ref=self.frame_ref,
             )
-            reason += f", failed after {track.attempts} attempts"
+            reason += f", failed after {plural(track.attempts, 'attempt')}"
         elif result == "missed":
             reason += ", will retry"
         self.progress(self._pick_line(target, track, result))
@@ -452,7 +453,7 @@ class Runner:
             self.drift_watch(self.frame)
         if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
             since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
-            return S.FAULT, f"safety stop: {n} pick attempts{since} (run.max_attempts_total)"
+            return S.FAULT, f"safety stop: {plural(n, 'pick attempt')}{since} (run.max_attempts_total)"
         for part, track in self._choose():
             target = self._reachable(part, track)
             if target is not None:
@@ -571,7 +572,7 @@ class Runner:
     def _pick_line(self, t: Target, track: Track, result: str) -> str:
         s = self.summary
         angle = "" if t.jaw_angle_deg is None else f", jaws {t.jaw_angle_deg:+.1f} deg"
-        counts = ", ".join(f"{n} {c}s" for c, n in sorted(s.picked.items())) or "none"
+        counts = ", ".join(plural(n, c) for c, n in sorted(s.picked.items())) or "none"
         return (
             f"pick {s.attempts:2d}: part {track.id:2d} {t.cls:4s} table ({t.table_mm[0]:6.1f}, {t.table_mm[1]:6.1f}) mm"
             f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"

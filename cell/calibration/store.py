@@ -132,7 +132,10 @@ class Calibration:
         try:
             text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
-            raise InputError(f"{path}: calibration file not found", hint="run scripts/recalibrate.py") from None
+            raise InputError(
+                f"{path}: calibration file not found",
+                hint="make one with run-cell recalibrate (the plate under the camera)",
+            ) from None
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(f"{path}: cannot read calibration: {e}") from None
         try:

@@ -33,7 +33,9 @@ log = logging.getLogger(__name__)
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
     g = parser.add_argument_group("running the cell (no sub-command)")
-    g.add_argument("--config", dest="run_config", type=Path, help="cell config (TOML); required unless --dry-run")
+    g.add_argument(
+        "--config", dest="run_config", type=Path, metavar="FILE", help="cell config (TOML); required unless --dry-run"
+    )
     g.add_argument(
         "--dry-run",
         action="store_true",
@@ -59,7 +61,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub) -> None:
-    t = sub.add_parser("teach", help="fit the table -> robot transform from points jogged onto plate circles")
+    t = sub.add_parser(
+        "teach",
+        help="fit the table -> robot transform from points jogged onto plate circles",
+        description="Fit the table -> robot transform from plate circles the gripper was jogged onto: the robot "
+        "X Y of three or more circles with --point, or jog the arm onto them now with --circles. Writes "
+        "planning.taught_path (nothing with --dry-run).",
+    )
     t.add_argument("--config", type=Path, help="cell config (TOML); default: built-in")
     t.add_argument(
         "--point",
@@ -84,7 +92,11 @@ def register(sub) -> None:
     t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
     t.set_defaults(func=cmd_teach)
 
-    d = sub.add_parser("diagram", help="print the state machine as a Mermaid diagram")
+    d = sub.add_parser(
+        "diagram",
+        help="print the state machine as a Mermaid diagram",
+        description="Print the cell's state machine as a Mermaid flowchart (--markdown: docs/state-machine.md).",
+    )
     d.add_argument("--markdown", action="store_true", help="the whole docs/state-machine.md")
     d.set_defaults(func=cmd_diagram)
 
@@ -243,7 +255,7 @@ def _report(runner: Runner, audit: AuditLog, sim) -> int:
         where = runner.sm.history[-1].source.name if runner.sm.history else "IDLE"
         what = "fault" if code == EXIT_FAULT else "stopped"
         reason = summary.reason if summary.outcome != "done" else f"audit log: {audit.failed}"
-        tell_stderr(f"run-cell run: {what} in {where}: {reason} (arm made safe; exit {code})")
+        tell_stderr(f"run-cell: {what} in {where}: {reason} (arm made safe; exit {code})")
     return code
 
 

@@ -32,7 +32,13 @@ log = logging.getLogger(__name__)
 
 
 def register(sub) -> None:
-    p = sub.add_parser("serve", help="run the cell as a line service: OPC UA server, continuous mode, a whole shift")
+    p = sub.add_parser(
+        "serve",
+        help="run the cell as a line service: OPC UA server, continuous mode, a whole shift",
+        description="Run the cell as a line service: one process owns camera, calibration and arm; a PLC drives "
+        "it over OPC UA, operators through the screen in a browser. Prints one `ready:` line with both "
+        "addresses; SIGTERM or Ctrl-C halt it safely.",
+    )
     # SUPPRESS: the same options given before `serve` (run-cell's own) still count.
     p.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
     p.add_argument(
@@ -53,7 +59,9 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_serve)
 
     h = sub.add_parser(
-        "hash-password", help="read a password (twice, not echoed) and print its hash for service.password_hash"
+        "hash-password",
+        help="read a password (twice, not echoed) and print its hash for service.password_hash",
+        description="Read a password twice (not echoed) and print its PBKDF2 hash for service.password_hash.",
     )
     h.set_defaults(func=cmd_hash_password)
 
