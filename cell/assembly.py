@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import get_args
@@ -186,10 +186,20 @@ def capture_plate(config: CellConfig) -> np.ndarray:
         return _capture(make_camera(config.camera))
 
 
+def commissioning_camera(config: CellConfig) -> Camera:
+    """The configured camera alone, for commissioning (`run-cell camera`); 'sim' is the simulated
+    camera looking at the calibration plate. The caller locks and connects it."""
+    if config.camera.source.strip() == "sim":
+        from cell.sim.cell import sim_plate_camera
+
+        return sim_plate_camera(config)
+    return make_camera(config.camera)
+
+
 @contextlib.contextmanager
-def arm_only(config: CellConfig, kind: str | None = None, port: str | None = None):
-    """The configured arm (with the command line's kind and port), locked for this process, connected
-    by the caller; for teach, jog and home."""
+def arm_only(config: CellConfig, kind: str | None = None, port: str | None = None) -> Iterator[Arm]:
+    """The configured arm (with the command line's kind and port), its port locked for this process,
+    not yet connected (`with arm:` connects); for teach, jog and home."""
     arm_cfg: ArmConfig = with_overrides(config.arm, kind, port)
-    with device_locks(arm_cfg), make_arm(arm_cfg) as arm:
-        yield arm
+    with device_locks(arm_cfg):
+        yield make_arm(arm_cfg)

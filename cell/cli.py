@@ -23,7 +23,7 @@ from cell.terminal import guarded_stdout
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
     "cell.commands.calibration",
-    "cell.calibration.recalibrate",
+    "cell.commands.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.camera",

@@ -17,6 +17,7 @@ the watch stay quiet while nothing moves?
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import sys
@@ -27,15 +28,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cell.assembly import assemble  # noqa: E402
 from cell.audit import AuditLog  # noqa: E402
 from cell.calibration.drift import DriftWatch  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from cell.planning import Planner, table_to_robot  # noqa: E402
 from cell.runner import Runner  # noqa: E402
-from cell.sim.cell import sim_cell  # noqa: E402
 from cell.sim.parts import part_coverage  # noqa: E402
 from cell.sim.render import Optics, circles_coverage, expose  # noqa: E402
-from cell.vision.locate import locate  # noqa: E402
 
 BUMPS = [((1.0, 0.0), 3), ((0.0, 1.0), 6), ((-0.7071, 0.7071), 9), ((0.7071, -0.7071), 12)]
 
@@ -45,17 +44,17 @@ def bump_run(direction: tuple[float, float], at_pick: int, size_mm: float, log_d
     config = CellConfig()
     config.sim.camera_bumped_mm = (direction[0] * size_mm, direction[1] * size_mm)
     config.sim.camera_bumped_at_pick = at_pick
-    with sim_cell(config) as sim, AuditLog(log_dir / f"bump-{at_pick}.jsonl") as audit:
-        watch = DriftWatch(sim.calibration, config.drift.model_copy(update={"marks_mm": sim.marks_mm}))
-        planner = Planner(config.planning, table_to_robot(config.planning))
+    with contextlib.ExitStack() as stack:
+        cell = assemble(config, True, stack)
+        audit = stack.enter_context(AuditLog(log_dir / f"bump-{at_pick}.jsonl"))
         runner = Runner(
-            sim.camera,
-            sim.arm,
-            lambda f: locate(f, sim.calibration, config),
-            planner,
+            cell.camera,
+            cell.arm,
+            lambda f: cell.locate(f, cell.calibration),
+            cell.planner(),
             config.run,
             audit,
-            drift_watch=watch,
+            drift_watch=cell.drift_watch(cell.calibration),
         )
         summary = runner.run()
     # Pick k is planned from frame k; frames from `at_pick` on are the moved camera's.
@@ -66,7 +65,8 @@ def bump_run(direction: tuple[float, float], at_pick: int, size_mm: float, log_d
 def quiet_frames(n: int, seed: int = 1) -> tuple[int, float, float, float]:
     """(frames over the limit, largest drift, 99th percentile, limit) over n frames of a still table."""
     config = CellConfig()
-    with sim_cell(config) as sim:
+    with contextlib.ExitStack() as stack:
+        sim = assemble(config, True, stack).sim
         model, calibration = sim.camera.model, sim.calibration
         watch = DriftWatch(calibration, config.drift.model_copy(update={"marks_mm": sim.marks_mm}))
         opacity = circles_coverage(model, np.array(sim.marks_mm), config.drift.mark_diameter_mm / 2)

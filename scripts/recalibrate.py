@@ -9,7 +9,7 @@ python scripts/recalibrate.py --image PLATE.png --out CAL.json [--config FILE]
 
 import sys
 
-from cell.calibration.recalibrate import main
+from cell.commands.recalibrate import main
 
 if __name__ == "__main__":
     sys.exit(main())

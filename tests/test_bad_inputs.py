@@ -14,11 +14,11 @@ from pathlib import Path
 import cv2
 import pytest
 
-from cell.calibration import recalibrate
 from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.cli import main
+from cell.commands import recalibrate
 from cell.config import CellConfig
 from cell.sim.render import render_plate
 

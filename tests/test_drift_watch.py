@@ -13,7 +13,7 @@ from cell.calibration.store import Calibration
 from cell.cli import main
 from cell.config import DriftConfig
 from cell.errors import CameraMoved, InputError
-from cell.sim.cell import _bumped
+from cell.sim.cell import bumped
 from cell.sim.rig import default_camera
 from cell.sim.sim_camera import SimCamera
 from cell.sim.world import Truth, World
@@ -44,7 +44,7 @@ def test_a_still_camera_reads_almost_no_drift(setup):
 @pytest.mark.parametrize("shift", [(0.3, 0.0), (0.0, -0.3), (0.22, 0.22)])
 def test_a_bump_of_0_3_mm_is_caught_and_measured(setup, shift):
     model, _, watch = setup
-    moved = frame(_bumped(model, shift))
+    moved = frame(bumped(model, shift))
     assert watch.measure(moved).drift_mm == pytest.approx(0.3, abs=0.03)
     with pytest.raises(CameraMoved, match=r"camera moved 0\.[23]\d mm since calibration.*check or recalibrate"):
         watch(moved)

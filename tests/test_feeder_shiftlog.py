@@ -11,7 +11,7 @@ from cell.events import PartFailed, PartUnreachable, ServiceStarted
 from cell.run_config import FeederConfig
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, read_shift, shift_files
-from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
+from cell.sim.cell import MIN_GAP_MM, outline_gap_mm
 from cell.sim.feeder import Feeder
 from cell.sim.world import Bin, Truth, World
 from cell.summary import counts_from_log
@@ -46,7 +46,7 @@ def test_parts_arrive_at_the_rate_on_free_spots_inside_the_area():
         o = a.top_view_outline_mm()
         assert x0 <= o[:, 0].min() and o[:, 0].max() <= x1 and y0 <= o[:, 1].min() and o[:, 1].max() <= y1
         for b in specs[i + 1 :]:
-            assert _outline_gap_mm(a, b) >= MIN_GAP_MM
+            assert outline_gap_mm(a, b) >= MIN_GAP_MM
     clock.t = 120.0  # 40 more due, but at most 25 on the table
     feeder.tick()
     assert len(w.on_table()) <= 25 and feeder.skipped >= 15

@@ -49,3 +49,85 @@ def test_drivers_import_nothing_from_cell():
 )
 def test_the_walk_finds_imports_at_any_depth(source, expected):
     assert any(is_cell(m) for _, m in imported_modules(ast.parse(source))) is expected
+
+
+# ---- the application's own layers (docs/architecture.md) ------------------------------------
+REPO = DRIVERS.parent
+
+
+def sources(*folders: str) -> list[Path]:
+    return sorted(p for f in folders for p in (REPO / f).rglob("*.py"))
+
+
+def imports_of(path: Path) -> list[tuple[int, str, list[str]]]:
+    """(line, module, names) for every import anywhere in the file; names are those of `from m import a, b`."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name, []) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            found.append((node.lineno, "." * node.level + (node.module or ""), [a.name for a in node.names]))
+    return found
+
+
+def offenders(folders: tuple[str, ...], forbidden: tuple[str, ...]) -> list[str]:
+    return [
+        f"{path.relative_to(REPO)}:{line}: {module}"
+        for path in sources(*folders)
+        for line, module, _ in imports_of(path)
+        if any(module == f or module.startswith(f + ".") for f in forbidden)
+    ]
+
+
+@pytest.mark.parametrize(
+    "folders, forbidden, why",
+    [
+        (
+            ("cell/service", "cell/web"),
+            ("cell.commands", "cell.cli"),
+            "interfaces hold the service's API, not commands",
+        ),
+        (("cell/calibration",), ("cell.sim",), "a simulated capture is passed in, never rendered here"),
+        (
+            ("cell/vision", "cell/calibration"),
+            ("cell.service", "cell.web", "cell.commands", "cell.cli", "cell.assembly"),
+            "vision and calibration are below everything that uses them",
+        ),
+        (
+            ("cell/runner.py", "cell/statemachine.py", "cell/events.py", "cell/eventbus.py"),
+            ("cell.service", "cell.web", "cell.commands", "cell.cli", "cell.sim"),
+            "the core knows no interface and no simulated world",
+        ),
+    ],
+)
+def test_the_application_layers_point_one_way(folders, forbidden, why):
+    found = offenders(folders, forbidden)
+    assert not found, f"{why}:\n" + "\n".join(found)
+
+
+def test_devices_are_built_in_one_place():
+    """Only cell/assembly.py (and the simulated world's own emulated arm) build devices from a config."""
+    builders = {
+        "drivers.arm.factory": {"make_arm"},
+        "drivers.cameras.factory": {"make_camera"},
+        "cell.sim.cell": {"sim_cell"},
+    }
+    allowed = {"cell/assembly.py", "cell/sim/emulated_arm.py", "cell/sim/cell.py"}
+    found = [
+        f"{path.relative_to(REPO)}:{line}: {module} {sorted(set(names) & builders[module])}"
+        for path in sources("cell", "scripts")
+        if str(path.relative_to(REPO)) not in allowed
+        for line, module, names in imports_of(path)
+        if module in builders and set(names) & builders[module]
+    ]
+    assert not found, "devices built outside cell/assembly.py:\n" + "\n".join(found)
+
+
+def test_no_module_imports_another_modules_private_names():
+    found = [
+        f"{path.relative_to(REPO)}:{line}: from {module} import {', '.join(n for n in names if n.startswith('_'))}"
+        for path in sources("cell", "drivers", "scripts", "tests")
+        for line, module, names in imports_of(path)
+        if any(n.startswith("_") and not n.startswith("__") for n in names)
+    ]
+    assert not found, "private names imported across modules:\n" + "\n".join(found)

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from cell.calibration.recalibrate import build_parser as script_parser
 from cell.camera_model import CameraModel
 from cell.cli import build_parser as cli_parser
+from cell.commands.recalibrate import build_parser as script_parser
 from cell.config import CellConfig
 from cell.sim.render import render_plate
 

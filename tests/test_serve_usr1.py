@@ -2,7 +2,7 @@
 
 import pytest
 
-from cell.commands.serve import _toggle_pause
+from cell.commands.serve import toggle_pause
 from cell.service.api import Command, VisionState
 from tests.fake_service import FakeLineService
 
@@ -16,15 +16,15 @@ def service():
 
 def test_usr1_pauses_a_running_job_and_resumes_it(service):
     service.command(Command.START_CONTINUOUS)
-    _toggle_pause(service)
+    toggle_pause(service)
     assert service.snapshot().paused
-    _toggle_pause(service)
+    toggle_pause(service)
     snap = service.snapshot()
     assert not snap.paused and snap.vision_state is VisionState.CONTINUOUS_EXECUTION
     assert service.commands == [Command.START_CONTINUOUS, Command.PAUSE, Command.RESUME]
 
 
 def test_usr1_with_no_job_is_refused_by_the_table_and_changes_nothing(service, caplog):
-    _toggle_pause(service)
+    toggle_pause(service)
     assert service.snapshot().vision_state is VisionState.READY and service.commands == []
     assert "SIGUSR1 ignored: Pause is not allowed in Ready" in caplog.text

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cell.sim.cell import _outline_gap_mm, paper_layout
+from cell.sim.cell import outline_gap_mm, paper_layout
 from cell.sim.parts import PartSpec
 from cell.sim.rig import default_camera
 from cell.sim.sim_arm import SimArm
@@ -84,7 +84,7 @@ def test_paper_layout_has_the_papers_parts_and_a_washer_none_touching():
     parts = paper_layout()
     kinds = [p.kind for p in parts]
     assert kinds.count("bolt") == 9 and kinds.count("nut") == 8 and kinds.count("washer") == 1
-    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
+    gaps = [outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
     assert min(gaps) > 3.0
 
 
@@ -98,7 +98,7 @@ def test_square_to_base_layout_lays_every_bolt_across_the_line_from_the_base_non
         d = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
         middle = np.array([b.x_mm, b.y_mm]) + b.shaft_middle_offset_mm * d
         assert abs(np.dot(middle - base, d)) < 1e-9
-    gaps = [_outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
+    gaps = [outline_gap_mm(a, b) for i, a in enumerate(parts) for b in parts[i + 1 :]]
     assert min(gaps) > 3.0
 
 

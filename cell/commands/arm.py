@@ -9,13 +9,12 @@ from typing import get_args
 
 from serial.tools import list_ports
 
+from cell.assembly import arm_only
 from cell.commands.argtypes import finite_float
-from cell.config import load_config
+from cell.config import CellConfig, load_config
 from cell.errors import InputError
-from cell.locks import device_locks
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmKind
-from drivers.arm.factory import make_arm, with_overrides
 
 log = logging.getLogger(__name__)
 
@@ -62,10 +61,9 @@ def add_arm_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", default=argparse.SUPPRESS, help="override arm.port (device path or pyserial URL)")
 
 
-def arm_config_from_args(args: argparse.Namespace):
-    """The arm config from --config (or run-cell's own --config), with --arm / --port applied."""
-    config = getattr(args, "config", None) or getattr(args, "run_config", None)
-    return with_overrides(load_config(config).arm, kind=getattr(args, "arm", None), port=getattr(args, "port", None))
+def _config(args: argparse.Namespace) -> CellConfig:
+    """The config from --config (or run-cell's own --config); --arm / --port are applied by arm_only."""
+    return load_config(getattr(args, "config", None) or getattr(args, "run_config", None))
 
 
 def jog(
@@ -96,19 +94,17 @@ def cmd_ports(args: argparse.Namespace) -> int:
 def cmd_jog(args: argparse.Namespace) -> int:
     if args.angle is not None and args.to is None:
         raise InputError("--angle goes with --to X Y Z")
-    cfg = arm_config_from_args(args)
-    arm = make_arm(cfg)
-    if args.to is not None:
-        arm.check_target(*args.to, args.angle)  # refuse before connecting, let alone moving
-    with device_locks(cfg), arm:  # the port is ours alone before anything is sent on it
-        jog(arm, tuple(args.to) if args.to else None, args.angle, args.gripper)
-        print(_describe(arm))
+    with arm_only(_config(args), getattr(args, "arm", None), getattr(args, "port", None)) as arm:
+        if args.to is not None:
+            arm.check_target(*args.to, args.angle)  # refuse before connecting, let alone moving
+        with arm:  # the port is ours alone before anything is sent on it
+            jog(arm, tuple(args.to) if args.to else None, args.angle, args.gripper)
+            print(_describe(arm))
     return 0
 
 
 def cmd_home(args: argparse.Namespace) -> int:
-    cfg = arm_config_from_args(args)
-    with device_locks(cfg), make_arm(cfg) as arm:
+    with arm_only(_config(args), getattr(args, "arm", None), getattr(args, "port", None)) as arm, arm:
         arm.home()
         print(_describe(arm))
     return 0

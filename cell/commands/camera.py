@@ -9,16 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.assembly import commissioning_camera
 from cell.config import CellConfig, load_config
 from cell.errors import InputError
 from cell.imageio import check_image_path, write_image_atomic
 from cell.locks import camera_lock
 from cell.signals import Controls, StopRequested
-from cell.sim.cell import sim_plate_camera
 from cell.vision.commissioning import FocusTracker, assess, live_line, report_text
 from cell.wording import plural
 from drivers.cameras.base import Camera
-from drivers.cameras.factory import make_camera
 
 DESCRIPTION = (
     "Look through the camera of the config (camera.source; 'sim' is the simulated camera over the "
@@ -52,13 +51,6 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def open_camera(config: CellConfig) -> Camera:
-    """The configured camera; 'sim' is the simulated camera looking at the calibration plate."""
-    if config.camera.source.strip() == "sim":
-        return sim_plate_camera(config)
-    return make_camera(config.camera)
-
-
 def cmd_camera(args: argparse.Namespace) -> int:
     config = load_config(getattr(args, "config", None) or getattr(args, "run_config", None))
     if args.frames is not None and not args.live:
@@ -66,7 +58,7 @@ def cmd_camera(args: argparse.Namespace) -> int:
     if args.snapshot is not None:
         check_image_path(args.snapshot)  # refuse before opening the camera, not after
     controls = getattr(args, "controls", None) or Controls()
-    camera = open_camera(config)
+    camera = commissioning_camera(config)
     with camera_lock(config.camera.source), camera:
         if args.live:
             last = _live(camera, config, args.frames, controls)

@@ -111,7 +111,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.point and args.circles:
         raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
     if args.circles:
-        with arm_only(config, args.arm, args.port) as arm:
+        with arm_only(config, args.arm, args.port) as arm, arm:
             points = jog_session(arm, args.circles, config, input, print)
     else:
         points = []

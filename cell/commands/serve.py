@@ -134,7 +134,7 @@ def _check_port_free(host: str, port: int, option: str) -> None:
             ) from None
 
 
-def _toggle_pause(service: LineService) -> None:
+def toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
     command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
     try:
@@ -158,7 +158,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     previous = {sig: signal.getsignal(sig) for sig in (*STOP_SIGNALS, signal.SIGUSR1)}  # back afterwards
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
-    loop.add_signal_handler(signal.SIGUSR1, _toggle_pause, service)
+    loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
     interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
     safe = True
     try:

@@ -76,7 +76,7 @@ class SimCell:
         return self.emulated.motion_time_s() if self.emulated else self.arm.motion_time_s
 
 
-def _outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
+def outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
     """Smallest distance between two top-view outlines (sampled), mm."""
 
     def dense(p: PartSpec) -> np.ndarray:
@@ -111,7 +111,7 @@ def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None
         others = [q for j, q in enumerate(parts) if j != i]
 
         def room(c: PartSpec) -> float:
-            return min(_outline_gap_mm(c, q) for q in others)
+            return min(outline_gap_mm(c, q) for q in others)
 
         if base_table_mm is None:
             parts[i] = max(
@@ -149,7 +149,7 @@ def _square_to_base(bolt: PartSpec, base_mm: tuple[float, float], room) -> PartS
     return max(candidates, key=lambda c: (c[0] >= MIN_GAP_MM, -abs(c[1]), c[0]))[2]
 
 
-def _bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
+def bumped(model: CameraModel, shift_mm: tuple[float, float]) -> CameraModel:
     """The same camera moved parallel to the table: its calibration no longer holds."""
     t = model.tvec - model.rotation @ np.array([shift_mm[0], shift_mm[1], 0.0])
     return CameraModel(model.width_px, model.height_px, model.camera_matrix, model.dist_coeffs, model.rvec, t)
@@ -206,10 +206,10 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         calibration, note = plate_calibration(config, model)
     bump = None
     if any(sim.camera_bumped_mm) and sim.camera_bumped_at_pick == 0:
-        model = _bumped(model, sim.camera_bumped_mm)
+        model = bumped(model, sim.camera_bumped_mm)
         note += f"; camera since moved by {sim.camera_bumped_mm} mm"
     elif any(sim.camera_bumped_mm):
-        bump = (sim.camera_bumped_at_pick, _bumped(model, sim.camera_bumped_mm))
+        bump = (sim.camera_bumped_at_pick, bumped(model, sim.camera_bumped_mm))
         note += f"; camera to be moved by {sim.camera_bumped_mm} mm before pick {sim.camera_bumped_at_pick}"
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
     if sim.layout == "random":

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from cell.run_config import FeederConfig
-from cell.sim.cell import MIN_GAP_MM, _outline_gap_mm
+from cell.sim.cell import MIN_GAP_MM, outline_gap_mm
 from cell.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, PartSpec
 from cell.sim.world import SimPart, World
 from drivers.cameras.base import Camera
@@ -120,7 +120,7 @@ class Feeder:
         for q in others:  # the cheap bound first: most parts are far away
             if math.dist((q.x_mm, q.y_mm), (spec.x_mm, spec.y_mm)) > reach + 40.0 + MIN_GAP_MM:
                 continue
-            if _outline_gap_mm(spec, q) < MIN_GAP_MM:
+            if outline_gap_mm(spec, q) < MIN_GAP_MM:
                 return False
         return True
 
