@@ -124,6 +124,7 @@ def assemble(
     `resources`. `shift`: the simulated cell gets its feeder (the line service's dry run)."""
     if config.camera.source == "sim":
         return _simulated(config, resources, shift, progress)
+    progress(f"loading the calibration {config.calibration.active_path}")
     calibration = Calibration.load(config.calibration.active_path)
     arm_cfg = config.arm
     if dry_run and arm_cfg.kind in get_args(DeviceKind):  # the mock checks every command as the real driver would

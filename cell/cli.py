@@ -17,7 +17,7 @@ from cell.commands import run
 from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
 from cell.oplog import quiet_terminal
 from cell.recordfile import tell_stderr
-from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
+from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.terminal import guarded_stdout
 
 # Modules that each add sub-commands through register(subparsers).
@@ -62,8 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    with handling_signals() as controls:
+def main(argv: list[str] | None = None, controls: Controls | None = None) -> int:
+    """The command; `controls` are the signal handlers' (cell.launch installs them before the imports)."""
+    with handling_signals(controls, install=controls is None) as controls:
         parser = build_parser()
         args = parser.parse_args(argv)
         args.controls = controls
@@ -80,35 +81,32 @@ def main(argv: list[str] | None = None) -> int:
             args.func, args.command = run.run_cell, None
         name = "run-cell" if args.command is None else f"run-cell {args.command}"
         with guarded_stdout() as stdout:
-            code = _dispatch(args, name)
-        if stdout.lost is not None:
+            code, last = _dispatch(args, name)
+        if stdout.lost is not None and not last and code == 0:  # a failure's own line says what happened
             tell_stderr(
                 f"{name}: note: standard output was closed early ({stdout.lost.strerror or stdout.lost}); "
                 f"the rest of the output was not shown, the command ran to its end (exit {code})"
             )
+        if last:  # what failed and where is always the last line
+            tell_stderr(last)
         return code
 
 
-def _dispatch(args: argparse.Namespace, name: str) -> int:
-    """Run the command; whatever ends it, the last line on stderr names what failed and where."""
+def _dispatch(args: argparse.Namespace, name: str) -> tuple[int, str]:
+    """Run the command: its exit code and, when it failed, the last line for stderr naming what and where."""
     try:
-        return int(args.func(args) or 0)
+        return int(args.func(args) or 0), ""
     except REPORTED_ERRORS as e:
-        return _last_line(f"{name}: error: {e}", exit_code(e))
+        return exit_code(e), f"{name}: error: {e}"
     except StopRequested as e:
-        return _last_line(f"{name}: stopped: {e.reason}", EXIT_STOPPED)
+        return EXIT_STOPPED, f"{name}: stopped: {e.reason}"
     except KeyboardInterrupt:
-        return _last_line(f"{name}: stopped: Ctrl-C", EXIT_STOPPED)
+        return EXIT_STOPPED, f"{name}: stopped: Ctrl-C"
     except OSError as e:
-        return _last_line(f"{name}: error: {describe_os_error(e)}", 3)
+        return 3, f"{name}: error: {describe_os_error(e)}"
     except Exception as e:  # a bug: one line for the operator, the traceback in the log
         log.exception("internal error in %s", name)
-        return _last_line(f"{name}: internal error: {type(e).__name__}: {e} (details in the log)", 3)
-
-
-def _last_line(text: str, code: int) -> int:
-    tell_stderr(text)
-    return code
+        return 3, f"{name}: internal error: {type(e).__name__}: {e} (details in the log)"
 
 
 if __name__ == "__main__":

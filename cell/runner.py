@@ -347,6 +347,7 @@ class Runner:
 
     # ---- state handlers -------------------------------------------------------------
     def _idle(self) -> Step:
+        self.progress(f"connecting the camera {self.camera.source} and the arm on {self.arm.port or 'no port'}")
         self.camera.connect()
         self._arm("connect")
         problems = self.planner.bin_problems()

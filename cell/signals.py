@@ -69,9 +69,13 @@ class Controls:
 
 
 @contextlib.contextmanager
-def handling_signals(controls: Controls | None = None) -> Iterator[Controls]:
-    """Install the handlers (even over inherited 'ignore'), yield the Controls they act on, restore."""
+def handling_signals(controls: Controls | None = None, install: bool = True) -> Iterator[Controls]:
+    """Install the handlers (even over inherited 'ignore'), yield the Controls they act on, restore.
+    `install=False`: they are already in place for `controls` (cell.launch); only yield them."""
     controls = controls or Controls()
+    if not install:
+        yield controls
+        return
     previous = {}
 
     def on_stop(signum, _frame):

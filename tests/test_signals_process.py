@@ -99,3 +99,50 @@ def test_concurrent_recalibrations_are_serialised_and_keep_every_backup(tmp_path
     assert all(json.loads(c)["schema"] == "pick-cell/calibration" for c in contents if "original" not in c)
     assert json.loads(out.read_text())["model"] in ("camera", "polynomial")
     assert not [p for p in out.parent.rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_a_pause_in_the_first_second_never_kills_the_job_and_holds_it_before_any_motion(tmp_path):
+    """SIGUSR1 as soon as the process has said it started (still importing numpy, OpenCV...): the
+    job pauses before its first motion, and a second SIGUSR1 lets it run to the end."""
+    proc = subprocess.Popen(
+        [str(RUN_CELL), "--dry-run", "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith("run-cell: starting a job"), first
+        proc.send_signal(signal.SIGUSR1)
+        for line in proc.stdout:
+            assert not line.startswith("pick "), "it moved while paused"
+            if line.startswith("paused at a safe point"):
+                break
+        proc.send_signal(signal.SIGUSR1)
+        rest = proc.stdout.read()
+        assert proc.wait(timeout=120) == 0, proc.stderr.read()
+    finally:
+        proc.kill()
+        proc.wait()
+    assert "pick 17:" in rest
+    (log,) = (tmp_path / "logs").glob("run-*.jsonl")
+    states = [e["target"] for e in read_events(log) if e["kind"] == "state"]
+    assert states[:3] == ["home", "paused", "home"]  # paused before the first motion
+
+
+def test_a_stop_in_the_first_second_ends_with_one_line_and_no_traceback(tmp_path):
+    proc = subprocess.Popen(
+        [str(RUN_CELL), "--dry-run", "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().startswith("run-cell: starting a job")
+        proc.send_signal(signal.SIGTERM)
+        err = proc.stderr.read()
+        assert proc.wait(timeout=120) == 130, err
+    finally:
+        proc.kill()
+        proc.wait()
+    assert "Traceback" not in err and "SIGTERM" in err.strip().splitlines()[-1]

@@ -123,11 +123,11 @@ def recalibrate(args: argparse.Namespace, controls: Controls | None = None) -> i
         raise
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, controls: Controls | None = None) -> int:
     """scripts/recalibrate.py: its messages start with `recalibrate:`; signals handled from the start;
     a closed stdout (`| head`) does not stop the recalibration (cell.terminal)."""
     with guarded_stdout() as stdout:
-        code = _main(argv)
+        code = _main(argv, controls)
     if stdout.lost is not None:
         tell_stderr(
             f"recalibrate: note: standard output was closed early ({stdout.lost.strerror or stdout.lost}); "
@@ -136,8 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
-def _main(argv: list[str] | None) -> int:
-    with handling_signals() as controls:
+def _main(argv: list[str] | None, controls: Controls | None = None) -> int:
+    with handling_signals(controls, install=controls is None) as controls:
         args = build_parser().parse_args(argv)
         try:
             return recalibrate(args, controls)

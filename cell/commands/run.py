@@ -195,7 +195,7 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                     config=config.model_dump(mode="json"),
                 )
             )
-            cell = assemble(config, args.dry_run, resources)
+            cell = assemble(config, args.dry_run, resources, progress=say)
             for note in cell.notes:
                 say(note)
             say(

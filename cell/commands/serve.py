@@ -74,6 +74,14 @@ def cmd_hash_password(args: argparse.Namespace) -> int:
     return 0
 
 
+def say(line: str) -> None:
+    """A progress line for the operator (a closed terminal never stops the service)."""
+    try:
+        print(line, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
 def serve_config(args: argparse.Namespace) -> CellConfig:
     """The config `serve` runs, with the command line's overrides."""
     if args.run_config is None and not args.dry_run:
@@ -115,7 +123,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                 h.setLevel(logging.WARNING)
     log_to_file(config.run.log_dir / f"serve-{stamp}.log")
     with contextlib.ExitStack() as resources:
-        service = open_service(config, args.dry_run, resources)
+        service = open_service(config, args.dry_run, resources, progress=say)
         service.start()
         return asyncio.run(_serve(config, service))
 
@@ -163,6 +171,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     safe = True
     try:
         for interface in interfaces:
+            say(f"starting {interface.starting_text}")
             await interface.start()
             started.append(interface)
         ready = "; ".join(i.ready_text for i in interfaces)

@@ -163,6 +163,10 @@ class OpcUaServer:
     def ready_text(self) -> str:
         return f"OPC UA {self.endpoint}"
 
+    @property
+    def starting_text(self) -> str:
+        return f"the OPC UA server on {self.endpoint}"
+
     async def start(self) -> None:
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
             logging.getLogger(name).setLevel(logging.WARNING)

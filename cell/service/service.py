@@ -87,6 +87,7 @@ log = logging.getLogger(__name__)
 
 V = VisionState
 _IDLE_CELL_STATE = {V.ERROR: "FAULT", V.HALTED: "STOPPED"}  # between jobs; otherwise IDLE
+_LEDGER_CATCH_UP_S = 2.0  # at a job's end, how long the state waits for the counters to include it
 _TO_REST = frozenset({Command.HALT, Command.STOP, Command.PAUSE, Command.ABORT, Command.RESET})
 
 
@@ -486,6 +487,7 @@ class LineService:
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
             log.exception("job %s ended by an internal error", job.job_id)
             reason = f"internal error: {type(e).__name__}: {e}"
+        self._ledger_sub.wait_idle(_LEDGER_CATCH_UP_S)  # the arm is at rest: the counters catch up before Ready
         with self._lock:
             self._end_job(job, outcome, reason, counts)
         self._changed("alarm" if outcome == "fault" else "state")

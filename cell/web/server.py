@@ -68,6 +68,11 @@ class ScreenInterface:
     def ready_text(self) -> str:
         return f"screen {self.server.url}"
 
+    @property
+    def starting_text(self) -> str:
+        svc = self.config.service
+        return f"the operator screen on {svc.host}:{svc.http_port}"
+
 
 class WebServer:
     """Start, address, stop. Stopping ends every open event stream and joins the thread."""

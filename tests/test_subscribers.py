@@ -1,0 +1,121 @@
+"""Subscribers of the event stream never hold up or fault a pick.
+
+A subscriber that never returns and one that raises on every event are attached to a
+dry-run service for a whole job: the job must end as without them (every part picked, no
+fault), their losses counted where OPC UA and the screen show them. Blocking the subscriber
+outright (rather than making it slow) makes the test independent of the machine's speed:
+if the control thread waited on a subscriber even once, the job could not end.
+How fast picks go with slow subscribers beside them is measured by
+scripts/bench_subscribers.py, not asserted here.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+
+import pytest
+
+from cell.eventbus import EventBus
+from cell.events import PickVerified, SnapshotChanged, StateChanged
+from cell.service.api import Command, VisionState
+from tests.serve_process import free_port
+from tests.test_service import picked, running, small_config, wait_for
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_a_stuck_and_a_raising_subscriber_never_hold_up_or_fault_a_job(tmp_path):
+    no_feeder = small_config(tmp_path).sim.feeder.model_copy(update={"parts_per_minute": 0})
+    release = threading.Event()
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        stuck = service.subscribe("stuck", lambda e: release.wait(), maxsize=8)
+
+        def broken(event):
+            raise RuntimeError("a subscriber with a bug")
+
+        raising = service.subscribe("raising", broken)
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == VisionState.READY, timeout_s=150, what="the job's end")
+        snap = service.snapshot()
+        assert picked(service) == 17 and snap.alarm is None and snap.counters.failed == 0
+        assert raising.wait_idle(30)
+        stats = {s.name: s for s in service.snapshot().subscribers}
+        assert stats["stuck"].dropped > 0 and stats["stuck"].queued <= 8
+        assert stats["raising"].delivered == 0 and stats["raising"].failed > 100
+        assert stats["ledger"].dropped == stats["ledger"].failed == 0
+        release.set()
+        assert stuck.wait_idle(30)
+
+
+def test_the_bus_never_blocks_the_emitter_and_counts_what_it_drops():
+    bus = EventBus()
+    gate = threading.Event()
+    sub = bus.subscribe("slow", lambda e: gate.wait(), maxsize=4)
+    bus.emit(SnapshotChanged(what="first"))
+    assert wait_until(lambda: sub.stats().queued == 0)  # taken: the handler is stuck on it
+    for i in range(99):
+        bus.emit(SnapshotChanged(what=str(i)))  # returns at once although the subscriber is stuck
+    s = sub.stats()
+    assert s.queued == 4 and s.dropped == 95  # one taken by the stuck handler, four queued
+    gate.set()
+    assert sub.wait_idle(10) and sub.stats().delivered == 5
+    bus.close()
+
+
+def test_frames_coalesce_a_slow_subscriber_sees_the_newest(tmp_path):
+    from cell.events import FrameLocated
+
+    bus = EventBus()
+    gate, seen = threading.Event(), []
+    sub = bus.subscribe("screen", lambda e: (gate.wait(), seen.append(e)))
+    bus.emit(StateChanged(source="idle", target="home", reason="x"))  # taken: the handler waits on the gate
+    assert wait_until(lambda: sub.stats().queued == 0)
+    for n in range(1, 6):
+        bus.emit(FrameLocated(frame=n, locate_ms=1.0, warnings=(), detections=()))
+    bus.emit(StateChanged(source="home", target="capture", reason="y"))
+    gate.set()
+    assert sub.wait_idle(10)
+    assert [getattr(e, "frame", e.kind) for e in seen] == ["state", 5, "state"]  # frames 1-4 replaced by 5
+    assert sub.stats().dropped == 0
+    bus.close()
+
+
+def wait_until(cond, timeout_s: float = 10.0) -> bool:
+    import time
+
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+@pytest.mark.slow
+def test_thirty_screens_that_never_read_do_not_hold_up_the_job(tmp_path):
+    """Thirty browsers open the event stream and never read it; the job runs to its end."""
+    from cell.web.server import screen_server
+
+    cfg = small_config(tmp_path, feeder=small_config(tmp_path).sim.feeder.model_copy(update={"parts_per_minute": 0}))
+    cfg.service.http_port = free_port()
+    cfg.service.web.max_screens = 32
+    with running(cfg) as service:
+        server = screen_server(service, cfg)
+        server.start()
+        streams = []
+        try:
+            for _ in range(30):
+                s = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+                s.sendall(b"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and never read: the buffers fill
+                streams.append(s)
+            picks = []
+            sub = service.subscribe("picks", picks.append, kinds=(PickVerified,))
+            service.command(Command.START_SINGLE)
+            wait_for(lambda: service.snapshot().vision_state == VisionState.READY, timeout_s=150, what="the job's end")
+            assert sub.wait_idle(30) and len(picks) == picked(service) == 17
+        finally:
+            for s in streams:
+                s.close()
+            server.stop()
