@@ -15,7 +15,7 @@ import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import get_args
+from typing import Protocol, get_args
 
 import numpy as np
 
@@ -23,8 +23,10 @@ from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
+from cell.eventbus import EventBus
 from cell.locks import device_locks
 from cell.planning import Planner, table_to_robot
+from cell.signals import Controls
 from cell.vision.locate import locate
 from cell.vision.types import LocateResult
 from drivers.arm.base import Arm
@@ -185,6 +187,44 @@ def capture_plate(config: CellConfig) -> np.ndarray:
     with contextlib.ExitStack() as stack:
         stack.enter_context(device_locks(None, config.camera.source))
         return _capture(make_camera(config.camera))
+
+
+class CellHooks(Protocol):
+    """What a consumer of the event stream (the history store, plant telemetry) may ask of the cell
+    it records: stop it safely with a fault, or show and clear a warning alarm."""
+
+    def fault(self, reason: str, hint: str, source: str) -> None: ...
+
+    def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None: ...
+
+    def clear_warning(self, key: str) -> None: ...
+
+
+class RunHooks:
+    """CellHooks for one `run-cell` job: a fault stops the job safely (exit 3 with its reason);
+    warnings are logged (the operator sees them in the log and the audit)."""
+
+    def __init__(self, controls: Controls):
+        self.controls = controls
+        self.fault_reason: str | None = None
+
+    def fault(self, reason: str, hint: str, source: str) -> None:
+        if self.fault_reason is None:
+            self.fault_reason = f"{reason} (hint: {hint})"
+            log.error("%s: %s", source, self.fault_reason)
+            self.controls.request_fault(self.fault_reason)
+
+    def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None:
+        log.warning("%s: %s (%s)", source, reason, hint)
+
+    def clear_warning(self, key: str) -> None:
+        log.info("warning %s cleared", key)
+
+
+def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks) -> None:
+    """The event stream's consumers a config asks for (the history store, plant telemetry), each a
+    subscriber of `bus` on its own thread, closed with `resources`. The one place they are built,
+    for `run-cell` and `run-cell serve` alike."""
 
 
 def commissioning_camera(config: CellConfig) -> Camera:

@@ -239,6 +239,8 @@ class Runner:
         with stop signals held off and the log best effort, then what happened is logged."""
         if self.sm.finished:  # a signal that came as the last step ended
             return
+        if state is S.STOPPED and self.controls.faulted:  # stopped for a failure outside the job
+            state, reason = S.FAULT, self.controls.stop_reason
         with self.controls.shielded():
             self.events.best_effort = True
             where = self.sm.state.name

@@ -37,6 +37,7 @@ class Controls:
         self.finish = threading.Event()  # the line service's Stop: end the job at the next safe point, arm homed
         self.wake = threading.Event()  # cuts a continuous run's WAIT short when any request arrives
         self.stop_reason = "stop requested"
+        self.faulted = False  # the stop is a fault raised from outside the job (request_fault)
         self.interruptible = True  # False: a stop signal is recorded, not raised
 
     def request(self, event: threading.Event, on: bool = True, reason: str | None = None) -> None:
@@ -46,6 +47,12 @@ class Controls:
             self.stop_reason = reason
         event.set() if on else event.clear()
         self.wake.set()
+
+    def request_fault(self, reason: str) -> None:
+        """From another thread: something the job needs has failed (e.g. its history cannot be
+        written): stop safely at once, and end as a fault, not a stop."""
+        self.faulted = True
+        self.request(self.stop, reason=reason)
 
     def request_stop(self, reason: str) -> None:
         """Record a stop; raise StopRequested if the code running now may be interrupted."""

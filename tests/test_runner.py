@@ -334,3 +334,15 @@ def test_the_safe_stop_runs_before_the_fault_is_logged(tmp_path):
     arm.stop = lambda: (order.append(("arm", "stop")), real_stop())[1]
     runner.run()
     assert order.index(("arm", "stop")) < order.index(("log", "fault"))
+
+
+def test_a_fault_requested_from_outside_ends_the_job_as_a_fault_with_the_arm_safe(tmp_path):
+    controls = Controls()
+    runner, table, arm, audit = make_runner(tmp_path, controls=controls)
+    runner.sm.listeners.append(
+        lambda t: controls.request_fault("history cannot be written: disk full") if t.target == State.PICK else None
+    )
+    summary = runner.run()
+    assert summary.outcome == "fault" and summary.exit_code == EXIT_FAULT
+    assert summary.reason == "history cannot be written: disk full"
+    assert table.held is None and ("stop",) in arm.calls

@@ -293,3 +293,17 @@ def test_counters_start_again_with_the_next_days_shift():
     tomorrow = today + timedelta(days=1)
     ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=tomorrow))
     assert ledger.counters().unreachable == 1 and ledger.shift == tomorrow.date().isoformat()
+
+
+def test_a_fault_from_another_part_stops_the_job_safely_into_error(tmp_path):
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        service.fault("history cannot be written: disk full", "free space on /var", "history")
+        wait_for(lambda: service.snapshot().vision_state == V.ERROR, what="Error")
+        snap = service.snapshot()
+        assert snap.alarm.reason == "history cannot be written: disk full" and snap.alarm.source == "history"
+        assert snap.alarm.hint == "free space on /var" and snap.cell_state == "FAULT"
+    events = read_shift(tmp_path / "logs")
+    assert [e["step"] for e in events if e["kind"] == "safe_step"][-2:] == ["home", "release torque"]
+    assert [e for e in events if e["kind"] == "job_end"][-1]["outcome"] == "fault"

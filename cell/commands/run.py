@@ -10,11 +10,12 @@ import os
 from pathlib import Path
 from typing import get_args
 
-from cell.assembly import Overrides, arm_only, assemble, cell_config, config_path
+from cell.assembly import Overrides, RunHooks, arm_only, assemble, attach_consumers, cell_config, config_path
 from cell.audit import AuditLog
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
+from cell.eventbus import EventBus
 from cell.events import ConfigLoaded, RunEnded
 from cell.locks import holding
 from cell.oplog import log_to_file, stop_logging_to
@@ -196,6 +197,10 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                 )
             )
             cell = assemble(config, args.dry_run, resources, progress=say)
+            bus = EventBus()
+            resources.callback(bus.close)  # subscribers deliver what they hold before the command ends
+            bus.add_record(audit.record, owner=audit)
+            attach_consumers(config, bus, resources, RunHooks(controls))
             for note in cell.notes:
                 say(note)
             say(
@@ -215,7 +220,7 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                 lambda frame: cell.locate(frame, cell.calibration),
                 cell.planner(),
                 config.run,
-                audit,
+                bus,
                 controls,
                 cell.expect_motion,
                 progress=say,

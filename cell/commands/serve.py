@@ -15,7 +15,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
-from cell.assembly import Overrides, assemble, cell_config
+from cell.assembly import Overrides, assemble, attach_consumers, cell_config
 from cell.config import CellConfig
 from cell.errors import ConfigError
 from cell.eventbus import EventBus
@@ -106,8 +106,11 @@ def open_service(
     resources.callback(bus.close)
     cell = assemble(config, dry_run, resources, shift=True, progress=progress)
     record = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
+    consumers = contextlib.ExitStack()
+    resources.callback(consumers.close)  # after the service has closed: they record its last events
     service = LineService(cell, bus, record)
     resources.callback(service.close)
+    attach_consumers(config, bus, consumers, service)
     return service
 
 

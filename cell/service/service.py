@@ -134,6 +134,7 @@ class _Job:
     runner: Runner | None = None
     halt: bool = False  # Halt or a signal: end in Halted
     abort: bool = False  # Abort: the safe stop, then Ready
+    fault: tuple[str, str, str] | None = None  # (reason, hint, source) of a fault raised from outside the job
 
 
 class LineService:
@@ -426,6 +427,28 @@ class LineService:
     def unsubscribe(self, subscription: Subscription) -> None:
         self.bus.unsubscribe(subscription)
 
+    # ---- faults and warnings raised by other parts (history, telemetry, logins) ----------------
+    def fault(self, reason: str, hint: str, source: str) -> None:
+        """Another part of the cell cannot go on (e.g. the required history cannot be written): a
+        running job stops safely and the cell goes to Error with this alarm; needs a Reset."""
+        with self._lock:
+            job = self._job
+            if job is not None:
+                if job.fault is None:
+                    job.fault = (reason, hint, source)
+                    job.controls.request_fault(reason)
+                return
+            if self._alarm is None:
+                self._raise_fault_alarm(reason, hint, source)
+            self._set_state(V.ERROR, reason)
+        self._changed("alarm")
+
+    def _raise_fault_alarm(self, what: str, hint: str, source: str) -> None:
+        self._alarm = Alarm(what, hint, datetime.now(UTC), f"A{next(self._alarm_ids)}", "fault", source)
+        self._emit_best_effort(
+            AlarmRaised(alarm_id=self._alarm.alarm_id, severity="fault", reason=what, hint=hint, source=source)
+        )
+
     # ---- warnings raised by other parts (history, telemetry, logins) ------------------------
     def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None:
         """A warning alarm shown until cleared by its source (`clear_warning`); no Reset needed."""
@@ -495,14 +518,17 @@ class LineService:
     def _end_job(self, job: _Job, outcome: str, reason: str, counts: dict | None = None) -> None:
         """Under the lock: the job's end recorded, the outward state set, a fault's alarm raised."""
         self._job = None
+        source = "job"
+        if job.fault is not None:  # stopped for another part of the cell: a fault with its reason
+            outcome, (reason, hint, source) = "fault", job.fault
+            reason = f"{reason} (hint: {hint})"
         ended = "halted" if job.halt and outcome != "fault" else outcome
         self._emit_best_effort(
             JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
         )
         if outcome == "fault":
             what, hint = split_hint(reason)
-            self._alarm = Alarm(what, hint, datetime.now(UTC), f"A{next(self._alarm_ids)}", "fault", "job")
-            self._emit_best_effort(AlarmRaised(alarm_id=self._alarm.alarm_id, severity="fault", reason=what, hint=hint))
+            self._raise_fault_alarm(what, hint, source)
             self._set_state(V.ERROR, reason)
         elif job.halt:
             self._set_state(V.HALTED, reason)
