@@ -39,6 +39,7 @@ from importlib import metadata
 from typing import Any
 
 from asyncua import Node, Server, ua
+from asyncua.common.instantiate_util import instantiate
 from asyncua.server.internal_session import InternalSession
 
 from cell.config import CellConfig
@@ -142,6 +143,7 @@ _TRANSITION_TYPE = ua.NodeId(ua.ObjectIds.TransitionType)
 _HANDLES_KEPT = 1000  # result and recipe handles a client has not released; the oldest go first
 _RESULT_WAIT_MAX_S = 10.0  # the longest GetResultById waits for a result still being made
 _FILE_MAX_BYTES = 64 * 1024  # a recipe written through a Handle
+_TRIES = 5  # an event that cannot be published is tried this many rounds (about a second apart), then dropped
 
 _caller: contextvars.ContextVar[Any] = contextvars.ContextVar("opcua_caller", default=None)
 
@@ -322,6 +324,7 @@ class MachineVisionServer:
         self._subscription: Any = None
         self._last_command: Command | None = None
         self._failing: set[str] = set()
+        self._tries = 0
         self._written: dict[str, Any] = {}
         self._handles: dict[int, list[str]] = {}
         self._transfers: dict[ua.NodeId, _Transfer] = {}
@@ -392,13 +395,38 @@ class MachineVisionServer:
         for key, path in names.items():
             self._n[key] = await self._child(*path)
         for key in ("vsm", "auto"):
-            self._n[f"{key}.current"] = await self._n[key].get_child(["0:CurrentState"])
-            self._n[f"{key}.last"] = await self._n[key].get_child(["0:LastTransition"])
+            await self._state_variables(key)
         await self._read_type_states()
         await self._identification()
         await self._n["diagnostic_level"].write_value(ua.Variant(0, _T.UInt16))
         await self._write_safety()
         await self._refresh_recipe_folder()
+
+    async def _state_variables(self, key: str) -> None:
+        """CurrentState with its Id and Number, LastTransition with Id, Number and TransitionTime
+        (the NodeSet's declarations carry only CurrentState and its Id)."""
+        machine, app = self._n[key], self._ns["app"]
+        base = str(machine.nodeid.Identifier)
+        current = await machine.get_child(["0:CurrentState"])
+        if not await _has_child(current, "0:Number"):
+            await current.add_property(
+                ua.NodeId(f"{base}.CurrentState.Number", app), ua.QualifiedName("Number", 0), ua.Variant(0, _T.UInt32)
+            )
+        if not await _has_child(machine, "0:LastTransition"):
+            transition_type = self.server.get_node(ua.NodeId(ua.ObjectIds.FiniteTransitionVariableType))
+            await instantiate(
+                machine,
+                transition_type,
+                nodeid=ua.NodeId(f"{base}.LastTransition", app),
+                bname=ua.QualifiedName("LastTransition", 0),
+                instantiate_optional=True,
+            )
+        self._n[f"{key}.current"] = current
+        self._n[f"{key}.last"] = await machine.get_child(["0:LastTransition"])
+        for var in (current, self._n[f"{key}.last"]):  # typed from the start: writes are checked against it
+            await self.server.write_attribute_value(
+                (await var.get_child(["0:Id"])).nodeid, ua.DataValue(ua.Variant(ua.NodeId(), _T.NodeId))
+            )
 
     async def _child(self, *path: str) -> Node:
         assert self.node is not None
@@ -924,7 +952,11 @@ class MachineVisionServer:
             while self._queue:
                 item = self._queue[0]
                 if not await self._guard(type(item).__name__, self._handle(item)):
-                    break  # tried again on the next round
+                    self._tries += 1
+                    if self._tries < _TRIES:
+                        break  # tried again on the next round
+                    log.warning("OPC UA Machine Vision: %s dropped after %d tries", type(item).__name__, _TRIES)
+                self._tries = 0
                 self._queue.popleft()
             await self._guard("values", self._write_values(self.service.snapshot()))
 
@@ -953,6 +985,8 @@ class MachineVisionServer:
                 await self._enter(VisionState(item.target))
 
     async def _write_values(self, s: Snapshot) -> None:
+        if STATE_PLACE[s.vision_state] != self._place:  # a state change whose event was dropped
+            await self._enter(s.vision_state)
         state = SYSTEM_STATE[s.vision_state]
         if s.hold and s.vision_state in (VisionState.READY, VisionState.INITIALIZED):
             state = ENGINEERING
@@ -980,6 +1014,7 @@ class MachineVisionServer:
             await self._transition(machine, name, src, dst)
         await self._set_current(target)
         self._place = target
+        self._last_command = None
 
     def _path(self, source: tuple[str, str], target: tuple[str, str]) -> list[tuple[str, str, str, str]]:
         """The specification's transitions from `source` to `target`: (machine, name, from, to)."""
@@ -1005,7 +1040,6 @@ class MachineVisionServer:
                 starts = {"SingleExecution": Command.START_SINGLE, "ContinuousExecution": Command.START_CONTINUOUS}
                 name = self._name(f"{sub0}To{sub1}", starts.get(sub1) is method and method is not None)
             steps.append(("auto", name, sub0, sub1))
-        self._last_command = None
         return [s for s in steps if s[1] in self._transitions]
 
     def _name(self, base: str, by_method: bool) -> str:
@@ -1081,6 +1115,14 @@ class MachineVisionServer:
         ev.CreationTime = r.creation_time
         ev.ResultContent = ua.Variant(d.ResultContent, _T.Variant, is_array=True)
         await gen.trigger(r.creation_time)
+
+
+async def _has_child(node: Node, name: str) -> bool:
+    try:
+        await node.get_child([name])
+    except ua.UaStatusCodeError:
+        return False
+    return True
 
 
 # ---- conversions ------------------------------------------------------------------------
