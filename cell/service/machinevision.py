@@ -330,6 +330,7 @@ class MachineVisionServer:
         self._transfers: dict[ua.NodeId, _Transfer] = {}
         self._safety = (False, "")
         self._ns: dict[str, int] = {}
+        self._generators: dict[str, Any] = {}
 
     # ---- start and stop ---------------------------------------------------------------
     async def start(self) -> None:
@@ -367,6 +368,15 @@ class MachineVisionServer:
         return ua.QualifiedName(name, self._ns["mv"])
 
     async def _build(self) -> None:
+        quiet = logging.getLogger("asyncua.common.copy_node_util")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # it warns of every attribute a VariableType lacks (AccessLevel ...)
+        try:
+            await self._build_nodes()
+        finally:
+            quiet.setLevel(level)
+
+    async def _build_nodes(self) -> None:
         mv, app = self._ns["mv"], self._ns["app"]
         vs_type = self.server.get_node(ua.NodeId(1003, mv))  # VisionSystemType
         if (await vs_type.read_browse_name()).Name != "VisionSystemType":
@@ -398,6 +408,12 @@ class MachineVisionServer:
             await self._state_variables(key)
         await self._read_type_states()
         await self._identification()
+        transition = ua.NodeId(ua.ObjectIds.TransitionEventType)
+        self._generators = {
+            "vsm": await self.server.get_event_generator(transition, self._n["vsm"]),
+            "auto": await self.server.get_event_generator(transition, self._n["auto"]),
+            "result": await self.server.get_event_generator(ua.NodeId(1024, mv), self.node),  # ResultReadyEventType
+        }
         await self._n["diagnostic_level"].write_value(ua.Variant(0, _T.UInt16))
         await self._write_safety()
         await self._refresh_recipe_folder()
@@ -1077,7 +1093,7 @@ class MachineVisionServer:
         ):
             with contextlib.suppress(ua.UaStatusCodeError):
                 await (await last.get_child([prop])).write_value(value)
-        gen = await self.server.get_event_generator(ua.ObjectIds.TransitionEventType, self._n[machine])
+        gen = self._generators[machine]
         ev = gen.event
         ev.Message = ua.LocalizedText(f"{source} -> {target} ({name})")
         ev.Severity = 100
@@ -1091,7 +1107,7 @@ class MachineVisionServer:
 
     async def _fire_result(self, r: VisionResult) -> None:
         assert self.node is not None
-        gen = await self.server.get_event_generator(ua.NodeId(1024, self._ns["mv"]), self.node)  # ResultReadyEventType
+        gen = self._generators["result"]
         d = result_data(r)
         ev = gen.event
         ev.Message = ua.LocalizedText(_result_message(r))

@@ -41,6 +41,7 @@ from typing import Any
 
 import asyncua
 from asyncua import Server, ua
+from asyncua.server.address_space import AttributeValue
 
 from cell.atomicfile import write_bytes_atomic
 from cell.errors import OutputError
@@ -53,7 +54,7 @@ NODESET_FILES = ("Opc.Ua.Di.NodeSet2.xml", "Opc.Ua.MachineVision.NodeSet2.xml") 
 MODEL_URIS = (DI_URI, MV_URI)
 # After Server.init() the namespace array is [OPC UA, the application URI]; the models come next.
 EXPECTED_NAMESPACES = {DI_URI: 2, MV_URI: 3}
-_FORMAT = 1  # bump when what the cache holds changes
+_FORMAT = 2  # bump when what the cache holds changes
 _MAGIC = b"pick-cell aspace cache\n"
 _DYNAMIC_MODULE = "asyncua.common.structures104"  # where asyncua puts the classes it generates
 
@@ -105,40 +106,92 @@ async def init_server_with_models(server: Server, cache_dir: Path | None) -> Mod
     namespaces = await _import_xml(server)
     if namespaces != EXPECTED_NAMESPACES:
         raise RuntimeError(f"model namespaces {namespaces}: call init_server_with_models on a new Server")
+    _complete_definitions(server)
+    _forget_aliases(server)
+    await _load_classes(server)
     if cache_file is not None:
         _write_cache(server, cache_file, namespaces)
     return ModelLoad("xml", cache_file, time.process_time() - t0, namespaces, warm.note)
 
 
 async def _load_classes(server: Server) -> None:
-    """Make the Python classes of the models' DataTypes as the XML import does: a structure that
-    adds no field of its own (RecipeIdExternalDataType ...) is its parent's class, and the
-    structures with fields of such types are made once those exist."""
-    quiet = logging.getLogger("asyncua.common.structures104")
-    level = quiet.level
-    quiet.setLevel(logging.CRITICAL)  # the first pass fails, as expected, on the structures the aliases serve
-    try:
-        await server.load_data_type_definitions()
-    finally:
-        quiet.setLevel(level)
-    aspace = server.iserver.aspace
-    for nid in [n for n in aspace.keys() if n.NamespaceIndex in EXPECTED_NAMESPACES.values()]:
-        ndata = aspace[nid]
-        if _attr(ndata, ua.AttributeIds.NodeClass) != ua.NodeClass.DataType:
-            continue
-        name = _attr(ndata, ua.AttributeIds.BrowseName).Name
-        if hasattr(ua, name) or _attr(ndata, ua.AttributeIds.DataTypeDefinition) is not None:
-            continue
-        parent = next(
-            (r.NodeId for r in ndata.references if r.ReferenceTypeId == _HAS_SUBTYPE and not r.IsForward), None
-        )
-        parent_cls = ua.extension_objects_by_datatype.get(parent) if parent is not None else None
-        if parent_cls is not None:
-            setattr(ua, name, parent_cls)
-            ua.extension_objects_by_datatype[nid] = parent_cls
+    """Make the Python classes of the models' DataTypes (every one has a definition by now)."""
     await server.load_data_type_definitions()
 
 
+def _complete_definitions(server: Server) -> int:
+    """Give every structure DataType of the models a DataTypeDefinition. The NodeSets leave it
+    empty where a subtype adds no field (RecipeIdExternalDataType, ConfigurationIdDataType ...
+    under the abstract BinaryIdBaseDataType; DI's abstract FetchResultDataType); OPC 10000-3
+    has the definition carry the inherited fields, and clients (node-opcua) need it to encode
+    and decode those types with their own encodings. Returns how many were completed."""
+    aspace = server.iserver.aspace
+    todo = [nid for nid in aspace.keys() if nid.NamespaceIndex in EXPECTED_NAMESPACES.values()]
+    todo = [n for n in todo if _attr(aspace[n], ua.AttributeIds.NodeClass) == ua.NodeClass.DataType]
+    done = 0
+    for _ in range(8):  # parents first: a chain of subtypes needs one pass per level
+        progress = False
+        for nid in todo:
+            ndata = aspace[nid]
+            if _attr(ndata, ua.AttributeIds.DataTypeDefinition) is not None:
+                continue
+            parent = _parent(ndata)
+            base = _structure_base(aspace, parent)
+            if base is None:
+                continue  # not a structure, or its parent is not complete yet
+            sdef = ua.StructureDefinition(
+                DefaultEncodingId=_default_encoding(aspace, ndata),
+                BaseDataType=parent,
+                StructureType=base.StructureType,
+                Fields=list(base.Fields),
+            )
+            ndata.attributes[ua.AttributeIds.DataTypeDefinition] = AttributeValue(ua.DataValue(ua.Variant(sdef)))
+            done += 1
+            progress = True
+        if not progress:
+            break
+    return done
+
+
+def _forget_aliases(server: Server) -> None:
+    """The XML import made the definition-less subtypes aliases of their parents' classes;
+    forget those, so the classes are made again from the completed definitions."""
+    aspace = server.iserver.aspace
+    for nid in [n for n in aspace.keys() if n.NamespaceIndex in EXPECTED_NAMESPACES.values()]:
+        if _attr(aspace[nid], ua.AttributeIds.NodeClass) != ua.NodeClass.DataType:
+            continue
+        name = _attr(aspace[nid], ua.AttributeIds.BrowseName).Name
+        cls = getattr(ua, name, None)
+        if cls is not None and getattr(cls, "data_type", nid) != nid:
+            delattr(ua, name)
+            ua.extension_objects_by_datatype.pop(nid, None)
+
+
+def _parent(ndata: Any) -> ua.NodeId | None:
+    return next((r.NodeId for r in ndata.references if r.ReferenceTypeId == _HAS_SUBTYPE and not r.IsForward), None)
+
+
+def _structure_base(aspace: Any, parent: ua.NodeId | None) -> ua.StructureDefinition | None:
+    """The parent's definition if the parent is a structure (Structure itself: an empty one)."""
+    if parent is None:
+        return None
+    if parent == ua.NodeId(ua.ObjectIds.Structure):
+        return ua.StructureDefinition(BaseDataType=parent, StructureType=ua.StructureType.Structure, Fields=[])
+    if parent not in aspace:
+        return None
+    sdef = _attr(aspace[parent], ua.AttributeIds.DataTypeDefinition)
+    return sdef if isinstance(sdef, ua.StructureDefinition) else None
+
+
+def _default_encoding(aspace: Any, ndata: Any) -> ua.NodeId:
+    for r in ndata.references:
+        if r.ReferenceTypeId == _HAS_ENCODING and r.IsForward and r.NodeId in aspace:
+            if _attr(aspace[r.NodeId], ua.AttributeIds.BrowseName).Name == "Default Binary":
+                return r.NodeId
+    return ua.NodeId()
+
+
+_HAS_ENCODING = ua.NodeId(ua.ObjectIds.HasEncoding)
 _HAS_SUBTYPE = ua.NodeId(ua.ObjectIds.HasSubtype)
 
 
