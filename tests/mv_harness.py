@@ -88,3 +88,21 @@ class MachineVisionHarness:
             self.service.close()
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=10)
+
+
+def shared_cache_dir(tmp_path_factory) -> Path:
+    """One address space cache for the whole test run (all xdist workers): built cold once,
+    under a lock, so the other tests start warm."""
+    import fcntl
+
+    root = tmp_path_factory.getbasetemp().parent / "mv-aspace-cache"
+    root.mkdir(exist_ok=True)
+    with open(root / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not any(root.glob("aspace-*.pickle")):
+
+            async def build() -> None:
+                await init_server_with_models(Server(), root)
+
+            asyncio.run(build())
+    return root

@@ -389,7 +389,6 @@ class MachineVisionServer:
         )
         for path in NOT_IMPLEMENTED:
             await self.server.delete_nodes([await self._child(*path)], recursive=True)
-        await self._drop_state_copies(self.node)
         names = {
             "vsm": ("VisionStateMachine",),
             "auto": ("VisionStateMachine", "AutomaticModeStateMachine"),
@@ -447,17 +446,6 @@ class MachineVisionServer:
     async def _child(self, *path: str) -> Node:
         assert self.node is not None
         return await self.node.get_child([f"{self._ns['mv']}:{p}" for p in path])
-
-    async def _drop_state_copies(self, node: Node) -> None:
-        """asyncua copies the type's State and Transition objects into the instance; they belong to the type only."""
-        for child in await node.get_children(refs=ua.ObjectIds.HasComponent):
-            if await child.read_node_class() != ua.NodeClass.Object:
-                continue
-            tdef = await child.read_type_definition()
-            if tdef in _STATE_TYPES or tdef == _TRANSITION_TYPE:
-                await self.server.delete_nodes([child], recursive=True)
-            else:
-                await self._drop_state_copies(child)
 
     async def _read_type_states(self) -> None:
         """The specification's states and transitions (nodes of the types) by BrowseName, with their numbers."""
