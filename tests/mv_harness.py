@@ -83,7 +83,7 @@ class MachineVisionHarness:
                 await self._server.stop()
 
         try:
-            asyncio.run_coroutine_threadsafe(_stop(), self._loop).result(timeout=30)
+            asyncio.run_coroutine_threadsafe(_stop(), self._loop).result(timeout=90)
         finally:
             self.service.close()
             self._loop.call_soon_threadsafe(self._loop.stop)

@@ -181,7 +181,7 @@ def test_every_mandatory_child_of_the_instantiated_types_exists(cache_dir: Path,
     harness = MachineVisionHarness(tmp_path, cache_dir).start()
 
     async def walk() -> list[str]:
-        async with Client(harness.endpoint, timeout=30) as client:
+        async with Client(harness.endpoint, timeout=30, watchdog_intervall=15) as client:
             mv_index = await client.get_namespace_index(mv.uri)
             vs = client.get_node(harness.mv.node.nodeid)
             assert (await vs.read_type_definition()) == ua.NodeId(1003, mv_index)

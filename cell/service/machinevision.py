@@ -268,12 +268,11 @@ class _ResultMaker:
         )
 
     def _job_end(self, e: JobEnded) -> VisionResult:
-        job = self.jobs.pop(e.job_id or "", None)
+        job = self.jobs.get(e.job_id or "")
         content = {"Mode": e.mode, "Outcome": e.outcome, "Reason": e.reason}
         content.update({_camel(k): int(v) for k, v in e.counts.items() if isinstance(v, int | float)})
         common = self._common(e.job_id or "", e.time_utc, job.start if job else None)
-        if job is None:
-            common["recipe_id"] = ""
+        self.jobs.pop(e.job_id or "", None)
         return VisionResult(
             f"{e.job_id}/end", kind="job", result_state=JOB_STATES.get(e.outcome, 4), content=content, **common
         )
@@ -331,6 +330,7 @@ class MachineVisionServer:
         self._safety = (False, "")
         self._ns: dict[str, int] = {}
         self._generators: dict[str, Any] = {}
+        self._background: set[asyncio.Task] = set()
 
     # ---- start and stop ---------------------------------------------------------------
     async def start(self) -> None:
@@ -354,9 +354,11 @@ class MachineVisionServer:
         self._task = asyncio.create_task(self._publish(), name="machinevision-publish")
 
     async def stop(self) -> None:
-        if self._subscription is not None:
-            self.service.unsubscribe(self._subscription)
+        if self._subscription is not None:  # off the loop: it waits for the subscriber thread to end
+            await asyncio.to_thread(self.service.unsubscribe, self._subscription)
             self._subscription = None
+        for task in list(self._background):
+            task.cancel()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -577,7 +579,7 @@ class MachineVisionServer:
             product_id=_id(product),
             part_id=_id(part),
             meas_id=_id(meas),
-            parameters=tuple((_key(kv), str(getattr(kv, "Value", ""))) for kv in parameters or []),
+            parameters=tuple((_key(kv), _text(getattr(kv, "Value", None))) for kv in parameters or []),
         )
         if request.recipe_id and not _valid_id(request.recipe_id):
             _bad(f"RecipeId {request.recipe_id!r}")
@@ -807,8 +809,18 @@ class MachineVisionServer:
         return []
 
     async def _drop_transfer(self, t: _Transfer) -> None:
+        """Forget a refused transfer; its node goes once the call that refused it has been answered
+        (deleting the method's own node while it runs confuses asyncua's reply)."""
         self._transfers.pop(t.node.nodeid, None)
-        await self.server.delete_nodes([t.node], recursive=True)
+
+        async def delete() -> None:
+            await asyncio.sleep(0.2)
+            with contextlib.suppress(Exception):
+                await self.server.delete_nodes([t.node], recursive=True)
+
+        task = asyncio.create_task(delete())
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
 
     async def _refresh_recipe_folder(self) -> None:
         """One RecipeType object per valid recipe file, with IsPrepared, InternalId, LastModified."""
@@ -1085,12 +1097,16 @@ class MachineVisionServer:
         ev = gen.event
         ev.Message = ua.LocalizedText(f"{source} -> {target} ({name})")
         ev.Severity = 100
-        ev.Transition = ua.LocalizedText(name)
-        ev.FromState = ua.LocalizedText(source)
-        ev.ToState = ua.LocalizedText(target)
-        _set_nested(ev, "Transition/Id", nid)
-        _set_nested(ev, "FromState/Id", self._states.get(source, (ua.NodeId(), 0))[0])
-        _set_nested(ev, "ToState/Id", self._states.get(target, (ua.NodeId(), 0))[0])
+        state_id = self._states.get
+        for field, value, vtype in (
+            ("Transition", ua.LocalizedText(name), _T.LocalizedText),
+            ("Transition/Id", nid, _T.NodeId),
+            ("FromState", ua.LocalizedText(source), _T.LocalizedText),
+            ("FromState/Id", state_id(source, (ua.NodeId(), 0))[0], _T.NodeId),
+            ("ToState", ua.LocalizedText(target), _T.LocalizedText),
+            ("ToState/Id", state_id(target, (ua.NodeId(), 0))[0], _T.NodeId),
+        ):
+            ev.add_property(field, value, vtype)  # the value and its type: asyncua wraps it in a Variant
         await gen.trigger(now)
 
     async def _fire_result(self, r: VisionResult) -> None:
@@ -1112,12 +1128,13 @@ class MachineVisionServer:
             "InternalConfigurationId",
             "ProcessingTimes",
         ):
-            setattr(ev, name, ua.Variant(getattr(d, name), _T.ExtensionObject))
-        ev.IsPartial = False
-        ev.IsSimulated = r.is_simulated
-        ev.ResultState = ua.Variant(r.result_state, _T.Int32)
-        ev.CreationTime = r.creation_time
-        ev.ResultContent = ua.Variant(d.ResultContent, _T.Variant, is_array=True)
+            value = getattr(d, name)
+            ev.add_property(name, value, _T.Null if value is None else _T.ExtensionObject)
+        ev.add_property("IsPartial", False, _T.Boolean)
+        ev.add_property("IsSimulated", r.is_simulated, _T.Boolean)
+        ev.add_property("ResultState", r.result_state, _T.Int32)
+        ev.add_property("CreationTime", r.creation_time, _T.DateTime)
+        ev.add_property("ResultContent", d.ResultContent, _T.Variant)
         await gen.trigger(r.creation_time)
 
 
@@ -1137,6 +1154,14 @@ def _id(value: Any) -> str:
     if isinstance(value, str):
         return value
     return str(getattr(value, "Id", "") or "")
+
+
+def _text(value: Any) -> str:
+    """A parameter's value as text (KeyValuePair.Value is a Variant of any type)."""
+    value = value.Value if isinstance(value, ua.Variant) else value
+    if value is None:
+        return ""
+    return value.Text or "" if isinstance(value, ua.LocalizedText) else str(value)
 
 
 def _key(kv: Any) -> str:
@@ -1225,11 +1250,3 @@ def _result_message(r: VisionResult) -> str:
         x, y = c.get("TableMm", [0.0, 0.0])
         return f"{r.result_id}: {c.get('Class')} {c.get('Outcome')} at table ({x:.1f}, {y:.1f}) mm"
     return f"{r.result_id}: job {c.get('Outcome')} ({c.get('Reason', '')})"
-
-
-def _set_nested(event: Any, name: str, value: Any) -> None:
-    """asyncua names an event field's own properties with a slash (`Transition/Id`)."""
-    if name in getattr(event, "internal_properties", ()) or hasattr(event, name):
-        setattr(event, name, value)
-    else:
-        event.add_property(name, value, ua.VariantType.NodeId)
