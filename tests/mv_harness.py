@@ -14,6 +14,7 @@ from cell.config import CellConfig
 from cell.recipes import RecipeBook
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import ModelLoad, init_server_with_models
+from cell.service.results import ResultFilter
 from tests.mv_fake_service import FakeLineService
 from tests.serve_process import free_port
 
@@ -74,6 +75,12 @@ class MachineVisionHarness:
         await self.mv.start()
         await server.start()
         self._server = server
+
+    def results_job_ids(self) -> list[str]:
+        """The jobs the results store holds results of, oldest first."""
+        assert self.mv is not None
+        page, _ = self.mv.results.query(ResultFilter(), 0, 100000)
+        return list(dict.fromkeys(r.job_id for r in page))
 
     def stop(self) -> None:
         async def _stop() -> None:
