@@ -71,18 +71,7 @@ def test_warm_start_loads_the_same_address_space_as_the_xml(cache_dir: Path, tmp
         assert cls.__name__ == name, f"{name} has its own class (own encoding), not its parent's"
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(180)
-@pytest.mark.parametrize(
-    "damage",
-    ["truncated", "flipped byte", "not ours", "valid checksum, wrong content", "unknown class in the pickle"],
-)
-def test_a_bad_cache_is_rebuilt_not_a_failed_start(
-    damage: str, cache_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    mine = tmp_path / "cache"
-    shutil.copytree(cache_dir, mine, ignore=shutil.ignore_patterns(".lock"))
-    (path,) = mine.glob("aspace-*.pickle")
+def _damage(path: Path, damage: str) -> None:
     data = path.read_bytes()
     if damage == "truncated":
         path.write_bytes(data[: len(data) // 2])
@@ -93,10 +82,41 @@ def test_a_bad_cache_is_rebuilt_not_a_failed_start(
     else:
         payload = pickle.dumps({"x": 1} if damage.startswith("valid") else {"namespaces": print, "nodes": {}})
         path.write_bytes(mva._MAGIC + hashlib.sha256(payload).digest() + payload)
+
+
+@pytest.mark.slow  # its fixture builds the shared cache (once per run)
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize(
+    "damage",
+    ["truncated", "flipped byte", "not ours", "valid checksum, wrong content", "unknown class in the pickle"],
+)
+def test_a_damaged_cache_is_refused_before_anything_is_loaded(damage: str, cache_dir: Path, tmp_path: Path) -> None:
+    (original,) = cache_dir.glob("aspace-*.pickle")
+    path = tmp_path / original.name
+    shutil.copyfile(original, path)
+    assert set(mva.read_cache(path)) == {"namespaces", "nodes"}, "the undamaged copy reads"
+    _damage(path, damage)
+    with pytest.raises((ValueError, pickle.UnpicklingError, EOFError)):
+        mva.read_cache(path)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_a_bad_or_stale_cache_is_rebuilt_not_a_failed_start(
+    cache_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    mine = tmp_path / "cache"
+    shutil.copytree(cache_dir, mine, ignore=shutil.ignore_patterns(".lock"))
+    (path,) = mine.glob("aspace-*.pickle")
+    stale = mine / "aspace-000000000000000000000000.pickle"  # another NodeSet or asyncua version's
+    shutil.copyfile(path, stale)
+    _damage(path, "truncated")
     with caplog.at_level(logging.WARNING, logger="cell.service.mv_addressspace"):
         load, server = _load(mine)
     assert load.source == "xml" and "unusable" in load.note
     assert any("unusable" in r.getMessage() for r in caplog.records), "the bad cache is logged"
+    assert "3:VisionSystemType" in _model_nodes(server).values()
+    assert [p.name for p in mine.glob("aspace-*.pickle")] == [path.name], "rebuilt; the stale one removed"
     assert _load(mine)[0].source == "cache", "the rebuilt cache is used on the next start"
 
 
@@ -109,17 +129,6 @@ def test_a_cache_that_cannot_be_written_is_only_logged(tmp_path: Path, caplog: p
         load, _ = _load(blocker / "cache")
     assert load.source == "xml"
     assert any("not written" in r.getMessage() for r in caplog.records)
-
-
-def test_a_stale_cache_is_removed_when_the_new_one_is_written(cache_dir: Path, tmp_path: Path) -> None:
-    mine = tmp_path / "cache"
-    shutil.copytree(cache_dir, mine, ignore=shutil.ignore_patterns(".lock"))
-    (current,) = mine.glob("aspace-*.pickle")
-    stale = mine / "aspace-000000000000000000000000.pickle"
-    current.rename(stale)  # as if made for another NodeSet or asyncua version: another key
-    load, _ = _load(mine)
-    assert load.source == "xml"
-    assert [p.name for p in mine.glob("aspace-*.pickle")] == [current.name]
 
 
 # ---- every Mandatory child of the types we instantiate -------------------------------------

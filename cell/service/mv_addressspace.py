@@ -329,8 +329,9 @@ def _write_cache(server: Server, path: Path, namespaces: dict[str, int]) -> None
     log.info("address space cache written: %s (%d kB)", path, len(payload) // 1024)
 
 
-def _read_cache(path: Path) -> dict:
-    """The cache's content, checked; ValueError (or an unpickling error) when it is not one."""
+def read_cache(path: Path) -> dict:
+    """The cache's content, checked; ValueError (or an unpickling error) when it is not one:
+    `init_server_with_models` then rebuilds it."""
     data = path.read_bytes()
     if not data.startswith(_MAGIC):
         raise ValueError("not an address space cache")
@@ -400,7 +401,7 @@ class _WarmLoad:
             self.note = "first start: no cache yet"
             return False
         try:
-            content = _read_cache(self.path)
+            content = read_cache(self.path)
         except Exception as e:  # noqa: BLE001 - any bad cache is rebuilt
             self.note = f"cache {self.path} unusable ({type(e).__name__}: {e}): rebuilt"
             log.warning("OPC UA address space %s", self.note)
