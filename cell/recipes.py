@@ -165,6 +165,13 @@ class RecipeBook:
             raise RecipeError(f"recipe {recipe_id!r} not found in {self.folder}")
         return self._info(path)
 
+    def sha256(self, recipe_id: str) -> str:
+        """The recipe file's hash (OPC 40100-1's recipe Hash), without validating it; RecipeError if absent."""
+        try:
+            return hashlib.sha256(self.path(recipe_id).read_bytes()).hexdigest()
+        except OSError as e:
+            raise RecipeError(f"recipe {recipe_id!r} not found in {self.folder}: {e.strerror}") from None
+
     def load(self, recipe_id: str) -> Recipe:
         path = self.path(recipe_id)
         try:

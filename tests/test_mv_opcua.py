@@ -182,6 +182,24 @@ def test_a_specification_only_client_runs_the_cell(harness: MachineVisionHarness
                 30.0,
             )
             assert (await s.call(s.results, "ReleaseResultHandle", ua.Variant(handle, _T.UInt32))) == [0]
+            released_again = s.call(s.results, "ReleaseResultHandle", ua.Variant(handle, _T.UInt32))
+            assert await _status(released_again) == ua.StatusCodes.BadInvalidArgument
+            parts = await s.call(
+                s.results,
+                "GetResultComponentsById",
+                ext(ua.ResultIdDataType(Id=f"{job_id}/2")),
+                ua.Variant(0, _T.Int32),
+            )
+            assert (parts[3], parts[4], parts[12].Id, parts[-1]) == (
+                True,
+                1,
+                job_id,
+                0,
+            )  # IsSimulated, state, JobId, Error
+            missing = s.call(
+                s.results, "GetResultById", ext(ua.ResultIdDataType(Id="no-such/1")), ua.Variant(0, _T.Int32)
+            )
+            assert await _status(missing) == ua.StatusCodes.BadNotFound
 
             # the state does not allow it: the specification's status code, nothing changed
             prepare = (ext(ua.RecipeIdExternalDataType(Id="bolts-only")), ext(ua.RecipeIdInternalDataType(Id="")))
@@ -283,6 +301,12 @@ def test_halt_reset_and_safety_follow_the_specification(harness: MachineVisionHa
                 "InitializedToReadyAuto",
             ]
             assert (await (await s.sm.get_child(["0:LastTransition", "0:Id"])).read_value()).NamespaceIndex == s.mv
+
+            # the dry run is chosen at start: asking for it succeeds, switching it off is not supported
+            simulation = (ua.Variant(0, _T.Int32), ua.Variant("", _T.String))
+            assert await s.call(s.auto, "SimulationMode", ua.Variant(True, _T.Boolean), *simulation) == [0]
+            off = s.call(s.auto, "SimulationMode", ua.Variant(False, _T.Boolean), *simulation)
+            assert await _status(off) == ua.StatusCodes.BadNotSupported
 
             # the environment reports its safety state: a trigger halts the cell
             triggered = await s.child(s.vs, "SafetyStateManagement", "VisionSafetyTriggered")

@@ -44,6 +44,8 @@ from asyncua.server.internal_session import InternalSession
 
 from cell.config import CellConfig
 from cell.events import (
+    AlarmCleared,
+    AlarmRaised,
     CalibrationInstalled,
     CommandHandled,
     ConfigLoaded,
@@ -138,6 +140,20 @@ NOT_IMPLEMENTED = (
     ("ResultManagement", "Results"),
     ("ResultManagement", "ResultTransfer"),
 )
+# The service's events this interface listens to (results, state, recipes, the SystemState's words).
+EVENT_KINDS = (
+    ConfigLoaded,
+    CalibrationInstalled,
+    CommandHandled,
+    VisionStateChanged,
+    JobStarted,
+    TargetChosen,
+    PickVerified,
+    JobEnded,
+    AlarmRaised,
+    AlarmCleared,
+)
+_RECIPE_COMMANDS = {Command.ADD_RECIPE, Command.REMOVE_RECIPE, Command.PREPARE_RECIPE, Command.UNPREPARE_RECIPE}
 _CHILD_REFS = {
     ua.NodeId(i) for i in (ua.ObjectIds.HasComponent, ua.ObjectIds.HasProperty, ua.ObjectIds.HasOrderedComponent)
 }
@@ -246,7 +262,7 @@ class _ResultMaker:
         if not recipe_id:
             return ""
         try:
-            return self.recipes.info(recipe_id).sha256
+            return self.recipes.sha256(recipe_id)
         except RecipeError:
             return ""
 
@@ -352,7 +368,7 @@ class MachineVisionServer:
         await self._enter(snapshot.vision_state, initial=True)
         await self._write_values(snapshot)
         self._subscription = self.service.subscribe(
-            "opcua-machinevision", lambda e: self._on_event(loop, e), maxsize=4096
+            "opcua-machinevision", lambda e: self._on_event(loop, e), kinds=EVENT_KINDS, maxsize=4096
         )
         self._task = asyncio.create_task(self._publish(), name="machinevision-publish")
 
@@ -1016,6 +1032,8 @@ class MachineVisionServer:
         elif isinstance(item, CommandHandled) and item.accepted:
             with contextlib.suppress(ValueError):
                 self._last_command = Command(item.command)
+            if self._last_command in _RECIPE_COMMANDS:  # from any interface: the Recipes folder follows
+                await self._refresh_recipe_folder()
         elif isinstance(item, VisionStateChanged):
             with contextlib.suppress(ValueError):
                 await self._enter(VisionState(item.target))
