@@ -1030,9 +1030,13 @@ class MachineVisionServer:
         if isinstance(item, VisionResult):
             await self._fire_result(item)
         elif isinstance(item, CommandHandled) and item.accepted:
-            with contextlib.suppress(ValueError):
-                self._last_command = Command(item.command)
-            if self._last_command in _RECIPE_COMMANDS:  # from any interface: the Recipes folder follows
+            try:
+                command = Command(item.command)
+            except ValueError:
+                return
+            if item.origin.interface not in (Interface.SIGNAL, Interface.SERVICE):
+                self._last_command = command  # a person's or a client's: the transition takes the method's name
+            if command in _RECIPE_COMMANDS:  # from any interface: the Recipes folder follows
                 await self._refresh_recipe_folder()
         elif isinstance(item, VisionStateChanged):
             with contextlib.suppress(ValueError):
