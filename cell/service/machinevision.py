@@ -164,6 +164,31 @@ _RESULT_WAIT_MAX_S = 10.0  # the longest GetResultById waits for a result still 
 _FILE_MAX_BYTES = 64 * 1024  # a recipe written through a Handle
 _TRIES = 5  # an event that cannot be published is tried this many rounds (about a second apart), then dropped
 
+# The methods served, by their path below the VisionSystem (BrowseNames in the Machine
+# Vision namespace) and the handler's name.
+METHODS: dict[tuple[str, ...], str] = {
+    ("VisionStateMachine", "Halt"): "_halt",
+    ("VisionStateMachine", "Reset"): "_reset",
+    ("VisionStateMachine", "ConfirmAll"): "_confirm_all",
+    ("VisionStateMachine", "SelectModeAutomatic"): "_select_automatic",
+    ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"): "_start_single",
+    ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"): "_start_continuous",
+    ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"): "_stop",
+    ("VisionStateMachine", "AutomaticModeStateMachine", "Abort"): "_abort",
+    ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"): "_simulation_mode",
+    ("RecipeManagement", "GetRecipeListFiltered"): "_get_recipe_list",
+    ("RecipeManagement", "PrepareRecipe"): "_prepare_recipe",
+    ("RecipeManagement", "UnprepareRecipe"): "_unprepare_recipe",
+    ("RecipeManagement", "AddRecipe"): "_add_recipe",
+    ("RecipeManagement", "RemoveRecipe"): "_remove_recipe",
+    ("RecipeManagement", "ReleaseRecipeHandle"): "_release_handle",
+    ("ResultManagement", "GetResultById"): "_get_result",
+    ("ResultManagement", "GetResultComponentsById"): "_get_result_components",
+    ("ResultManagement", "GetResultListFiltered"): "_get_result_list",
+    ("ResultManagement", "ReleaseResultHandle"): "_release_handle",
+    ("SafetyStateManagement", "ReportSafetyState"): "_report_safety",
+}
+
 _caller: contextvars.ContextVar[Any] = contextvars.ContextVar("opcua_caller", default=None)
 
 
@@ -533,30 +558,8 @@ class MachineVisionServer:
 
     # ---- methods ----------------------------------------------------------------------
     async def _bind_methods(self) -> None:
-        bind: dict[tuple[str, ...], Callable[..., Awaitable[list[ua.Variant]]]] = {
-            ("VisionStateMachine", "Halt"): self._halt,
-            ("VisionStateMachine", "Reset"): self._reset,
-            ("VisionStateMachine", "ConfirmAll"): self._confirm_all,
-            ("VisionStateMachine", "SelectModeAutomatic"): self._select_automatic,
-            ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"): self._start_single,
-            ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"): self._start_continuous,
-            ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"): self._stop,
-            ("VisionStateMachine", "AutomaticModeStateMachine", "Abort"): self._abort,
-            ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"): self._simulation_mode,
-            ("RecipeManagement", "GetRecipeListFiltered"): self._get_recipe_list,
-            ("RecipeManagement", "PrepareRecipe"): self._prepare_recipe,
-            ("RecipeManagement", "UnprepareRecipe"): self._unprepare_recipe,
-            ("RecipeManagement", "AddRecipe"): self._add_recipe,
-            ("RecipeManagement", "RemoveRecipe"): self._remove_recipe,
-            ("RecipeManagement", "ReleaseRecipeHandle"): self._release_handle,
-            ("ResultManagement", "GetResultById"): self._get_result,
-            ("ResultManagement", "GetResultComponentsById"): self._get_result_components,
-            ("ResultManagement", "GetResultListFiltered"): self._get_result_list,
-            ("ResultManagement", "ReleaseResultHandle"): self._release_handle,
-            ("SafetyStateManagement", "ReportSafetyState"): self._report_safety,
-        }
-        for path, handler in bind.items():
-            self.server.link_method(await self._child(*path), self._wrap(path[-1], handler))
+        for path, handler in METHODS.items():
+            self.server.link_method(await self._child(*path), self._wrap(path[-1], getattr(self, handler)))
 
     def _wrap(self, name: str, handler: Callable[..., Awaitable[list[ua.Variant]]]) -> Callable[..., Any]:
         async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
