@@ -7,6 +7,7 @@ switches the recipe, adds one through its Handle, stops, halts and resets."""
 from __future__ import annotations
 
 import asyncio
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -381,3 +382,40 @@ def test_a_client_without_the_role_is_refused(cache_dir: Path, tmp_path: Path) -
         asyncio.run(scenario())
     finally:
         h.stop()
+
+
+def test_a_failed_publication_is_logged_once_and_retried(
+    harness: MachineVisionHarness, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The server cannot fire two results in a row: each is tried again on the next round,
+    the failure logged once, and no result is lost."""
+    generator = harness.mv._generators["result"]
+    original, failures = generator.trigger, []
+
+    async def flaky(*args: Any, **kwargs: Any) -> Any:
+        if len(failures) < 2:
+            failures.append(args)
+            raise OSError("injected: the event could not be queued")
+        return await original(*args, **kwargs)
+
+    generator.trigger = flaky
+
+    async def scenario() -> list[str]:
+        async with Client(harness.endpoint, timeout=30, watchdog_intervall=15) as client:
+            s = await SpecClient(client).setup()
+            handler = Events()
+            sub = await client.create_subscription(50, handler)
+            await sub.subscribe_events(
+                s.vs, await client.nodes.base_event_type.get_child([f"{s.mv}:ResultReadyEventType"])
+            )
+            job = (await s.call(s.auto, "StartSingleJob", *job_args("", "", "", "", {})))[0].Id
+            seen = await handler.wait(lambda e: e.JobId.Id == job, 4, timeout_s=30)  # 3 picks and the job's end
+            await sub.delete()
+            return sorted(e.ResultId.Id for e in seen)
+
+    with caplog.at_level(logging.WARNING, logger="cell.service.machinevision"):
+        ids = asyncio.run(scenario())
+    job = ids[0].rsplit("/", 1)[0]
+    assert ids == [f"{job}/1", f"{job}/2", f"{job}/3", f"{job}/end"] and len(failures) == 2
+    warned = [r for r in caplog.records if "not published" in r.getMessage()]
+    assert len(warned) == 1, [r.getMessage() for r in warned]
