@@ -34,7 +34,7 @@ import secrets
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from importlib import metadata
 from typing import Any
 
@@ -74,9 +74,8 @@ from cell.service.api import (
     VisionState,
 )
 from cell.service.mv_addressspace import DI_URI, MV_URI
+from cell.service.mv_results import ResultMaker, external_id, internal_id, result_data, result_message
 from cell.service.results import (
-    JOB_STATES,
-    PICK_STATES,
     MemoryResultStore,
     ResultFilter,
     ResultStore,
@@ -226,107 +225,6 @@ class MethodError(Exception):
 
 
 @dataclass
-class _Job:
-    job_id: str
-    start: datetime
-    recipe_id: str
-    request: dict
-
-
-class _ResultMaker:
-    """Turns the service's events into results (on the subscriber thread)."""
-
-    def __init__(self, store: ResultStore, recipes: RecipeBook, simulated: bool):
-        self.store, self.recipes, self.simulated = store, recipes, simulated
-        self.jobs: dict[str, _Job] = {}
-        self.targets: dict[str, datetime] = {}
-        self.calibration_id = ""
-
-    def on_event(self, e: Event) -> VisionResult | None:
-        if isinstance(e, ConfigLoaded):
-            self.simulated = e.dry_run
-        elif isinstance(e, CalibrationInstalled):
-            self.calibration_id = e.calibration_id
-        elif isinstance(e, JobStarted) and e.job_id:
-            self.jobs[e.job_id] = _Job(e.job_id, e.time_utc, e.recipe, dict(e.arguments))
-            while len(self.jobs) > 16:
-                self.jobs.pop(next(iter(self.jobs)))
-        elif isinstance(e, TargetChosen):
-            self.targets[e.pick_id] = e.time_utc
-            while len(self.targets) > 256:
-                self.targets.pop(next(iter(self.targets)))
-        elif isinstance(e, PickVerified):
-            return self._add(self._pick(e))
-        elif isinstance(e, JobEnded) and e.job_id:
-            return self._add(self._job_end(e))
-        return None
-
-    def _add(self, result: VisionResult) -> VisionResult:
-        self.store.add(result)
-        return result
-
-    def _common(self, job_id: str, end: datetime, start: datetime | None) -> dict:
-        job = self.jobs.get(job_id)
-        request = job.request if job else {}
-        recipe = job.recipe_id if job else ""
-        return {
-            "job_id": job_id,
-            "creation_time": end,
-            "start_time": start or end,
-            "processing_ms": max(0.0, ((end - start).total_seconds() * 1000.0) if start else 0.0),
-            "is_simulated": self.simulated,
-            "recipe_id": recipe,
-            "recipe_sha256": self._recipe_sha(recipe),
-            "configuration_id": self.calibration_id,
-            "meas_id": str(request.get("meas_id", "")),
-            "part_id": str(request.get("part_id", "")),
-            "product_id": str(request.get("product_id", "")),
-        }
-
-    def _recipe_sha(self, recipe_id: str) -> str:
-        if not recipe_id:
-            return ""
-        try:
-            return self.recipes.sha256(recipe_id)
-        except RecipeError:
-            return ""
-
-    def _pick(self, e: PickVerified) -> VisionResult:
-        job_id = e.job_id or e.pick_id.rsplit("/", 1)[0]
-        start = self.targets.pop(e.pick_id, None) or (e.time_utc - timedelta(milliseconds=e.cycle_ms))
-        self.calibration_id = e.calibration_id or self.calibration_id
-        content = {
-            "Class": e.cls,
-            "Outcome": e.result,
-            "TableMm": [float(v) for v in e.table_mm],
-            "RobotMm": [float(v) for v in e.robot_mm],
-            "JawAngleDeg": float(e.jaw_angle_deg) if e.jaw_angle_deg is not None else 0.0,
-            "PixelPx": [float(v) for v in e.pixel],
-            "Track": int(e.track),
-            "Attempt": int(e.attempt),
-            "CycleMs": float(e.cycle_ms),
-        }
-        common = self._common(job_id, e.time_utc, start)
-        return VisionResult(
-            e.pick_id, kind="pick", result_state=PICK_STATES.get(e.result, 4), content=content, **common
-        )
-
-    def _job_end(self, e: JobEnded) -> VisionResult:
-        job = self.jobs.get(e.job_id or "")
-        content = {"Mode": e.mode, "Outcome": e.outcome, "Reason": e.reason}
-        content.update({_camel(k): int(v) for k, v in e.counts.items() if isinstance(v, int | float)})
-        common = self._common(e.job_id or "", e.time_utc, job.start if job else None)
-        self.jobs.pop(e.job_id or "", None)
-        return VisionResult(
-            f"{e.job_id}/end", kind="job", result_state=JOB_STATES.get(e.outcome, 4), content=content, **common
-        )
-
-
-def _camel(name: str) -> str:
-    return "".join(p[:1].upper() + p[1:] for p in name.split("_"))
-
-
-@dataclass
 class _Transfer:
     """A recipe being written through its Handle (FileType) after AddRecipe."""
 
@@ -355,7 +253,7 @@ class MachineVisionServer:
         self.server, self.service, self.config, self.mv = server, service, config, mv
         self.results = results if results is not None else MemoryResultStore(mv.results_kept)
         self.recipes = recipes if recipes is not None else RecipeBook(mv.recipes_dir)
-        self._maker = _ResultMaker(self.results, self.recipes, dry_run)
+        self._maker = ResultMaker(self.results, self.recipes, dry_run)
         self.node: Node | None = None  # the VisionSystem object
         self._n: dict[str, Node] = {}
         self._states: dict[str, tuple[ua.NodeId, int]] = {}  # state BrowseName -> (type's node, number)
@@ -670,7 +568,7 @@ class MachineVisionServer:
                 continue
             if tri in (0, 1) and (info.recipe_id == prepared) != bool(tri):
                 continue
-            listed.append(_internal_id(info.recipe_id, info.sha256))
+            listed.append(internal_id(info.recipe_id, info.sha256))
         start = max(0, int(start_index or 0))
         count = int(max_results or 0) or len(listed)
         page = listed[start : start + count]
@@ -712,7 +610,7 @@ class MachineVisionServer:
             sha = self.recipes.info(recipe_id).sha256 if recipe_id else ""
         except RecipeError:
             sha = ""
-        return _internal_id(recipe_id, sha)
+        return internal_id(recipe_id, sha)
 
     async def _remove_recipe(self, external_id: Any = None) -> list[ua.Variant]:
         recipe_id = self._recipe_from(external_id, None)
@@ -739,7 +637,7 @@ class MachineVisionServer:
 
     def _add_outputs(self, recipe_id: str, sha: str, node_id: ua.NodeId, transfer: bool) -> list[ua.Variant]:
         return [
-            ua.Variant(_internal_id(recipe_id, sha), _T.ExtensionObject),
+            ua.Variant(internal_id(recipe_id, sha), _T.ExtensionObject),
             ua.Variant(node_id, _T.NodeId),
             ua.Variant(ua.NodeId(), _T.NodeId),
             ua.Variant(transfer, _T.Boolean),
@@ -873,8 +771,8 @@ class MachineVisionServer:
             node = await self._recipe_node(info.recipe_id)
             values = {
                 "IsPrepared": ua.Variant(info.recipe_id == prepared, _T.Boolean),
-                "InternalId": ua.Variant(_internal_id(info.recipe_id, info.sha256), _T.ExtensionObject),
-                "ExternalId": ua.Variant(_external_id(info.recipe_id, info.sha256), _T.ExtensionObject),
+                "InternalId": ua.Variant(internal_id(info.recipe_id, info.sha256), _T.ExtensionObject),
+                "ExternalId": ua.Variant(external_id(info.recipe_id, info.sha256), _T.ExtensionObject),
                 "LastModified": ua.Variant(info.modified_utc, _T.DateTime),
             }
             for name, value in values.items():
@@ -1159,7 +1057,7 @@ class MachineVisionServer:
         gen = self._generators["result"]
         d = result_data(r)
         ev = gen.event
-        ev.Message = ua.LocalizedText(_result_message(r))
+        ev.Message = ua.LocalizedText(result_message(r))
         ev.Severity = 100 if r.result_state == 1 else 500
         for name in (
             "ResultId",
@@ -1224,74 +1122,3 @@ def _valid_id(recipe_id: str) -> bool:
 
 def _bad(what: str) -> None:
     raise MethodError(ua.StatusCodes.BadInvalidArgument, f"{what}: not an allowed recipe id")
-
-
-def _internal_id(recipe_id: str, sha256_hex: str) -> Any:
-    return ua.RecipeIdInternalDataType(
-        Id=recipe_id,
-        Hash=bytes.fromhex(sha256_hex) if sha256_hex else None,
-        HashAlgorithm="SHA-256" if sha256_hex else None,
-    )
-
-
-def _external_id(recipe_id: str, sha256_hex: str) -> Any:
-    return ua.RecipeIdExternalDataType(
-        Id=recipe_id,
-        Hash=bytes.fromhex(sha256_hex) if sha256_hex else None,
-        HashAlgorithm="SHA-256" if sha256_hex else None,
-    )
-
-
-def _configuration_id(calibration_id: str) -> Any:
-    return ua.ConfigurationIdDataType(
-        Id=calibration_id or "none", Description=ua.LocalizedText("the calibration in use")
-    )
-
-
-def _content(content: dict) -> list[ua.Variant]:
-    """ResultContent: one KeyValuePair per field (Key in the application namespace's words)."""
-    out = []
-    for key, value in content.items():
-        if isinstance(value, list):
-            inner = ua.Variant([float(v) for v in value], _T.Double, is_array=True)
-        elif isinstance(value, bool):
-            inner = ua.Variant(value, _T.Boolean)
-        elif isinstance(value, int):
-            inner = ua.Variant(value, _T.Int32)
-        elif isinstance(value, float):
-            inner = ua.Variant(value, _T.Double)
-        else:
-            inner = ua.Variant(str(value), _T.String)
-        out.append(ua.Variant(ua.KeyValuePair(Key=ua.QualifiedName(key, 0), Value=inner), _T.ExtensionObject))
-    return out
-
-
-def result_data(r: VisionResult) -> Any:
-    """The result as OPC 40100-1's ResultDataType."""
-    times = ua.ProcessingTimesDataType(
-        StartTime=r.start_time, EndTime=r.creation_time, ProcessingDuration=float(r.processing_ms)
-    )
-    return ua.ResultDataType(
-        ResultId=ua.ResultIdDataType(Id=r.result_id),
-        IsPartial=False,
-        IsSimulated=r.is_simulated,
-        ResultState=r.result_state,
-        MeasId=ua.MeasIdDataType(Id=r.meas_id) if r.meas_id else None,
-        PartId=ua.PartIdDataType(Id=r.part_id) if r.part_id else None,
-        ExternalRecipeId=_external_id(r.recipe_id, r.recipe_sha256) if r.recipe_id else None,
-        InternalRecipeId=_internal_id(r.recipe_id, r.recipe_sha256),
-        ProductId=ua.ProductIdDataType(Id=r.product_id) if r.product_id else None,
-        InternalConfigurationId=_configuration_id(r.configuration_id),
-        JobId=ua.JobIdDataType(Id=r.job_id),
-        CreationTime=r.creation_time,
-        ProcessingTimes=times,
-        ResultContent=_content(r.content),
-    )
-
-
-def _result_message(r: VisionResult) -> str:
-    c = r.content
-    if r.kind == "pick":
-        x, y = c.get("TableMm", [0.0, 0.0])
-        return f"{r.result_id}: {c.get('Class')} {c.get('Outcome')} at table ({x:.1f}, {y:.1f}) mm"
-    return f"{r.result_id}: job {c.get('Outcome')} ({c.get('Reason', '')})"
