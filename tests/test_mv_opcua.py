@@ -141,6 +141,11 @@ def test_a_specification_only_client_runs_the_cell(harness: MachineVisionHarness
         async with Client(harness.endpoint, timeout=30, watchdog_intervall=15) as client:
             s = await SpecClient(client).setup()
             assert (await s.state(s.sm), await s.state(s.auto)) == ("Operational", "Ready")
+            for variable in (await s.child(s.vs, "SystemState"), await s.child(s.vs, "DiagnosticLevel")):
+                assert await _status(variable.write_value(await variable.read_data_value())) in (
+                    ua.StatusCodes.BadNotWritable,
+                    ua.StatusCodes.BadUserAccessDenied,
+                )
             ident = await s.vs.get_child([f"{s.di}:Identification"])
             assert await (await ident.get_child([f"{s.di}:SerialNumber"])).read_value() == "PC-0042"
 

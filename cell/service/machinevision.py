@@ -357,8 +357,20 @@ class MachineVisionServer:
             "result": await self.server.get_event_generator(ua.NodeId(1024, mv), self.node),  # ResultReadyEventType
         }
         await self._n["diagnostic_level"].write_value(ua.Variant(0, _T.UInt16))
+        await self._read_only()
         await self._write_safety()
         await self._refresh_recipe_folder()
+
+    async def _read_only(self) -> None:
+        """No client writes any variable (the NodeSet declares some writable): state is the cell's,
+        changed only through the methods and their command table."""
+        aspace, app = self.server.iserver.aspace, self._ns["app"]
+        read = ua.DataValue(ua.Variant(ua.AccessLevel.CurrentRead.mask, _T.Byte))
+        for nid in [n for n in aspace.keys() if n.NamespaceIndex == app]:
+            attrs = aspace[nid].attributes
+            for attr in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
+                if attr in attrs and attrs[attr].value.Value.Value != read.Value.Value:
+                    await self.server.write_attribute_value(nid, read, attr)
 
     async def _prune(self, roots: list[Node]) -> None:
         """Remove these subtrees before the server listens: one pass over the address space for
@@ -659,6 +671,7 @@ class MachineVisionServer:
             with contextlib.suppress(ua.UaStatusCodeError):
                 await self.server.delete_nodes([await node.get_child([f"{self._ns['mv']}:{name}"])], recursive=True)
         await self._bind_recipe_node(node, recipe_id)
+        await self._read_only()
         return node
 
     async def _bind_recipe_node(self, node: Node, recipe_id: str) -> None:
