@@ -212,3 +212,12 @@ def test_every_mandatory_child_of_the_instantiated_types_exists(cache_dir: Path,
         assert asyncio.run(walk()) == []
     finally:
         harness.stop()
+
+
+def test_the_cache_folder_follows_the_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cell.service.mv_config import MachineVisionConfig
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert mva.cache_dir_for(MachineVisionConfig()) == tmp_path / "xdg" / "pick-cell" / "opcua"
+    assert mva.cache_dir_for(MachineVisionConfig(model_cache_dir=tmp_path / "c")) == tmp_path / "c"
+    assert mva.cache_dir_for(MachineVisionConfig(model_cache=False)) is None

@@ -485,8 +485,8 @@ class MachineVisionServer:
                 )
                 log.info("OPC UA %s refused (%s): %s", name, e.reason.value, e)
                 return ua.StatusCode(status)
-            except (TypeError, ValueError, AttributeError) as e:
-                log.info("OPC UA %s: bad arguments: %s", name, e)
+            except (TypeError, ValueError, AttributeError) as e:  # arguments of the wrong number or type
+                log.warning("OPC UA %s: arguments not understood: %s: %s", name, type(e).__name__, e)
                 return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
 
         return call

@@ -45,6 +45,7 @@ from asyncua.server.address_space import AttributeValue
 
 from cell.atomicfile import write_bytes_atomic
 from cell.errors import OutputError
+from cell.service.mv_config import MachineVisionConfig
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,13 @@ def cache_key(folder: Path | None = None) -> str:
 def default_cache_dir() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "pick-cell" / "opcua"
+
+
+def cache_dir_for(mv: MachineVisionConfig) -> Path | None:
+    """The cache folder `[service.machine_vision]` asks for (None: no cache)."""
+    if not mv.model_cache:
+        return None
+    return mv.model_cache_dir or default_cache_dir()
 
 
 async def init_server_with_models(server: Server, cache_dir: Path | None) -> ModelLoad:
