@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from cell.service.mv_config import MachineVisionConfig
 from cell.web.config import WebConfig
 from drivers.config import Strict
 
@@ -39,6 +40,10 @@ class ServiceConfig(Strict):
         None, description="server certificate and key, made on first start; default: opcua/ beside the calibration"
     )
     web: WebConfig = Field(WebConfig(), description="[service.web]: the operator screen's own settings")
+    machine_vision: MachineVisionConfig = Field(
+        MachineVisionConfig(),
+        description="[service.machine_vision]: the OPC 40100-1 model (identity, recipes, results)",
+    )
     audit_max_bytes: int = Field(
         64 * 2**20, ge=4096, description="the shift's audit log rolls to a new file past this size (and each UTC day)"
     )

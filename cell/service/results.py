@@ -1,0 +1,114 @@
+"""Vision results as OPC 40100-1 sees them: every pick attempt's verdict is one, and every
+job's end one more. They are kept in a `ResultStore` so a client that was away can fetch what
+it missed (GetResultById, GetResultListFiltered). `MemoryResultStore` keeps the newest N in
+memory; a store backed by the history database provides the same Protocol.
+
+Frames in names: `table_mm` the plate frame, `robot_mm` the arm's base frame.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Protocol
+
+# OPC 40100-1 ResultStateDataType (an Int32; negative values are the application's own).
+RESULT_COMPLETED = 1
+RESULT_PROCESSING = 2
+RESULT_ABORTED = 3
+RESULT_FAILED = 4
+
+PICK_STATES = {"picked": RESULT_COMPLETED, "rehearsed": RESULT_COMPLETED, "missed": RESULT_FAILED}
+JOB_STATES = {"done": RESULT_COMPLETED, "stopped": RESULT_ABORTED, "halted": RESULT_ABORTED, "fault": RESULT_FAILED}
+
+
+@dataclass(frozen=True)
+class VisionResult:
+    """One result: a pick attempt (kind "pick") or a job's end (kind "job")."""
+
+    result_id: str  # a pick's pick_id (`<job>/<attempt>`), or `<job>/end`
+    job_id: str
+    kind: str  # pick | job
+    result_state: int  # RESULT_*
+    creation_time: datetime  # UTC, when it was decided
+    start_time: datetime  # UTC, when its processing began (the target chosen, the job started)
+    processing_ms: float
+    is_simulated: bool
+    recipe_id: str = ""  # the recipe in force (ExternalRecipeId / InternalRecipeId)
+    recipe_sha256: str = ""
+    configuration_id: str = ""  # the calibration in force (InternalConfigurationId)
+    meas_id: str = ""
+    part_id: str = ""
+    product_id: str = ""
+    content: dict = field(default_factory=dict)  # what ResultContent carries (see docs/opcua-machinevision.md)
+
+
+@dataclass(frozen=True)
+class ResultFilter:
+    """GetResultListFiltered's criteria; an empty string or 0 matches anything."""
+
+    result_state: int = 0
+    job_id: str = ""
+    meas_id: str = ""
+    part_id: str = ""
+    product_id: str = ""
+    recipe_id: str = ""
+    configuration_id: str = ""
+
+    def matches(self, r: VisionResult) -> bool:
+        pairs = (
+            (self.job_id, r.job_id),
+            (self.meas_id, r.meas_id),
+            (self.part_id, r.part_id),
+            (self.product_id, r.product_id),
+            (self.recipe_id, r.recipe_id),
+            (self.configuration_id, r.configuration_id),
+        )
+        if self.result_state and r.result_state != self.result_state:
+            return False
+        return all(not want or want == have for want, have in pairs)
+
+
+class ResultStore(Protocol):
+    """Where results are kept. Thread-safe: added from the service's event thread, read from OPC UA's loop."""
+
+    def add(self, result: VisionResult) -> None: ...
+
+    def get(self, result_id: str) -> VisionResult | None: ...
+
+    def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
+        """The matches from `start_index` on (oldest first), at most `max_results`, and how many match in all."""
+        ...
+
+
+class MemoryResultStore:
+    """The newest `capacity` results in memory; older ones are forgotten (GetResultById: not found)."""
+
+    def __init__(self, capacity: int = 10000):
+        if capacity < 1:
+            raise ValueError(f"capacity {capacity}: at least 1")
+        self.capacity = capacity
+        self._results: OrderedDict[str, VisionResult] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def add(self, result: VisionResult) -> None:
+        with self._lock:
+            self._results[result.result_id] = result
+            self._results.move_to_end(result.result_id)
+            while len(self._results) > self.capacity:
+                self._results.popitem(last=False)
+
+    def get(self, result_id: str) -> VisionResult | None:
+        with self._lock:
+            return self._results.get(result_id)
+
+    def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
+        with self._lock:
+            matches = [r for r in self._results.values() if where.matches(r)]
+        return matches[start_index : start_index + max_results], len(matches)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._results)
