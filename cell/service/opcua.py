@@ -29,6 +29,8 @@ from cell.errors import ConfigError
 from cell.events import Event, Interface, JobStarted, Origin, PartFailed, PickVerified, Role, SnapshotChanged
 from cell.service.api import STATE_COMMANDS, Command, CommandRefused, LineServiceAPI, PickRecord, Refusal, Snapshot
 from cell.service.ledger import PickRecords
+from cell.service.machinevision import MachineVisionServer
+from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
 from cell.service.security import credentials_configured, password_ok
 
 log = logging.getLogger(__name__)
@@ -143,7 +145,8 @@ class _OneUser:
 
 class OpcUaServer:
     def __init__(self, service: LineServiceAPI, config: CellConfig):
-        self.service, self.cfg = service, config.service
+        self.service, self.cfg, self.config = service, config.service, config
+        self.machine_vision: MachineVisionServer | None = None
         self.secure = credentials_configured(self.cfg)
         self.cert_dir = self.cfg.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
         self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
@@ -171,7 +174,7 @@ class OpcUaServer:
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
             logging.getLogger(name).setLevel(logging.WARNING)
         s = self.server
-        await s.init()
+        await init_server_with_models(s, cache_dir_for(self.config.service.machine_vision))  # OPC 40100-1, DI
         s.set_endpoint(self.endpoint)
         s.set_server_name("pick-cell")
         await s.set_application_uri(APP_URI)
@@ -201,6 +204,10 @@ class OpcUaServer:
             lambda e: self._on_event(loop, e),
             kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted),
         )
+        self.machine_vision = MachineVisionServer(
+            s, self.service, self.config, dry_run=self.service.snapshot().simulated
+        )
+        await self.machine_vision.start()
         quiet = logging.getLogger("asyncua.server.server")
         quiet.setLevel(logging.CRITICAL)  # its traceback for a taken port; we say it in one line
         try:
@@ -333,4 +340,6 @@ class OpcUaServer:
                 await self._task
             except asyncio.CancelledError:
                 pass
+        if self.machine_vision is not None:
+            await self.machine_vision.stop()
         await self.server.stop()
