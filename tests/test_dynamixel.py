@@ -198,7 +198,7 @@ def test_missing_port_is_connection_lost(tmp_path):
 def test_reconnect_waits_for_the_adapter_to_come_back(bus):
     emu, path = bus
     with make_arm(path) as arm:
-        assert torques(emu) == [True] * 5  # the servos took the torque on before the adapter went
+        barrier(arm)  # the servos have taken the torque on before the adapter goes
         emu.unplug()
         with pytest.raises(ConnectionLost):
             arm.move_to(200.0, 0.0, 50.0)
@@ -222,15 +222,21 @@ def reboot_and_wait(emu, **params) -> int:
     return emu.reboots[-1]
 
 
+def barrier(arm) -> None:
+    """A status read: the emulator answers it only after every packet sent before it, the
+    sync writes that get no answer included (allowed while the position is lost)."""
+    arm.status()
+
+
 def assert_motion_refused(arm, emu) -> None:
     """Every motion command raises PositionLost and nothing at all reaches the bus."""
-    emu.server.settle()
+    barrier(arm)
     sent = len(emu.packets_received)
     for command in (lambda: arm.move_to(200.0, 0.0, 50.0), arm.open_gripper, arm.close_gripper, arm.wait_until_idle):
         with pytest.raises(PositionLost, match="^controller restarted: position lost; home before moving"):
             command()
-    emu.server.settle()
-    assert len(emu.packets_received) == sent
+    barrier(arm)
+    assert len(emu.packets_received) == sent + 1  # the barrier's own sync read
 
 
 def test_servo_restart_mid_move_locks_motion_until_homed(bus):
@@ -243,13 +249,12 @@ def test_servo_restart_mid_move_locks_motion_until_homed(bus):
         assert (e.port, e.command) == (path, "move to (150.0, -80.0, 10.0) mm")
         assert e.reply == "torque off on servo 11, 12, 13, 14, 15, no hardware error: the driver had it on"
         assert "`run-cell home`" in str(e)
-        assert torques(emu) == [False] * 5
         assert_motion_refused(arm, emu)
         status = arm.status()
         assert (status.state, status.detail) == ("alarm", PositionLost.MESSAGE)
         since = len(emu.packets_received)
         arm.home()
-        assert not arm.position_lost and torques(emu) == [True] * 5
+        assert not arm.position_lost and torques(emu) == [True] * 5  # home polled the servos after torque on
         wait_still(emu)
         assert [round(emu.servos[i].position) for i in CFG.joint_ids] == KIN.to_ticks(
             [math.radians(v) for v in CFG.home_joints_deg]
@@ -269,6 +274,7 @@ def test_servo_restart_while_idle_is_found_before_the_next_move(bus):
         at = reboot_and_wait(emu, ids=[12])
         with pytest.raises(PositionLost, match="servo 12, no hardware error"):
             arm.move_to(150.0, -80.0, 10.0)
+        barrier(arm)
         assert motion_writes(emu, at) == []  # no goal reached the bus after the restart
         assert torques(emu) == [False] * 5  # the servos that kept their torque let go too
 
@@ -278,15 +284,16 @@ def test_unlock_after_a_restart_holds_the_pose_without_moving(bus):
     with make_arm(path) as arm:
         arm.move_to(200.0, 0.0, 50.0)
         wait_still(emu)
-        reboot_and_wait(emu)
+        at = reboot_and_wait(emu)
         with pytest.raises(PositionLost):
             arm.status()
         held = [round(s.position) for s in emu.servos.values()]
-        emu.server.settle()  # the torque-off the driver sent on finding the restart
-        since = len(emu.packets_received)
         arm.unlock()
+        barrier(arm)
         assert not arm.position_lost and torques(emu) == [True] * 5
-        assert [a for a, _ in bus_writes(emu, since)] == [108, 64]  # profiles, torque on; no goal
+        # Since the restart: the torque-off on finding it, then the profiles and torque on; no goal.
+        (off, _), (profiles, _), (on, values) = written = bus_writes(emu, at)
+        assert (off, profiles, on) == (64, 108, 64) and written[0][1][1::2] == bytes(5) and values[1::2] == b"\1" * 5
         assert [round(s.position) for s in emu.servos.values()] == held
         arm.move_to(150.0, -80.0, 10.0)
         wait_still(emu)
@@ -296,16 +303,14 @@ def test_unlock_after_a_restart_holds_the_pose_without_moving(bus):
 def test_cable_pulled_while_the_servos_restarted_locks_motion(bus):
     emu, path = bus
     with make_arm(path) as arm:
-        assert torques(emu) == [True] * 5
+        barrier(arm)  # the servos have taken the torque on
         emu.unplug()
         with pytest.raises(ConnectionLost):
             arm.move_to(200.0, 0.0, 50.0)
         emu.replug(power_cycled=True)  # the adapter came back, and the servos' supply had dipped
-        emu.server.settle()
-        since = len(emu.packets_received)
         with pytest.raises(PositionLost, match="torque off on servo 11, 12, 13, 14, 15"):
             arm.move_to(200.0, 0.0, 50.0)  # reconnects, then refuses
-        assert arm.is_connected and motion_writes(emu, since) == []
+        assert arm.is_connected and motion_writes(emu, emu.reboots[-1]) == []
         assert_motion_refused(arm, emu)
         arm.home()
         assert torques(emu) == [True] * 5

@@ -121,7 +121,7 @@ def test_a_fault_mid_job_ends_in_fault_with_the_arm_stopped(kind, reason, safe, 
     text = CONFIGS[kind].read_text()
     assert "arm_fault_after_grips = 0" in text
     cfg = tmp_path / "fault.toml"
-    cfg.write_text(text.replace("arm_fault_after_grips = 0", "arm_fault_after_grips = 1"))
+    cfg.write_text(text.replace("arm_fault_after_grips = 0", "arm_fault_after_grips = 3"))
     assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 3
     assert "FAULT: " + reason in capsys.readouterr().out
     events = audit_of(tmp_path / "logs")
