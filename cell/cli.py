@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     "cell.commands.locate",
     "cell.commands.run",
     "cell.commands.serve",
+    "cell.commands.users",
 ]
 
 log = logging.getLogger(__name__)
