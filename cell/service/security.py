@@ -10,6 +10,9 @@ What each setting protects: docs/security.md.
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 from cell.errors import ConfigError
 from cell.service.config import ServiceConfig
 from cell.service.users import ITERATIONS, Authenticator, parse_hash, verify_hash
@@ -37,6 +40,11 @@ def credentials_configured(cfg: ServiceConfig) -> bool:
     return Authenticator(cfg).configured
 
 
+def certificate_dir(config: Any) -> Path:
+    """Where the servers' certificates and keys live: service.certificate_dir, else opcua/ beside the calibration."""
+    return config.service.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
+
+
 def check_exposure(cfg: ServiceConfig) -> None:
     """Refuse to listen beyond loopback without users (encryption is then always on)."""
     if cfg.loopback:
@@ -56,4 +64,4 @@ def check_exposure(cfg: ServiceConfig) -> None:
         )
 
 
-__all__ = ["check_exposure", "credentials_configured", "hash_password", "password_ok", "verify_hash"]
+__all__ = ["certificate_dir", "check_exposure", "credentials_configured", "hash_password", "password_ok", "verify_hash"]

@@ -1,0 +1,318 @@
+"""The screen's connections under attack (issue 21): deadlines for headers and bodies, caps per
+client address and in total, TLS with HSTS and Secure cookies, clients that do not read.
+
+The fast cases run cell.web.transport in this process over a small app; the probes from the
+issue (1,100 unfinished requests under `ulimit -n 1024`, 50 unread event streams) run
+tests/limits_server.py in a subprocess, the screen's transport and the guarded OPC UA server
+in one process as `run-cell serve` has them. Other "machines" are other loopback addresses
+(127.0.0.2 ...), since the caps are per client address."""
+
+from __future__ import annotations
+
+import asyncio
+import resource
+import socket
+import ssl
+import threading
+import time
+
+import httpx
+import pytest
+from asyncua import Client, ua
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import JSONResponse, PlainTextResponse
+from starlette.routing import Route
+
+from cell.web.shield import Shield
+from cell.web.tls import ensure_self_signed, server_context
+from cell.web.transport import ServerThread, TransportLimits
+from tests.probes import ProbeServer, connect_from, wait_until
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def small_app() -> Starlette:
+    async def state(request: Request) -> JSONResponse:
+        return JSONResponse({"ok": True})
+
+    async def upload(request: Request) -> PlainTextResponse:
+        body = await request.body()
+        return PlainTextResponse(str(len(body)))
+
+    async def login(request: Request) -> JSONResponse:
+        reply = JSONResponse({"ok": True})
+        reply.set_cookie("cell_session", "abc", httponly=True, samesite="strict")
+        return reply
+
+    return Starlette(
+        routes=[
+            Route("/api/state", state),
+            Route("/api/upload", upload, methods=["POST"]),
+            Route("/api/login", login, methods=["POST"]),
+        ]
+    )
+
+
+def small_server(header_timeout_s: float) -> ServerThread:
+    """The small app behind the transport with small caps (8 in all, 4 per address)."""
+    limits = TransportLimits(
+        header_timeout_s=header_timeout_s, body_timeout_s=0.5, max_connections=8, max_connections_per_address=4
+    )
+    server = ServerThread(Shield(small_app(), https=False), "127.0.0.1", 0, limits)
+    server.start()
+    return server
+
+
+@pytest.fixture
+def quick():
+    server = small_server(header_timeout_s=0.5)
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def patient():
+    server = small_server(header_timeout_s=30)
+    yield server
+    server.stop()
+
+
+def closed_by_server(sock: socket.socket, within_s: float) -> bool:
+    """True when the server closes (FIN or reset) the connection within `within_s` (what it sends meanwhile,
+    e.g. the rest of an earlier response, is read and dropped)."""
+    deadline = time.monotonic() + within_s
+    while (left := deadline - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            if sock.recv(65536) == b"":
+                return True
+        except ConnectionResetError:
+            return True
+        except TimeoutError:
+            return False
+    return False
+
+
+def test_unfinished_headers_and_bodies_are_cut(quick):
+    line_only = connect_from("127.0.0.1", quick.port)
+    line_only.sendall(b"GET /api/state HTTP/1.1\r\n")
+    silent = connect_from("127.0.0.1", quick.port)
+    slow_body = connect_from("127.0.0.1", quick.port)
+    slow_body.sendall(b"POST /api/upload HTTP/1.1\r\nHost: x\r\nContent-Length: 100\r\n\r\n0123456789")
+    for sock in (line_only, silent, slow_body):
+        assert closed_by_server(sock, 10), "the server kept an unfinished request open past its deadline"
+        sock.close()
+    tally = quick.server.tally.total
+    assert tally["cut: request headers too slow"] == 2 and tally["cut: request body too slow"] == 1
+    assert httpx.post(quick.url + "api/upload", content=b"x" * 100).text == "100"  # a whole body is fine
+
+
+def test_a_kept_alive_connections_next_request_gets_a_deadline_too(quick):
+    sock = connect_from("127.0.0.1", quick.port)
+    sock.sendall(b"GET /api/state HTTP/1.1\r\nHost: x\r\n\r\n")
+    sock.settimeout(5)
+    assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+    sock.sendall(b"GET /api/state HTTP/1.1\r\nHost: x\r\n")  # the next request, never finished
+    assert closed_by_server(sock, 10)
+    sock.close()
+
+
+def test_one_address_is_capped_and_a_crowd_of_waiting_ones_makes_room(patient):
+    tally = patient.server.tally.total
+    mine = [connect_from("127.0.0.2", patient.port) for _ in range(6)]  # 4 admitted, 2 reset at once
+    refused = "refused: 4 open from one address (max_connections_per_address)"
+    wait_until(lambda: tally[refused] == 2, 10, "two connections over the per-address cap refused")
+    crowd = [connect_from(f"127.0.0.{i}", patient.port) for i in range(3, 7)]  # all 8 places taken now
+    for s in crowd:
+        s.sendall(b"GET /api/state HTTP/1.1\r\n")
+    wait_until(lambda: patient.server.admission.open == 8, 10, "all 8 places taken")
+    r = httpx.get(patient.url + "api/state", timeout=5)  # the oldest waiting connection gives way
+    assert r.json() == {"ok": True}
+    assert tally["evicted: a waiting connection, all places taken"] == 1
+    assert sum(closed_by_server(s, 5) for s in mine[:1]) == 1  # the oldest was the first of 127.0.0.2's
+    for s in mine + crowd:
+        s.close()
+
+
+@pytest.fixture
+def secure(tmp_path):
+    limits = TransportLimits(header_timeout_s=0.5)
+    context = server_context(None, None, tmp_path, "127.0.0.1")
+    server = ServerThread(Shield(small_app(), https=True), "127.0.0.1", 0, limits, context)
+    server.start()
+    yield server, tmp_path
+    server.stop()
+
+
+def test_https_with_hsts_and_secure_cookies(secure):
+    server, certs = secure
+    assert server.url.startswith("https://")
+    trust = ssl.create_default_context(cafile=str(certs / "screen-cert.pem"))
+    with httpx.Client(verify=trust, timeout=10) as client:
+        r = client.post(server.url + "api/login")
+        assert r.status_code == 200
+        assert r.headers["strict-transport-security"] == "max-age=31536000"
+        cookie = r.headers["set-cookie"]
+        assert "HttpOnly" in cookie and "SameSite=strict" in cookie and cookie.endswith("; Secure")
+    with pytest.raises(httpx.HTTPError):
+        httpx.get(server.url.replace("https://", "http://") + "api/state", timeout=5)  # no plain HTTP
+    silent = connect_from("127.0.0.1", server.port)  # connects, never starts the handshake
+    assert closed_by_server(silent, 10)
+    silent.close()
+    tally = server.server.tally.total
+    wait_until(lambda: sum(n for k, n in tally.items() if k.startswith("cut: TLS handshake")) >= 2, 10, "both cut")
+
+
+def test_the_made_certificate_is_kept_and_its_key_private(tmp_path):
+    cert, key = ensure_self_signed(tmp_path, "10.1.2.3")
+    first = cert.read_bytes()
+    assert key.stat().st_mode & 0o077 == 0
+    assert ensure_self_signed(tmp_path, "10.1.2.3") == (cert, key) and cert.read_bytes() == first
+    from cryptography import x509
+
+    names = x509.load_pem_x509_certificate(first).extensions.get_extension_for_class(x509.SubjectAlternativeName)
+    assert "10.1.2.3" in {str(ip) for ip in names.value.get_values_for_type(x509.IPAddress)}
+
+
+# ---- the issue's probes, against a server process ----------------------------------------
+def _raise_own_limit(needed: int) -> None:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft < needed:
+        if hard != resource.RLIM_INFINITY and hard < needed:
+            pytest.skip(f"this test opens {needed} sockets; its own descriptor limit is {hard} (ulimit -Hn)")
+        resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+
+
+class Slowloris(threading.Thread):
+    """Opens `count` connections from 127.0.0.2.. (`per_address` each), each sending only a request
+    line, and holds them until stopped (as the issue's probe did: it never finishes a request)."""
+
+    def __init__(self, port: int, count: int, per_address: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.count, self.per_address = port, count, per_address
+        self.stopping = threading.Event()
+        self.opened = 0
+        self.failed: list[str] = []
+
+    def run(self) -> None:
+        socks = []
+        for i in range(self.count):
+            try:
+                s = connect_from(f"127.0.0.{2 + i // self.per_address}", self.port, timeout_s=5)
+                s.sendall(b"GET /api/state HTTP/1.1\r\n")
+                socks.append(s)
+                self.opened += 1
+            except OSError as e:  # a reset while connecting: the server refused or evicted it
+                self.failed.append(type(e).__name__)
+                self.opened += 1
+        self.stopping.wait()
+        for s in socks:
+            s.close()
+
+
+def _latency(call) -> float:
+    t0 = time.monotonic()
+    call()
+    return time.monotonic() - t0
+
+
+@pytest.mark.slow
+def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
+    """The issue's probe: `ulimit -n 1024`, 1,100 connections that send a request line and nothing
+    more. The screen and OPC UA must answer a real client within 1 s all along, the process must
+    keep descriptors to spare, and the log must not fill with the same failure."""
+    _raise_own_limit(1400)
+    # The header deadline is raised so the attack holds all through the measurement (on a loaded machine
+    # too); what keeps the screen answering here is the caps and eviction, not the deadline.
+    server = ProbeServer(tmp_path, nofile=1024, limits={"web": {"header_timeout_s": 120}})
+    attack = Slowloris(int(server.screen_url.rsplit(":", 1)[1].strip("/")), 1100, per_address=20)
+    try:
+
+        async def opcua_reads(seconds: float) -> list[float]:
+            client = Client(server.opcua_url, timeout=10)  # loopback without users: as the cell runs locally
+            await client.connect()
+            try:
+                ns = await client.get_namespace_index("urn:pick-cell")
+                node = client.get_node(ua.NodeId("Heartbeat", ns))
+                out, end = [], time.monotonic() + seconds
+                while time.monotonic() < end:
+                    t0 = time.monotonic()
+                    await asyncio.wait_for(node.read_value(), 10)
+                    out.append(time.monotonic() - t0)
+                    await asyncio.sleep(0.2)
+                return out
+            finally:
+                await client.disconnect()
+
+        attack.start()
+        wait_until(lambda: attack.opened >= 1100, 60, "1,100 attacking connections opened")
+
+        def absorbed() -> bool:  # every attacking connection accepted: held, refused or evicted
+            report = httpx.get(server.screen_url + "api/status", timeout=30).json()
+            return sum(report["screen_tally"].values()) + report["screen_open"] >= 1100
+
+        # The burst itself queues in the kernel's accept queue ahead of anyone else (~1 s on this 2-core box
+        # under load); the acceptance is about the screen while the unfinished requests are held.
+        wait_until(absorbed, 60, "the server took in the 1,100 connections")
+        screen = [
+            _latency(lambda: httpx.get(server.screen_url + "api/state", timeout=10).raise_for_status())
+            for _ in range(10)
+        ]
+        opcua = asyncio.run(opcua_reads(3.0))
+        report = httpx.get(server.screen_url + "api/status", timeout=10).json()
+    finally:
+        attack.stopping.set()
+        attack.join(timeout=30)
+        assert server.stop() == 0, "\n".join(server.lines[-30:])
+    assert report["nofile_limit"] == 1024
+    assert report["open_descriptors"] < 700, f"the process held {report['open_descriptors']} of its 1024 descriptors"
+    assert max(screen) < 1.0, f"the screen took {max(screen):.2f} s to answer during the attack (acceptance: 1 s)"
+    assert max(opcua) < 1.0, f"OPC UA took {max(opcua):.2f} s to answer during the attack (acceptance: 1 s)"
+    log = (tmp_path / "serve.log").read_text()
+    assert "Too many open files" not in log
+    complaints = [line for line in log.splitlines() if " WARNING " in line or " ERROR " in line]
+    assert len(complaints) < 30, f"{len(complaints)} warnings for one attack: not rate-limited:\n" + "\n".join(
+        complaints[:40]
+    )
+
+
+@pytest.mark.slow
+def test_50_unread_event_streams(tmp_path):
+    """The issue's probe: event streams that never read. One address gets 4; the rest answer 503 and
+    the page tries again later; the unread ones are dropped once their buffers fill, and a real
+    screen keeps getting events and answers all along."""
+    server = ProbeServer(tmp_path, limits={"web": {"write_stall_s": 2.0, "send_buffer_kb": 64}})
+    port = int(server.screen_url.rsplit(":", 1)[1].strip("/"))
+    try:
+        unread, statuses = [], []
+        for i in range(50):
+            s = connect_from(f"127.0.0.{2 + i // 4}", port)  # 13 "machines", 4 streams each (one over: 503)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            s.sendall(b"GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n")
+            unread.append(s)
+        s = connect_from("127.0.0.2", port)  # a fifth from the first machine
+        s.sendall(b"GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n")
+        s.settimeout(5)
+        assert s.recv(100).startswith(b"HTTP/1.1 503")
+        s.close()
+        with httpx.stream("GET", server.screen_url + "api/events", timeout=10) as events:
+            lines = events.iter_lines()
+            got = 0
+            deadline = time.monotonic() + 60
+            while True:
+                line = next(lines)
+                got += line.startswith("event: state")
+                if got % 10 == 0 and line.startswith("event: state"):
+                    statuses.append(httpx.get(server.screen_url + "api/status", timeout=10).json())
+                    if statuses[-1]["streams"] == {"127.0.0.1": 1}:
+                        break  # every unread stream dropped; ours still flowing
+                assert time.monotonic() < deadline, f"unread streams still open: {statuses[-1]['streams']}"
+        latency = _latency(lambda: httpx.get(server.screen_url + "api/state", timeout=10).raise_for_status())
+        tally = statuses[-1]["screen_tally"]
+        assert tally.get("cut: client not reading", 0) >= 48, tally
+        assert latency < 1.0, f"the screen took {latency:.2f} s to answer with unread streams open (acceptance: 1 s)"
+        for s in unread:
+            s.close()
+    finally:
+        assert server.stop() == 0, "\n".join(server.lines[-30:])
