@@ -22,21 +22,25 @@ import logging
 import os
 import resource
 import signal
+import threading
 from pathlib import Path
 
 from asyncua import ua
 from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 from starlette.responses import JSONResponse, StreamingResponse
 from starlette.routing import Route
 
 from cell.config import CellConfig
+from cell.errors import CellError
 from cell.events import Role
+from cell.imagedecode import decode_limited
 from cell.oplog import log_to_file
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
 from cell.service.throttle import LoginThrottle
 from cell.service.users import Authenticator, UserEntry, hash_password, write_users
-from cell.web.shield import Shield
+from cell.web.shield import Shield, set_on_disconnect
 from cell.web.tls import server_context
 from cell.web.transport import ServerThread, TransportLimits
 
@@ -65,7 +69,31 @@ def build_app(status: dict) -> Starlette:
     async def report(request: Request) -> JSONResponse:
         return JSONResponse(status["report"]())
 
-    return Starlette(routes=[Route("/api/state", state), Route("/api/events", events), Route("/api/status", report)])
+    async def upload(request: Request) -> JSONResponse:
+        """As the screen's plate upload: the body (at most 25 MB), decoded within limits, stopped if the client goes."""
+        body = b""
+        async for piece in request.stream():
+            body += piece
+            if len(body) > 25 * 2**20:
+                return JSONResponse({"error": "upload too large"}, 413)
+        gone = threading.Event()
+        watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
+        try:
+            image = await run_in_threadpool(decode_limited, body, max_px=1920 * 1080, timeout_s=10, cancelled=gone)
+        except CellError as e:
+            return JSONResponse({"error": str(e)}, 422)
+        finally:
+            watcher.cancel()
+        return JSONResponse({"shape": list(image.shape)})
+
+    return Starlette(
+        routes=[
+            Route("/api/state", state),
+            Route("/api/events", events),
+            Route("/api/status", report),
+            Route("/api/upload", upload, methods=["POST"]),
+        ]
+    )
 
 
 async def serve(args: argparse.Namespace) -> None:

@@ -13,20 +13,18 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import socket
 from collections import deque
 from datetime import UTC, datetime
-from pathlib import Path
 
-from asyncua import Server, ua
-from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.permission_rules import User, UserRole
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from asyncua import ua
 
 from cell.config import CellConfig
 from cell.errors import ConfigError
-from cell.service.api import Command, InvalidState, LineServiceAPI, PickRecord, ServiceEvent, Snapshot
-from cell.service.security import credentials_configured, password_ok
+from cell.service.api import AccessDenied, Command, InvalidState, LineServiceAPI, PickRecord, ServiceEvent, Snapshot
+from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
+from cell.service.security import credentials_configured
+from cell.service.throttle import LoginThrottle
+from cell.service.users import Authenticator
 
 log = logging.getLogger(__name__)
 
@@ -111,26 +109,18 @@ def _finite(v: float) -> float:
     return float(v) if math.isfinite(v) else 0.0
 
 
-class _OneUser:
-    """asyncua user manager: the configured user and password, nobody else."""
-
-    def __init__(self, cfg):
-        self.cfg = cfg
-
-    def get_user(self, iserver, username=None, password=None, certificate=None):
-        if password_ok(self.cfg, username, password):
-            return User(role=UserRole.User, name=username)
-        log.warning("OPC UA login refused for user %r", username)
-        return None
-
-
 class OpcUaServer:
-    def __init__(self, service: LineServiceAPI, config: CellConfig):
+    def __init__(self, service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None):
         self.service, self.cfg = service, config.service
         self.secure = credentials_configured(self.cfg)
-        self.cert_dir = self.cfg.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
         self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
-        self.server = Server(user_manager=_OneUser(self.cfg) if self.secure else None)
+        # issue 21: policies, trust list, users with roles, throttle, limits (cell/service/opcua_security.py)
+        users = Authenticator(self.cfg)
+        self.server = GuardedServer(
+            GuardSettings.from_config(config, APP_URI, self.secure),
+            users.authenticate if self.secure else None,
+            throttle or LoginThrottle(self.cfg.login),
+        )
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
@@ -192,21 +182,7 @@ class OpcUaServer:
         )
 
     async def _secure(self) -> None:
-        self.cert_dir.mkdir(parents=True, exist_ok=True)
-        key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
-        await setup_self_signed_certificate(
-            key,
-            cert,
-            APP_URI,
-            socket.gethostname(),
-            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
-            {"commonName": "pick-cell", "organizationName": "pick-cell"},
-        )
-        key.chmod(0o600)
-        await self.server.load_certificate(str(cert))
-        await self.server.load_private_key(str(key))
-        self.server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-        self.server.set_identity_tokens([ua.UserNameIdentityToken])
+        await self.server.secure()  # certificate, configured policies only, user name tokens, trust list
 
     def _method(self, command: Command):
         async def call(parent, *args):
@@ -214,7 +190,10 @@ class OpcUaServer:
                 log.warning("OPC UA %s called with %d arguments: refused", command.value, len(args))
                 return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
             try:
-                self.service.command(command)
+                self.service.command(command, caller_origin())  # the caller's user and role (issue 21)
+            except AccessDenied as e:
+                log.info("OPC UA %s refused: %s", command.value, e)
+                return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
             except InvalidState as e:
                 log.info("OPC UA %s refused: %s", command.value, e)
                 return ua.StatusCode(ua.StatusCodes.BadInvalidState)

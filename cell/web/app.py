@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import threading
 from importlib import resources
 
 from starlette.applications import Starlette
@@ -22,6 +23,7 @@ from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
 from cell.web.hub import Hub
 from cell.web.recalibration import Busy, RecalibrationDesk
+from cell.web.shield import set_on_disconnect
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
 
 log = logging.getLogger(__name__)
@@ -145,12 +147,18 @@ class ScreenApp:
                 raise TypeError("user and password must be strings")
         except (ValueError, KeyError, TypeError):
             return _error(400, 'send JSON {"user": "...", "password": "..."}')
-        if not await run_in_threadpool(self.access.check_password, user, password):
-            log.warning("screen: failed login from %s", request.client.host if request.client else "?")
-            await asyncio.sleep(0.5)  # slows guessing
+        address = request.client.host if request.client else "?"
+        result = await run_in_threadpool(self.access.login, user, password, address)  # throttled (issue 21)
+        if result.retry_after_s > 0:
+            wait = max(1, round(result.retry_after_s))
+            return JSONResponse(
+                {"error": f"too many failed logins: try again in {wait} s"}, 429, {"retry-after": str(wait)}
+            )
+        if result.role is None:
+            log.warning("screen: failed login from %s", address)
             return _error(401, "wrong user or password")
-        sid, csrf = self.access.new_session()
-        log.info("screen: login from %s", request.client.host if request.client else "?")
+        sid, csrf = self.access.new_session(user, result.role)
+        log.info("screen: login of %s (%s) from %s", user, result.role.value, address)
         reply = JSONResponse({"csrf": csrf})
         reply.set_cookie(
             SESSION_COOKIE, sid, max_age=int(self.web.session_h * 3600), httponly=True, samesite="strict", path="/"
@@ -237,7 +245,12 @@ class ScreenApp:
         body = await self._read_body(request, self.max_upload)
         if isinstance(body, Response):
             return body
-        return await self._recal(self.desk.from_upload, body)
+        gone = threading.Event()  # the decode stops when the client goes (issue 21)
+        watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
+        try:
+            return await self._recal(self.desk.from_upload, body, gone)
+        finally:
+            watcher.cancel()
 
     async def _recal(self, make, *args) -> Response:
         if not may_recalibrate(self.service.snapshot()):

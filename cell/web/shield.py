@@ -10,7 +10,10 @@ the routes do.
 
 from __future__ import annotations
 
+import asyncio
+import threading
 from collections import Counter
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from starlette.responses import JSONResponse
@@ -76,3 +79,14 @@ class Shield:
 def _secure_cookie(value: bytes) -> bytes:
     attributes = [part.strip().lower() for part in value.split(b";")[1:]]
     return value if b"secure" in attributes else value + b"; Secure"
+
+
+async def set_on_disconnect(receive: Callable[[], Awaitable[dict]], event: threading.Event) -> None:
+    """Set `event` when the client goes away (for work in a thread or process to stop): run it as a task
+    once the request's body has been read, and cancel the task when the reply is ready."""
+    while True:
+        message = await receive()
+        if message["type"] == "http.disconnect":
+            event.set()
+            return
+        await asyncio.sleep(0)
