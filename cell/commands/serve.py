@@ -20,9 +20,11 @@ from cell.config import CellConfig, load_config
 from cell.errors import ConfigError
 from cell.oplog import log_to_file
 from cell.service.api import Command, InvalidState
+from cell.service.fdlimit import check_open_files
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import Devices, LineService
 from cell.service.shiftlog import ShiftLog
+from cell.service.throttle import LoginThrottle
 from cell.signals import STOP_SIGNALS
 from cell.sim.feeder import FedCamera, Feeder, SimClock
 from cell.sim.render import render_plate
@@ -115,6 +117,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             if type(h) is logging.StreamHandler:
                 h.setLevel(logging.WARNING)
     log_to_file(config.run.log_dir / f"serve-{stamp}.log")
+    check_open_files(config.service)  # issue 21: raise the soft limit, or warn (stderr and log), before clients come
     with contextlib.ExitStack() as resources:
         service = open_service(config, args.dry_run, resources)
         service.start()
@@ -159,7 +162,9 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, _toggle_pause, service)
-    interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
+    # one login throttle for both interfaces (issue 21); the lead wires on_lockout to the alarm
+    throttle = LoginThrottle(config.service.login)
+    interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
     try:
         for interface in interfaces:
             await interface.start()

@@ -44,12 +44,13 @@ def screen_server(service: LineServiceAPI, config: CellConfig, throttle: LoginTh
 class ScreenInterface:
     """The screen as one of `run-cell serve`'s interfaces: start() and stop() coroutines, ready_text."""
 
-    def __init__(self, service: LineServiceAPI, config: CellConfig):
-        self.service, self.config = service, config
+    def __init__(self, service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None):
+        self.service, self.config, self.throttle = service, config, throttle
         self.server: WebServer | None = None
 
     async def start(self) -> None:
-        self.server = screen_server(self.service, self.config)  # binds: a port in use is a ConfigError here
+        # binds: a port in use is a ConfigError here
+        self.server = screen_server(self.service, self.config, self.throttle)
         await asyncio.to_thread(self.server.start)
 
     async def stop(self) -> None:
