@@ -10,10 +10,12 @@ import re
 import resource
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
 import time
+import zlib
 from pathlib import Path
 
 from tests.serve_process import free_port
@@ -169,3 +171,56 @@ async def secure_client(
     client.set_user(user)
     client.set_password(password)
     return client
+
+
+class Slowloris(threading.Thread):
+    """Opens `count` connections from 127.0.0.2.. (`per_address` each), each sending only a request
+    line, and holds them until stopped (as the issue's probe did: it never finishes a request)."""
+
+    def __init__(self, port: int, count: int, per_address: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.count, self.per_address = port, count, per_address
+        self.stopping = threading.Event()
+        self.opened = 0
+        self.failed: list[str] = []
+
+    def run(self) -> None:
+        socks = []
+        for i in range(self.count):
+            try:
+                s = connect_from(f"127.0.0.{2 + i // self.per_address}", self.port, timeout_s=5)
+                s.sendall(b"GET /api/state HTTP/1.1\r\n")
+                socks.append(s)
+                self.opened += 1
+            except OSError as e:  # a reset while connecting: the server refused or evicted it
+                self.failed.append(type(e).__name__)
+                self.opened += 1
+        self.stopping.wait()
+        for s in socks:
+            s.close()
+
+
+# ---- decompression bombs ------------------------------------------------------------------------
+MB = 1 << 20
+
+
+def chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def png(width: int, height: int, stream: bytes, colour: int = 2, depth: int = 8, interlace: int = 0) -> bytes:
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)
+    idats = b"".join(chunk(b"IDAT", stream[i : i + MB]) for i in range(0, len(stream), MB))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idats + chunk(b"IEND", b"")
+
+
+def zeros_stream(total_mb: int) -> bytes:
+    """A valid zlib stream of `total_mb` MiB of zeros, built without compressing them all: after a full flush
+    each MiB of zeros compresses to the same bytes, and the Adler-32 of n zeros is (n mod 65521) << 16 | 1."""
+    c = zlib.compressobj(9)
+    head = c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
+    block = c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
+    assert block == c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
+    end = c.flush()[:-4]  # the empty final block (byte-aligned after a full flush), without c's Adler-32
+    adler = ((total_mb * MB) % 65521) << 16 | 1
+    return head + block * (total_mb - 1) + end + struct.pack(">I", adler)

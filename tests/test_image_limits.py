@@ -16,33 +16,9 @@ import pytest
 
 from cell.errors import InputError
 from cell.imagedecode import DecodeBusy, DecodeCancelled, DecodeWorker, decode_limited, png_check, png_raw_bytes
-from tests.probes import ProbeServer
+from tests.probes import MB, ProbeServer, chunk, png, zeros_stream
 
 pytestmark = pytest.mark.timeout(60)
-
-MB = 1 << 20
-
-
-def chunk(kind: bytes, body: bytes) -> bytes:
-    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
-
-
-def png(width: int, height: int, stream: bytes, colour: int = 2, depth: int = 8, interlace: int = 0) -> bytes:
-    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)
-    idats = b"".join(chunk(b"IDAT", stream[i : i + MB]) for i in range(0, len(stream), MB))
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + idats + chunk(b"IEND", b"")
-
-
-def zeros_stream(total_mb: int) -> bytes:
-    """A valid zlib stream of `total_mb` MiB of zeros, built without compressing them all: after a full flush
-    each MiB of zeros compresses to the same bytes, and the Adler-32 of n zeros is (n mod 65521) << 16 | 1."""
-    c = zlib.compressobj(9)
-    head = c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
-    block = c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
-    assert block == c.compress(b"\0" * MB) + c.flush(zlib.Z_FULL_FLUSH)
-    end = c.flush()[:-4]  # the empty final block (byte-aligned after a full flush), without c's Adler-32
-    adler = ((total_mb * MB) % 65521) << 16 | 1
-    return head + block * (total_mb - 1) + end + struct.pack(">I", adler)
 
 
 def test_the_bomb_is_refused_before_decoding():

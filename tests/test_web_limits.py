@@ -13,7 +13,6 @@ import asyncio
 import resource
 import socket
 import ssl
-import threading
 import time
 
 import httpx
@@ -27,7 +26,7 @@ from starlette.routing import Route
 from cell.web.shield import Shield
 from cell.web.tls import ensure_self_signed, server_context
 from cell.web.transport import ServerThread, TransportLimits
-from tests.probes import ProbeServer, connect_from, wait_until
+from tests.probes import ProbeServer, Slowloris, connect_from, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -184,33 +183,6 @@ def _raise_own_limit(needed: int) -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
 
 
-class Slowloris(threading.Thread):
-    """Opens `count` connections from 127.0.0.2.. (`per_address` each), each sending only a request
-    line, and holds them until stopped (as the issue's probe did: it never finishes a request)."""
-
-    def __init__(self, port: int, count: int, per_address: int) -> None:
-        super().__init__(daemon=True)
-        self.port, self.count, self.per_address = port, count, per_address
-        self.stopping = threading.Event()
-        self.opened = 0
-        self.failed: list[str] = []
-
-    def run(self) -> None:
-        socks = []
-        for i in range(self.count):
-            try:
-                s = connect_from(f"127.0.0.{2 + i // self.per_address}", self.port, timeout_s=5)
-                s.sendall(b"GET /api/state HTTP/1.1\r\n")
-                socks.append(s)
-                self.opened += 1
-            except OSError as e:  # a reset while connecting: the server refused or evicted it
-                self.failed.append(type(e).__name__)
-                self.opened += 1
-        self.stopping.wait()
-        for s in socks:
-            s.close()
-
-
 def _latency(call) -> float:
     t0 = time.monotonic()
     call()
@@ -285,7 +257,7 @@ def test_50_unread_event_streams(tmp_path):
     server = ProbeServer(tmp_path, limits={"web": {"write_stall_s": 2.0, "send_buffer_kb": 64}})
     port = int(server.screen_url.rsplit(":", 1)[1].strip("/"))
     try:
-        unread, statuses = [], []
+        unread, statuses, latencies = [], [], []
         for i in range(50):
             s = connect_from(f"127.0.0.{2 + i // 4}", port)  # 13 "machines", 4 streams each (one over: 503)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
@@ -304,14 +276,17 @@ def test_50_unread_event_streams(tmp_path):
                 line = next(lines)
                 got += line.startswith("event: state")
                 if got % 10 == 0 and line.startswith("event: state"):
+                    t0 = time.monotonic()  # a real client's request while the unread streams are open
                     statuses.append(httpx.get(server.screen_url + "api/status", timeout=10).json())
+                    latencies.append(time.monotonic() - t0)
                     if statuses[-1]["streams"] == {"127.0.0.1": 1}:
                         break  # every unread stream dropped; ours still flowing
                 assert time.monotonic() < deadline, f"unread streams still open: {statuses[-1]['streams']}"
-        latency = _latency(lambda: httpx.get(server.screen_url + "api/state", timeout=10).raise_for_status())
         tally = statuses[-1]["screen_tally"]
         assert tally.get("cut: client not reading", 0) >= 48, tally
-        assert latency < 1.0, f"the screen took {latency:.2f} s to answer with unread streams open (acceptance: 1 s)"
+        assert max(latencies) < 1.0, (
+            f"the screen took {max(latencies):.2f} s to answer with unread streams open (acceptance: 1 s)"
+        )
         for s in unread:
             s.close()
     finally:
