@@ -71,11 +71,13 @@ def build_app(status: dict) -> Starlette:
 
     async def upload(request: Request) -> JSONResponse:
         """As the screen's plate upload: the body (at most 25 MB), decoded within limits, stopped if the client goes."""
-        body = b""
+        pieces, size = [], 0
         async for piece in request.stream():
-            body += piece
-            if len(body) > 25 * 2**20:
+            pieces.append(piece)
+            size += len(piece)
+            if size > 25 * 2**20:
                 return JSONResponse({"error": "upload too large"}, 413)
+        body = b"".join(pieces)
         gone = threading.Event()
         watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
         try:

@@ -581,6 +581,7 @@ class GuardedServer(Server):
         s, iserver = self.guard.settings, self.iserver
         if s.secure and iserver.certificate is None:
             raise RuntimeError("GuardedServer: call secure() before start() when settings.secure")
+        iserver.allow_remote_admin = False  # no client may change the address space, whatever its name
         iserver.max_connections = s.max_connections
         iserver.max_pending_activation_seconds = s.activation_timeout_s
         iserver.max_session_timeout_ms = s.session_timeout_max_s * 1000
