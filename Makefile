@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) scripts/bench_calibration.py
 	$(PY) scripts/bench_parts.py
 	$(PY) scripts/bench_drift.py
+	$(PY) scripts/bench_annotate.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -54,8 +54,10 @@ class AuditLog:
         """The write error that broke the log, if any (later events were dropped)."""
         return self._file.failed
 
-    def record(self, event: Event) -> dict:
+    def record(self, event: Event) -> dict | None:
         """Write one typed event; a StateChanged moves the stamped state on after its own line."""
+        if not event.audited:
+            return None
         fields = event.record()
         if event.job_id is not None:
             fields = {"job": event.job_id, **fields}

@@ -15,8 +15,10 @@ import sys
 
 from cell.commands import run
 from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
+from cell.oplog import quiet_terminal
 from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, StopRequested, handling_signals
+from cell.terminal import guarded_stdout
 
 # Modules that each add sub-commands through register(subparsers).
 COMMAND_MODULES = [
@@ -24,6 +26,7 @@ COMMAND_MODULES = [
     "cell.calibration.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
+    "cell.commands.camera",
     "cell.commands.run",
     "cell.commands.serve",
     "cell.commands.users",
@@ -31,11 +34,26 @@ COMMAND_MODULES = [
 
 log = logging.getLogger(__name__)
 
+# What a bare `run-cell` prints (on stderr, exit 2): the usual ways to start, not every option.
+SHORT_USAGE = """\
+usage: run-cell [--dry-run | --config FILE] [options]   or   run-cell COMMAND [options]
+
+Common starts:
+  run-cell --dry-run              rehearse a job on the built-in simulated cell (nothing moves)
+  run-cell --config FILE          run the job of the cell FILE describes (its camera, calibration, arm)
+  run-cell serve --dry-run        the simulated line service: OPC UA and the operator screen
+  run-cell serve --config FILE    the line service of FILE, for a whole shift
+  run-cell camera --live          look through the camera: focus, exposure, the plate
+
+`run-cell --help` lists every command and option; docs/commissioning.md sets up a new cell."""
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="run-cell",
         description="Vision-guided pick-and-place cell.",
+        epilog=SHORT_USAGE.split("\n\n", 1)[1].rsplit("\n\n", 1)[0],  # the common starts
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail to stderr")
     run.add_run_arguments(parser)
@@ -54,17 +72,26 @@ def main(argv: list[str] | None = None) -> int:
             level=logging.DEBUG if args.verbose else logging.WARNING,
             format="%(levelname)s %(name)s: %(message)s",
         )
+        # The terminal keeps to warnings unless -v, even once a command logs INFO to its file.
+        quiet_terminal(logging.DEBUG if args.verbose else logging.WARNING)
         if not getattr(args, "func", None):
             if not (args.dry_run or args.run_config):
-                parser.print_help()
+                tell_stderr(SHORT_USAGE)
                 return 2
-            args.func, args.command = run.run_cell, "run"
-        return _dispatch(args)
+            args.func, args.command = run.run_cell, None
+        name = "run-cell" if args.command is None else f"run-cell {args.command}"
+        with guarded_stdout() as stdout:
+            code = _dispatch(args, name)
+        if stdout.lost is not None:
+            tell_stderr(
+                f"{name}: note: standard output was closed early ({stdout.lost.strerror or stdout.lost}); "
+                f"the rest of the output was not shown, the command ran to its end (exit {code})"
+            )
+        return code
 
 
-def _dispatch(args: argparse.Namespace) -> int:
+def _dispatch(args: argparse.Namespace, name: str) -> int:
     """Run the command; whatever ends it, the last line on stderr names what failed and where."""
-    name = f"run-cell {args.command}"
     try:
         return int(args.func(args) or 0)
     except REPORTED_ERRORS as e:

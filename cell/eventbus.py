@@ -138,7 +138,12 @@ class Subscription:
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout_s)
         if self._thread.is_alive():
-            log.warning("subscriber %s: still busy %.1f s after close; %d events undelivered", self.name, timeout_s, len(self._queue))
+            log.warning(
+                "subscriber %s: still busy %.1f s after close; %d events undelivered",
+                self.name,
+                timeout_s,
+                len(self._queue),
+            )
             return False
         return True
 
@@ -174,9 +179,7 @@ class EventBus:
         maxsize: int = 1024,
         coalesce: Iterable[type[Event]] = (FrameLocated,),
     ) -> Subscription:
-        sub = Subscription(
-            name, handler, None if kinds is None else frozenset(kinds), maxsize, frozenset(coalesce)
-        )
+        sub = Subscription(name, handler, None if kinds is None else frozenset(kinds), maxsize, frozenset(coalesce))
         with self._lock:
             self._subs = (*self._subs, sub)
         return sub

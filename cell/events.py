@@ -126,6 +126,7 @@ def to_json(value: Any) -> Any:
 @dataclass(frozen=True, kw_only=True)
 class Event:
     kind: ClassVar[str] = "event"
+    audited: ClassVar[bool] = True  # False: for live views only, the audit log skips it
     time_utc: datetime = field(default_factory=utc_now, metadata=_NOT_RECORDED)
     job_id: str | None = field(default=None, metadata=_NOT_RECORDED)
 
@@ -183,6 +184,7 @@ class PickOrderChosen(Event):
     """PLAN ran on a frame: the ids of its parts in the order the arm will take them (the first is next)."""
 
     kind: ClassVar[str] = "plan"
+    audited: ClassVar[bool] = False  # the targets that follow are the record
     frame: int
     order: tuple[int, ...]
 
@@ -387,6 +389,16 @@ class CalibrationInstalled(Event):
     origin: Origin | None = None  # who accepted it (None: loaded at start)
 
 
+@dataclass(frozen=True, kw_only=True)
+class SnapshotChanged(Event):
+    """The service's snapshot changed (`what`: state, counters, alarm, calibration, hold ...): an
+    interface showing it should read `snapshot()` again. For live views only, never recorded."""
+
+    kind: ClassVar[str] = "snapshot"
+    audited: ClassVar[bool] = False
+    what: str
+
+
 EVENT_TYPES: tuple[type[Event], ...] = (
     RunStarted,
     StateChanged,
@@ -412,5 +424,6 @@ EVENT_TYPES: tuple[type[Event], ...] = (
     AlarmRaised,
     AlarmCleared,
     CalibrationInstalled,
+    SnapshotChanged,
 )
 BY_KIND: dict[str, type[Event]] = {t.kind: t for t in EVENT_TYPES}

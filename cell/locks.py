@@ -86,17 +86,22 @@ def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
             time.sleep(0.05)
 
 
+def camera_lock(camera_source: str | None) -> contextlib.AbstractContextManager:
+    """The lock of a camera device (an index is /dev/videoN); a file, folder, URL or the
+    simulation needs none."""
+    source = (camera_source or "").strip()
+    device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None
+    return holding(device, "camera") if device else contextlib.nullcontext()
+
+
 def device_locks(arm_cfg, camera_source: str | None = None) -> contextlib.ExitStack:
     """The locks of the configured arm's serial port and of a camera device (an index is
     /dev/videoN), for a `with` block; a mock arm and a file or URL camera need none."""
     stack = contextlib.ExitStack()
     try:
-        if arm_cfg.kind != "mock" and arm_cfg.port:
+        if arm_cfg is not None and arm_cfg.kind != "mock" and arm_cfg.port:
             stack.enter_context(holding(arm_cfg.port, "port"))
-        source = (camera_source or "").strip()
-        device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None
-        if device:
-            stack.enter_context(holding(device, "camera"))
+        stack.enter_context(camera_lock(camera_source))
     except BaseException:
         stack.close()
         raise

@@ -58,6 +58,7 @@ from cell.statemachine import State, StateMachine, Transition
 from cell.summary import Summary
 from cell.tracking import PartStatus, Track, Tracker
 from cell.vision.types import LocatedPart, LocateResult
+from cell.wording import plural
 from drivers.arm.base import Arm
 from drivers.arm.errors import OutOfReach
 from drivers.cameras.base import Camera
@@ -133,6 +134,7 @@ class Runner:
         self.target: Target | None = None
         self.track: Track | None = None
         self.holding = False
+        self.released = False  # the part of the attempt in progress was let go over its bin, not yet verified
         self.homed = False
         self._handlers = {
             S.IDLE: self._idle,
@@ -245,6 +247,7 @@ class Runner:
             s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
             finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
             steps = self._make_safe(reason, park_only=state == S.DONE or finishing)
+            self._settle_released(state)
             if state == S.FAULT:
                 self._emit(FaultRaised, reason=reason, where=where, ref=self.frame_ref)
                 log.error("fault in %s: %s", where, reason)
@@ -261,7 +264,7 @@ class Runner:
         if self.holding and self.target is not None:
             bx, by, bz = self.target.bin_robot_mm
             steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, self.target.approach_z_mm))))
-            steps.append(("open gripper over bin", self.arm.open_gripper))
+            steps.append(("open gripper over bin", self._open_over_bin))
         elif not park_only:
             steps.append(("open gripper", self.arm.open_gripper))
         steps.append(("home", self.arm.home))
@@ -301,7 +304,46 @@ class Runner:
 
     def _release(self) -> None:
         self._arm("open_gripper")
-        self.holding = False
+        self.holding, self.released = False, True
+
+    def _open_over_bin(self) -> None:
+        """The safe sequence lets go of a held part over its bin: like a place, verified afterwards."""
+        self.arm.open_gripper()
+        self.released = True
+
+    def _settle_released(self, state: State) -> None:
+        """A part let go over its bin just before the job ended is verified on one more frame (the arm
+        is parked out of view by now); where no frame can be had, it is recorded as placed, unverified."""
+        if self.track is None or not self.released:
+            return
+        if state is not S.FAULT and self.expect_motion and self.camera.is_connected:
+            try:
+                self._capture()
+                self._locate()
+                self._verify()
+                return
+            except (*REPORTED_ERRORS, OSError) as e:
+                log.warning("the part released before the end could not be verified: %s", e)
+            except Exception:
+                log.exception("verifying the part released before the end")
+        track, target = self.track, self.target
+        self.track = None
+        if target is not None:
+            self._emit(
+                PickVerified,
+                pick_id=pick_id(self.job_id, self.summary.attempts),
+                track=track.id,
+                cls=track.cls,
+                attempt=track.attempts,
+                result="placed",
+                pixel=target.pixel,
+                table_mm=target.table_mm,
+                robot_mm=target.robot_mm,
+                jaw_angle_deg=target.jaw_angle_deg,
+                still_at_mm=(),
+                calibration_id=self.calibration_id(),
+                cycle_ms=round(1e3 * (time.monotonic() - self._target_t0), 1),
+            )
 
     # ---- state handlers -------------------------------------------------------------
     def _idle(self) -> Step:
@@ -352,7 +394,7 @@ class Runner:
         if warnings and not objects:  # blind, not empty: never "table clear" or "part gone"
             raise CellError("cannot see the table: " + "; ".join(warnings))
         n_pick = sum(o.pick for o in objects)
-        why = f"{len(objects)} parts, {n_pick} pickable"
+        why = f"{plural(len(objects), 'part')}, {n_pick} pickable"
         if self.track is not None:
             return S.VERIFY, f"{why}; checking part {self.track.id}"
         return S.PLAN, why
@@ -400,7 +442,7 @@ class Runner:
                 pick_id=pick_id(self.job_id, self.summary.attempts),
                 ref=self.frame_ref,
             )
-            reason += f", failed after {track.attempts} attempts"
+            reason += f", failed after {plural(track.attempts, 'attempt')}"
         elif result == "missed":
             reason += ", will retry"
         self.progress(self._pick_line(target, track, result))
@@ -411,7 +453,7 @@ class Runner:
             self.drift_watch(self.frame)
         if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
             since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
-            return S.FAULT, f"safety stop: {n} pick attempts{since} (run.max_attempts_total)"
+            return S.FAULT, f"safety stop: {plural(n, 'pick attempt')}{since} (run.max_attempts_total)"
         for part, track in self._choose():
             target = self._reachable(part, track)
             if target is not None:
@@ -470,6 +512,7 @@ class Runner:
         self.summary.attempts += 1
         self.summary.retries += track.attempts > 1
         self.target, self.track = target, track
+        self.released = False
         self._target_t0 = time.monotonic()
         self._emit(
             TargetChosen,
@@ -529,7 +572,7 @@ class Runner:
     def _pick_line(self, t: Target, track: Track, result: str) -> str:
         s = self.summary
         angle = "" if t.jaw_angle_deg is None else f", jaws {t.jaw_angle_deg:+.1f} deg"
-        counts = ", ".join(f"{n} {c}s" for c, n in sorted(s.picked.items())) or "none"
+        counts = ", ".join(plural(n, c) for c, n in sorted(s.picked.items())) or "none"
         return (
             f"pick {s.attempts:2d}: part {track.id:2d} {t.cls:4s} table ({t.table_mm[0]:6.1f}, {t.table_mm[1]:6.1f}) mm"
             f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"

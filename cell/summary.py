@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from cell.wording import plural
+
 COUNT_KEYS = ("picked", "misses", "retries", "failed", "unreachable", "rehearsed", "attempts", "unknown_left")
 
 
@@ -56,20 +58,20 @@ class Summary:
         return d
 
     def lines(self) -> list[str]:
-        picked = ", ".join(f"{n} {cls}s" for cls, n in sorted(self.picked.items())) or "nothing"
+        picked = ", ".join(plural(n, cls) for cls, n in sorted(self.picked.items())) or "nothing"
         headline = "DONE WITH FAILURES" if self.outcome == "done" and self.exit_code else self.outcome.upper()
         out = [
             f"{headline}: {self.reason}",
-            f"picked {picked}; {self.misses} misses, {self.retries} retries, {self.failed} failed, "
-            f"{self.unreachable} unreachable, {self.unknown_left} unknown parts left",
+            f"picked {picked}; {plural(self.misses, 'miss', 'misses')}, {plural(self.retries, 'retry', 'retries')}, "
+            f"{self.failed} failed, {self.unreachable} unreachable, {plural(self.unknown_left, 'unknown part')} left",
         ]
         if self.rehearsed:
-            out.append(f"rehearsed {self.rehearsed} picks (nothing moved, nothing verified)")
+            out.append(f"rehearsed {plural(self.rehearsed, 'pick')} (nothing moved, nothing verified)")
         if not self.attempts:
             out.append(f"no pick attempts; {self.wall_s:.1f} s wall, software {1e3 * self.software_s:.1f} ms")
             return out
         out.append(
-            f"{self.attempts} pick attempts in {self.wall_s:.1f} s wall: {self.wall_ms_per_pick:.0f} ms per pick, "
+            f"{plural(self.attempts, 'pick attempt')} in {self.wall_s:.1f} s wall: {self.wall_ms_per_pick:.0f} ms per pick, "
             f"of which software {self.software_ms_per_pick:.1f} ms (locate "
             f"{1e3 * self.locate_s / self.attempts:.1f} ms, plan, verify, log) and "
             f"camera {1e3 * self.capture_s / max(self.attempts, 1):.0f} ms"

@@ -1,6 +1,7 @@
 """A line service for the screen's tests: the LineServiceAPI contract, the real command table
-(`allowed()`), a ticking thread that "captures" frames and "picks" parts, and the real
-simulated plate for recalibration. It stands above the driver layer: no camera, no arm."""
+(`state_refusal()`, roles, holds), the real event bus, a ticking thread that "captures" frames
+and "picks" parts, and the real simulated plate for recalibration. It stands above the driver
+layer: no camera, no arm, no runner."""
 
 from __future__ import annotations
 
@@ -14,19 +15,33 @@ from datetime import UTC, datetime
 import cv2
 import numpy as np
 
+from cell.eventbus import EventBus
+from cell.events import (
+    SERVICE_ORIGIN,
+    FrameLocated,
+    FrameRef,
+    Origin,
+    PickOrderChosen,
+    PickVerified,
+    SnapshotChanged,
+)
 from cell.service.api import (
+    AccessDenied,
     Alarm,
     CalibrationInfo,
     Command,
+    CommandResult,
     Counters,
-    FrameView,
     InvalidState,
     PickRecord,
-    ServiceEvent,
+    Rest,
     Snapshot,
     VisionState,
     allowed,
+    needed_role,
+    state_refusal,
 )
+from cell.vision.types import LocatedPart, LocateResult
 
 V = VisionState
 _NEXT = {
@@ -58,7 +73,8 @@ class FakeLineService:
     def __init__(self, frame_size=(960, 540), interval_s: float = 0.1, plate_size=(1920, 1080)):
         self.frame_size, self.interval_s, self.plate_size = frame_size, interval_s, plate_size
         self._lock = threading.RLock()
-        self._listeners: list = []
+        self.bus = EventBus()
+        self.holds: dict[int, str] = {}
         self.state, self.paused = V.READY, False
         self.counters = Counters()
         self.picks: deque[PickRecord] = deque(maxlen=20)
@@ -67,17 +83,19 @@ class FakeLineService:
         self.installed: list = []
         self.commands: list[Command] = []
         self.heartbeat = 0
-        self.frame: FrameView | None = None
         self._seq = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="fake-service", daemon=True)
         self._thread.start()
 
     # ---- the contract ---------------------------------------------------------------
-    def command(self, command: Command) -> None:
+    def command(self, command: Command, origin: Origin = SERVICE_ORIGIN, request=None) -> CommandResult:
         with self._lock:
-            if command not in allowed(self.state, self.paused):
-                raise InvalidState(command, self.state, self.paused)
+            if not origin.role.may(needed_role(command)):
+                raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
+            why = state_refusal(command, Rest(self.state, self.paused, self.paused), self._hold())
+            if why is not None:
+                raise InvalidState(command, why, self.state)
             self.commands.append(command)
             if command in (Command.PAUSE, Command.RESUME):
                 self.paused = command is Command.PAUSE
@@ -85,7 +103,8 @@ class FakeLineService:
                 self.state, self.paused = _NEXT[command], False
                 if command is Command.RESET:
                     self.alarm = None
-            self._emit("state")
+        self._emit("state")
+        return CommandResult(command)
 
     def snapshot(self) -> Snapshot:
         with self._lock:
@@ -101,54 +120,67 @@ class FakeLineService:
                 alarm=self.alarm,
                 calibration=self.calibration,
                 heartbeat=self.heartbeat,
-                allowed=allowed(self.state, self.paused),
+                allowed=allowed(self.state, self.paused, self.paused, self._hold()),
+                pausing=False,
+                hold=self._hold(),
+                subscribers=self.bus.stats(),
             )
 
-    def latest_frame(self) -> FrameView | None:
-        return self.frame
+    def subscribe(self, name, handler, *, kinds=None, maxsize=1024):
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize)
 
-    def subscribe(self, listener):
+    def unsubscribe(self, subscription) -> None:
+        self.bus.unsubscribe(subscription)
+
+    def hold(self, reason: str, origin: Origin = SERVICE_ORIGIN):
         with self._lock:
-            self._listeners.append(listener)
+            n = len(self.holds) + 1 + max(self.holds, default=0)
+            self.holds[n] = reason
 
-        def unsubscribe():
+        def release():
             with self._lock:
-                if listener in self._listeners:
-                    self._listeners.remove(listener)
+                self.holds.pop(n, None)
+            self._emit("hold")
 
-        return unsubscribe
+        self._emit("hold")
+        return release
 
-    def capture_plate_image(self) -> np.ndarray:
+    def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         self._check_recalibration("capture a plate image")
         return plate_image(self.plate_size)
 
-    def install_calibration(self, calibration, info: CalibrationInfo) -> None:
+    def install_calibration(self, calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
         self._check_recalibration("install a calibration")
         with self._lock:
             self.installed.append(calibration)
             self.calibration = info
-            self._emit("calibration")
+        self._emit("calibration")
 
     # ---- for tests ------------------------------------------------------------------
     def fault(self, reason: str, hint: str) -> None:
         with self._lock:
             self.state, self.paused = V.ERROR, False
             self.alarm = Alarm(reason, hint, _now())
-            self._emit("alarm")
+        self._emit("alarm")
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
+        self.bus.close()
 
     @property
     def listeners(self) -> int:
-        return len(self._listeners)
+        return len(self.bus.stats())
 
     # ---- inside -----------------------------------------------------------------------
     def _check_recalibration(self, what: str) -> None:
         with self._lock:
-            if not (self.state in (V.READY, V.HALTED) or (self.paused and self.state in _RUNNING)):
-                raise InvalidState(Command.PAUSE, self.state, self.paused)
+            why = state_refusal(Command.CAPTURE_PLATE, Rest(self.state, self.paused, self.paused))
+            if why is not None:
+                raise InvalidState(Command.CAPTURE_PLATE, why, self.state)
+
+    def _hold(self) -> str:
+        return next(iter(self.holds.values()), "")
 
     def _cell_state(self) -> str:
         if self.state is V.ERROR:
@@ -157,10 +189,8 @@ class FakeLineService:
             return "PAUSED"
         return "CAPTURE" if self.state in _RUNNING else "STOPPED"
 
-    def _emit(self, kind: str, **extra) -> None:
-        event = ServiceEvent(kind, self.snapshot(), **extra)
-        for listener in list(self._listeners):
-            listener(event)
+    def _emit(self, what: str) -> None:
+        self.bus.emit(SnapshotChanged(what=what))
 
     def _loop(self) -> None:
         last_beat = time.monotonic()
@@ -175,8 +205,13 @@ class FakeLineService:
     def _capture_and_pick(self) -> None:
         self._seq += 1
         t = time.monotonic()
-        self.frame = FrameView(self._seq, t, self._draw(self._seq))
-        self._emit("frame", frame=self.frame)
+        image, result = self._draw(self._seq)
+        self.bus.emit(
+            FrameLocated(
+                frame=self._seq, locate_ms=1.0, warnings=(), detections=(), ref=FrameRef(self._seq, image, result, t)
+            )
+        )
+        self.bus.emit(PickOrderChosen(frame=self._seq, order=(1,)))
         if self._seq % 3:
             return
         cls = "bolt" if self._seq % 2 else "nut"
@@ -192,18 +227,35 @@ class FakeLineService:
             "picked",
         )
         self.picks.append(pick)
-        self._emit("pick", pick=pick)
+        self.bus.emit(
+            PickVerified(
+                pick_id=f"fake/{self._seq}",
+                track=pick.track_id,
+                cls=cls,
+                attempt=1,
+                result="picked",
+                pixel=(0.0, 0.0),
+                table_mm=pick.table_mm,
+                robot_mm=pick.robot_mm,
+                jaw_angle_deg=pick.angle_deg,
+                still_at_mm=(),
+            )
+        )
+        self._emit("pick")
         if self.state is V.SINGLE_EXECUTION and self._seq % 30 == 0:
             self.state = V.READY
             self._emit("state")
 
-    def _draw(self, seq: int) -> np.ndarray:
+    def _draw(self, seq: int) -> tuple[np.ndarray, LocateResult]:
+        """A grey table with one nut, and what a locate would report for it."""
         w, h = self.frame_size
         image = np.full((h, w, 3), 235, np.uint8)
         x = 60 + (seq * 23) % (w - 120)
-        cv2.circle(image, (x, h // 2), 30, (0, 180, 0), 3)
-        cv2.putText(image, f"{seq} nut", (x + 35, h // 2 - 35), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 180, 0), 2)
-        return image
+        cv2.circle(image, (x, h // 2), 30, (40, 40, 40), -1)
+        outline = cv2.ellipse2Poly((x, h // 2), (30, 30), 0, 0, 360, 10).reshape(-1, 1, 2).astype(np.int32)
+        part = LocatedPart(1, "nut", "hexagonal", (float(x), float(h // 2)), (10.0 + seq, 20.0), None, True)
+        part.outline_px = outline
+        return image, LocateResult([part], (w, h), 1.0)
 
 
 _RUNNING = frozenset({V.SINGLE_EXECUTION, V.CONTINUOUS_EXECUTION})

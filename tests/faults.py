@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import cell.commands.run
+import cell.sim.cell
 from cell.audit import read_events
 from cell.recordfile import RecordFile
 from drivers.sim.dxl_emulator import DxlBusEmulator
@@ -72,7 +72,7 @@ class Captured:
 def capture_sim(monkeypatch) -> Captured:
     """Keep the simulated cell (world and emulator) of the run, to inspect after it ended."""
     got = Captured()
-    real = cell.commands.run.sim_cell
+    real = cell.sim.cell.sim_cell
 
     @contextlib.contextmanager
     def keeping(config):
@@ -80,7 +80,7 @@ def capture_sim(monkeypatch) -> Captured:
             got.cell = sim
             yield sim
 
-    monkeypatch.setattr(cell.commands.run, "sim_cell", keeping)
+    monkeypatch.setattr(cell.sim.cell, "sim_cell", keeping)
     return got
 
 

@@ -53,7 +53,11 @@ def test_counts_from_log_match_a_summary():
     ]
     s = Summary(picked={"nut": 1}, misses=1, retries=1, unreachable=1, attempts=2, unknown_left=1)
     assert counts_from_log(events) == s.counts()
-    assert any("1 misses" in line for line in s.lines())
+    lines = s.lines()
+    assert "picked 1 nut; 1 miss, 1 retry, 0 failed, 1 unreachable, 1 unknown part left" in lines
+    assert "2 pick attempts in" in lines[2]
+    two = Summary(picked={"nut": 2, "bolt": 1}, misses=2, retries=2, unknown_left=2, attempts=5).lines()[1]
+    assert two == "picked 1 bolt, 2 nuts; 2 misses, 2 retries, 0 failed, 0 unreachable, 2 unknown parts left"
 
 
 def test_two_runs_started_in_the_same_second_write_two_logs(tmp_path):

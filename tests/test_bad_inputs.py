@@ -338,4 +338,4 @@ def test_run_log_dir_that_cannot_be_created(tmp_path, capsys):
     blocker.write_text("")
     assert main(["--dry-run", "--log-dir", str(blocker / "logs")]) == 2
     line = one_line(capsys.readouterr().err)
-    assert line.startswith(f"run-cell run: error: run.log_dir {blocker / 'logs'}: cannot create the audit log")
+    assert line.startswith(f"run-cell: error: run.log_dir {blocker / 'logs'}: cannot create the audit log")

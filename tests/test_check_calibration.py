@@ -70,6 +70,7 @@ def test_a_fresh_image_of_the_plate_passes_with_every_point_listed(work):
     assert sum(1 for line in lines if line[:5].strip().isdigit()) == 156
     assert "PASS" in r.stdout
     assert "calibration check" in (work / "cell.log").read_text()
+    assert r.stderr == ""  # the INFO line goes to the log file, not the terminal (without -v)
 
 
 def test_the_errors_are_the_detection_noise_only():

@@ -128,7 +128,7 @@ def test_a_full_disk_at_an_audit_write_leaves_the_arm_safe_and_exits_3(
     assert disk.failed_line is not None and f'"seq":{n},' in disk.failed_line, err
     assert "write failed (No space left on device)" in err
     last = err.strip().splitlines()[-1]
-    assert last.startswith("run-cell run: ") and "exit 3" in last or "cannot write event 1 (config)" in last
+    assert last.startswith("run-cell: ") and "exit 3" in last or "cannot write event 1 (config)" in last
     events = audit_events(logs)
     assert [e["seq"] for e in events] == list(range(1, n))  # everything before the full disk kept, in order
     if sim.cell is None:  # the first write failed before any device was opened
@@ -203,7 +203,7 @@ def check_stopped(logs, sim, sig, err: str) -> None:
     events = audit_events(logs)
     end = events[-1]
     assert end["kind"] == "run_end" and end["outcome"] == "stopped" and end["reason"].startswith(REASONS[sig])
-    assert err.strip().splitlines()[-1].startswith("run-cell run: stopped in ")
+    assert err.strip().splitlines()[-1].startswith("run-cell: stopped in ")
     assert err.strip().splitlines()[-1].endswith(f"{REASONS[sig]} (arm made safe; exit 130)")
 
 
@@ -229,7 +229,7 @@ def test_a_stop_signal_before_any_device_is_opened(tmp_path, monkeypatch, capsys
     sim = capture_sim(monkeypatch)
     assert run_cell(tmp_path, "serial") == 130
     assert sim.cell is None
-    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell run: stopped: SIGTERM"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell: stopped: SIGTERM"
     assert audit_events(tmp_path / "logs")[-1]["outcome"] == "stopped"
 
 
@@ -249,7 +249,7 @@ def test_a_stop_signal_during_plate_calibration(tmp_path, monkeypatch, capsys):
     cfg.write_text(cfg.read_text().replace("perfect_calibration = true\n", ""))
     sim = capture_sim(monkeypatch)
     assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 130
-    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell run: stopped: SIGHUP (terminal closed)"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "run-cell: stopped: SIGHUP (terminal closed)"
     assert audit_events(tmp_path / "logs")[-1]["reason"] == "SIGHUP (terminal closed)"
     assert sim.cell is None  # stopped inside the plate fit: the emulated arm's pty was never opened
 

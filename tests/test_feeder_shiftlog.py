@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
+from cell.events import PartFailed, PartUnreachable, ServiceStarted
 from cell.run_config import FeederConfig
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, read_shift, shift_files
@@ -89,7 +92,7 @@ def test_parts_left_too_long_are_cleared():
 def test_the_shift_log_rolls_by_size_between_whole_lines(tmp_path):
     log = ShiftLog(tmp_path, max_bytes=4096, day=lambda: "20261201")
     for i in range(200):
-        log.event("target", track=i, attempt=1 + i % 2, cls="nut", pad="x" * (i % 50))
+        log.record(PartUnreachable(track=i, cls="nut", table_mm=(1.0, 2.0), reason="x" * (i % 50)))
     log.close()
     files = shift_files(tmp_path, "20261201")
     assert len(files) > 5
@@ -104,15 +107,15 @@ def test_the_shift_log_rolls_by_size_between_whole_lines(tmp_path):
 def test_the_shift_log_rolls_at_a_new_day_and_a_restart_takes_the_next_file(tmp_path):
     day = {"d": "20261201"}
     log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: day["d"])
-    log.event("a")
+    log.record(ServiceStarted(counters={}, calibration="a", capture_interval_s=1.0))
     day["d"] = "20261202"
-    log.event("b")
+    log.record(ServiceStarted(counters={}, calibration="b", capture_interval_s=1.0))
     log.close()
     again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: day["d"])
-    again.event("c")
+    again.record(ServiceStarted(counters={}, calibration="c", capture_interval_s=1.0))
     again.close()
-    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["a"]
-    assert [e["kind"] for e in read_shift(tmp_path, "20261202")] == ["b", "c"]
+    assert [e["calibration"] for e in read_shift(tmp_path, "20261201")] == ["a"]
+    assert [e["calibration"] for e in read_shift(tmp_path, "20261202")] == ["b", "c"]
     assert [f.name for f in shift_files(tmp_path, "20261202")] == ["cell-20261202-000.jsonl", "cell-20261202-001.jsonl"]
 
 
@@ -144,12 +147,56 @@ def test_shift_counts_agree_with_the_summary_recount():
 
 def test_a_torn_last_line_is_skipped_when_the_shift_is_read_back(tmp_path):
     log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")
-    log.event("verify", result="picked", cls="nut")
+    log.record(PartFailed(track=1, cls="nut", attempts=3))
     log.close()
     with open(shift_files(tmp_path, "20261201")[-1], "a") as f:
         f.write('{"seq":2,"kind":"verify","result":"pick')  # the writer killed mid-line
-    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify"]
+    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["failed"]
     again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")  # the restarted service: a new file
-    again.event("service_start")
+    again.record(ServiceStarted(counters={}, calibration="c", capture_interval_s=1.0))
     again.close()
-    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["verify", "service_start"]
+    assert [e["kind"] for e in read_shift(tmp_path, "20261201")] == ["failed", "service_start"]
+
+
+def test_a_day_may_have_more_than_a_thousand_files(tmp_path):
+    for n in range(1000):
+        (tmp_path / f"cell-20261201-{n:03d}.jsonl").write_text("")
+    log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")
+    log.record(PartFailed(track=1, cls="nut", attempts=3))
+    log.close()
+    files = shift_files(tmp_path, "20261201")
+    assert files[-1].name == "cell-20261201-1000.jsonl" and len(files) == 1001
+    again = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")  # and a restart after it
+    again.record(PartFailed(track=2, cls="nut", attempts=3))
+    again.close()
+    assert shift_files(tmp_path, "20261201")[-1].name == "cell-20261201-1001.jsonl"
+    assert [e["track"] for e in read_shift(tmp_path, "20261201")] == [1, 2]
+
+
+def test_after_a_failed_write_the_next_event_goes_to_a_new_file_or_raises(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from cell.audit import AuditWriteFailed
+    from cell.recordfile import RecordFile
+
+    full = {"on": False}
+
+    class MaybeFull(RecordFile):
+        def _write(self, data):
+            if full["on"]:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return super()._write(data)
+
+    monkeypatch.setattr("cell.audit.RecordFile", MaybeFull)
+    log = ShiftLog(tmp_path, max_bytes=10**6, day=lambda: "20261201")
+    log.record(PartFailed(track=1, cls="nut", attempts=3))
+    full["on"] = True
+    with pytest.raises(AuditWriteFailed, match="No space left on device"):
+        log.record(PartFailed(track=2, cls="nut", attempts=3))
+    with pytest.raises(AuditWriteFailed):  # never silently dropped while not making safe
+        log.ensure_writable() or log.record(PartFailed(track=3, cls="nut", attempts=3))
+    full["on"] = False  # space freed: the next event opens the day's next file
+    log.record(PartFailed(track=4, cls="nut", attempts=3))
+    log.close()
+    assert [e["track"] for e in read_shift(tmp_path, "20261201")] == [1, 4]

@@ -104,22 +104,3 @@ def test_bad_config_names_the_key(files, capsys):
     cfg.write_text("[parts.nut]\nacross_flats_mm = [20.0, 10.0]\n")
     code, _, err = run(capsys, "--image", files / "scene.png", "--mm-per-px", "0.4", "--config", cfg)
     assert code != 0 and "parts.nut.across_flats_mm" in err
-
-
-def test_annotate_draws_the_pick_order_only_beside_the_ordered_parts():
-    from cell.vision.annotate import annotate
-    from cell.vision.types import LocatedPart, LocateResult
-
-    image = np.full((H, W, 3), 90, np.uint8)
-    parts = [LocatedPart(i, "nut", "hexagon", (200.0 * i, 300.0), (0.0, 0.0), None, True) for i in (1, 2, 3)]
-    result = LocateResult(parts, (W, H), 1.0)
-    plain, numbered = annotate(image, result), annotate(image, result, [3, 1])
-    changed = np.any(plain != numbered, axis=2)
-    ys, xs = np.nonzero(changed)
-    assert xs.size and ys.max() < 300  # badges sit above and left of the parts' centres
-    near = [np.count_nonzero(changed[:, max(0, 200 * i - 60) : 200 * i]) for i in (1, 2, 3)]
-    assert near[0] > 0 and near[2] > 0 and near[1] == 0  # part 2 was not in the order: no badge
-    for i in (1, 3):  # a white disc with a dark number, up and left of the centre
-        badge = numbered[300 - 30 : 300, 200 * i - 30 : 200 * i]
-        assert np.all(badge == 255, axis=2).sum() > 100 and np.all(badge < 60, axis=2).sum() > 10
-    assert not np.array_equal(annotate(image, result, [1, 3]), numbered)  # the numbers differ, not only the discs

@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -262,3 +263,33 @@ def test_the_script_and_the_sub_command_take_the_same_options():
     sub = next(a for a in cli_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["recalibrate"]
     assert options(script_parser()) == options(sub)
     assert "--report-dir" in sub.format_help() and "--quiet" in sub.format_help()
+
+
+def run_into_a_closed_pipe(*args, cwd=ROOT):
+    """As `cmd | head -0`: every write to stdout meets a pipe whose reader is gone."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        return subprocess.run(
+            [sys.executable, *map(str, args)], stdout=write, stderr=subprocess.PIPE, text=True, cwd=cwd, timeout=120
+        )
+    finally:
+        os.close(write)
+
+
+@pytest.mark.parametrize("how", ["script", "run-cell"])
+def test_a_closed_stdout_pipe_does_not_stop_the_recalibration(work, tmp_path, how):
+    """`... | head -3`: the calibration is replaced exactly as when not piped; stderr says the
+    output was cut short; exit 0."""
+    out = tmp_path / "active.json"
+    out.write_text(json.dumps({"previous": True}))
+    args = ["--image", work / "plate.png", "--out", out, "--config", work / "cell.toml", "--log", work / "cell.log"]
+    command = [SCRIPT, *args] if how == "script" else ["-m", "cell.cli", "recalibrate", *args]
+    r = run_into_a_closed_pipe(*command)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["schema"] == "pick-cell/calibration"
+    (backup,) = (tmp_path / "backups").glob("active.*.json")
+    assert json.loads(backup.read_text()) == {"previous": True}
+    prefix = "recalibrate" if how == "script" else "run-cell recalibrate"
+    assert r.stderr.startswith(f"{prefix}: note: standard output was closed early (Broken pipe)")
+    assert "ran to its end (exit 0)" in r.stderr and r.stderr.count("\n") == 1

@@ -112,9 +112,9 @@ def test_an_empty_camera_folder_faults_in_idle_and_exits_non_zero(tmp_path, caps
     assert any(e["kind"] == "fault" and e["state"] == "idle" for e in events)
 
 
-def test_bare_run_cell_prints_help(capsys):
+def test_bare_run_cell_prints_the_short_usage(capsys):
     assert main([]) == 2
-    assert "--dry-run" in capsys.readouterr().out
+    assert "run-cell --dry-run" in capsys.readouterr().err  # more in tests/test_cli_wording.py
 
 
 def test_teach_fits_prints_residuals_and_writes(tmp_path, capsys):

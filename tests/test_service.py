@@ -10,6 +10,7 @@ import os
 import threading
 import time
 from dataclasses import replace
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -17,7 +18,19 @@ import pytest
 from cell.audit import read_events
 from cell.commands.serve import open_service
 from cell.config import CellConfig
-from cell.service.api import Command, InvalidState, VisionState
+from cell.events import (
+    AlarmCleared,
+    AlarmRaised,
+    FrameLocated,
+    Interface,
+    Origin,
+    PartUnreachable,
+    PickOrderChosen,
+    Role,
+    TargetChosen,
+)
+from cell.service.api import AccessDenied, Command, InvalidState, ShuttingDown, VisionState
+from cell.service.ledger import Ledger
 from cell.service.shiftlog import read_shift, shift_files
 from cell.summary import counts_from_log
 
@@ -71,16 +84,17 @@ def test_continuous_picks_pauses_resumes_and_stops_into_ready(tmp_path):
     no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(small_config(tmp_path, feeder=no_feeder)) as service:
         kinds = []
-        service.subscribe(lambda e: kinds.append(e.kind))
+        sub = service.subscribe("test", lambda e: kinds.append(e.kind))
         service.command(Command.START_CONTINUOUS)
         assert service.snapshot().vision_state == V.CONTINUOUS_EXECUTION
         with pytest.raises(InvalidState):
             service.command(Command.START_SINGLE)
         wait_for(lambda: picked(service) >= 3, what="3 picks")
         service.command(Command.PAUSE)
+        assert service.snapshot().paused or service.snapshot().pausing  # pausing until the arm is at rest
         wait_for(lambda: service.snapshot().cell_state == "PAUSED", what="PAUSED")
         snap = service.snapshot()
-        assert snap.paused and Command.RESUME in snap.allowed and Command.PAUSE not in snap.allowed
+        assert snap.paused and not snap.pausing and Command.RESUME in snap.allowed and Command.PAUSE not in snap.allowed
         held = picked(service)
         time.sleep(0.5)
         assert picked(service) == held  # nothing picked while paused
@@ -90,39 +104,40 @@ def test_continuous_picks_pauses_resumes_and_stops_into_ready(tmp_path):
         service.command(Command.STOP)
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
         snap = service.snapshot()
-        assert snap.cell_state == "STOPPED" and snap.counters.unknown_left == 1
-        assert {"state", "pick", "frame", "counters"} <= set(kinds)
-        frame = service.latest_frame()
-        assert frame.image_bgr.shape == (540, 960, 3) and frame.seq >= 18
-        assert frame.seq == sum(e["kind"] == "frame" for e in read_shift(tmp_path / "logs"))  # one per frame, pause too
+        assert snap.cell_state == "IDLE" and snap.counters.unknown_left == 1 and snap.parts_per_min == 0
+        assert sub.wait_idle(30)
+        assert {"state", "verify", "frame", "target", "snapshot", "job_start", "job_end"} <= set(kinds)
+        frames = sum(e["kind"] == "frame" for e in read_shift(tmp_path / "logs"))
+        assert frames >= 18 and kinds.count("frame") == frames  # one per frame, pause too
         assert [p.outcome for p in snap.last_picks] == ["picked"] * len(snap.last_picks)
         assert len(snap.last_picks) == 17 and snap.last_picks[-1].cls in ("bolt", "nut")
 
 
-def test_the_frame_numbers_the_parts_in_the_order_the_runner_picks_them(tmp_path):
+def test_the_pick_order_numbers_first_the_part_the_runner_picks_next(tmp_path):
     no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(small_config(tmp_path, feeder=no_feeder)) as service:
-        seen = []  # audit frames, the screen's frames and the runner's targets, in the worker's order
-        service.subscribe(lambda e: e.kind == "frame" and seen.append(("view", e.frame)))
-        service.audit.listeners.append(lambda e: e["kind"] in ("frame", "target") and seen.append((e["kind"], e)))
+        seen = []  # the stream's frames, orders and targets, in the order they happened
+        sub = service.subscribe(
+            "test", seen.append, kinds=(FrameLocated, PickOrderChosen, TargetChosen), maxsize=10_000
+        )
         service.command(Command.START_CONTINUOUS)
         wait_for(lambda: service.snapshot().waiting_for_parts, what="the table cleared and the cell waiting")
         service.command(Command.STOP)
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
-    frames = [e for kind, e in seen if kind == "frame"]
-    views = [v for kind, v in seen if kind == "view"]
-    assert len(views) == len(frames) >= 18 and [v.seq for v in views] == list(range(1, len(views) + 1))
+        assert sub.wait_idle(30) and sub.stats().dropped == 0
     targets = 0
-    for i, (kind, e) in enumerate(seen):
-        if kind != "target":
+    for i, e in enumerate(seen):
+        if not isinstance(e, TargetChosen):
             continue
         targets += 1
-        (_, view), (_, frame) = seen[i - 1], seen[i - 2]  # the frame goes out as PLAN chose, before the arm moves
-        parts = {d["id"]: d for d in frame["detections"]}
-        assert view.pick_order and all(parts[n]["pick"] for n in view.pick_order)
-        nearest = min(parts.values(), key=lambda d: math.dist(d["table_mm"], e["table_mm"]))
-        assert nearest["id"] == view.pick_order[0], f"the arm goes for part {nearest['id']}, numbered 1 is another"
-    assert targets == 17 and views[-1].pick_order == ()  # the last frame: nothing left to pick
+        order, frame = seen[i - 1], seen[i - 2]  # the order goes out as PLAN chose, before the arm moves
+        assert isinstance(order, PickOrderChosen) and isinstance(frame, FrameLocated) and order.frame == frame.frame
+        parts = {d["id"]: d for d in frame.detections}
+        assert order.order and all(parts[n]["pick"] for n in order.order)
+        nearest = min(parts.values(), key=lambda d: math.dist(d["table_mm"], e.table_mm))
+        assert nearest["id"] == order.order[0], f"the arm goes for part {nearest['id']}, numbered 1 is another"
+    last_order = [e for e in seen if isinstance(e, PickOrderChosen)][-1]
+    assert targets == 17 and last_order.order == ()  # the last frame: nothing left to pick
 
 
 def test_halt_then_reset_and_nothing_but_reset_in_halted(tmp_path):
@@ -136,7 +151,8 @@ def test_halt_then_reset_and_nothing_but_reset_in_halted(tmp_path):
             with pytest.raises(InvalidState):
                 service.command(command)
         service.command(Command.RESET)
-        assert service.snapshot().vision_state == V.READY
+        snap = service.snapshot()
+        assert (snap.vision_state, snap.cell_state) == (V.READY, "IDLE")
     events = read_shift(tmp_path / "logs")
     safe = [e["step"] for e in events if e["kind"] == "safe_step"]
     assert safe[-2:] == ["home", "release torque"]
@@ -146,15 +162,22 @@ def test_a_fault_raises_an_alarm_and_needs_a_reset(tmp_path):
     # the table is 10 mm higher than the planner thinks: the first descent drives the tool into it
     with running(small_config(tmp_path, truth_table_z_mm=10.0)) as service:
         alarms = []
-        service.subscribe(lambda e: alarms.append(e.snapshot.alarm) if e.kind == "alarm" else None)
+        sub = service.subscribe("test", alarms.append, kinds=(AlarmRaised, AlarmCleared))
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.ERROR, what="Error")
         snap = service.snapshot()
-        assert "into the table" in snap.alarm.reason and snap.alarm.hint and alarms
+        assert "into the table" in snap.alarm.reason and snap.alarm.hint
         assert snap.allowed == {Command.RESET} and snap.cell_state == "FAULT"
-        service.command(Command.RESET)
+        operator = Origin(Interface.SCREEN, "ana", Role.OPERATOR, "10.0.0.7")
+        service.command(Command.RESET, operator)
         snap = service.snapshot()
-        assert snap.vision_state == V.READY and snap.alarm is None
+        assert (snap.vision_state, snap.cell_state, snap.alarm) == (V.READY, "IDLE", None)
+        assert sub.wait_idle(30)
+    raised, cleared = alarms
+    assert isinstance(raised, AlarmRaised) and "into the table" in raised.reason
+    assert isinstance(cleared, AlarmCleared) and cleared.alarm_id == raised.alarm_id and cleared.origin == operator
+    reset = [e for e in read_shift(tmp_path / "logs") if e["kind"] == "command" and e["command"] == "Reset"]
+    assert reset[-1]["origin"]["user"] == "ana" and reset[-1]["accepted"]
 
 
 def test_single_job_counters_survive_a_restart_and_match_the_log(tmp_path):
@@ -193,35 +216,80 @@ def test_close_leaves_no_thread_or_fd_behind(tmp_path, arm):
     assert read_events(files[-1])[-1]["kind"] == "service_stop"
 
 
-def test_plate_image_and_a_new_calibration_only_while_still(tmp_path):
-    with running(small_config(tmp_path)) as service:
-        seen = []
-        service.subscribe(lambda e: seen.append(e) if e.kind == "calibration" else None)
+def test_plate_image_and_a_new_calibration_only_at_rest(tmp_path):
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        frames = []
+        sub = service.subscribe("test", frames.append, kinds=(FrameLocated,), maxsize=10_000)
         plate = service.capture_plate_image()  # Ready: the simulated cell renders its plate
         assert plate.shape == (540, 960, 3)
-        cal = service.devices.calibration
+        cal = service.cell.calibration
         service.command(Command.START_CONTINUOUS)
-        with pytest.raises(InvalidState, match="capture_plate_image is not allowed in ContinuousExecution"):
+        with pytest.raises(
+            InvalidState, match="CapturePlate is not allowed in ContinuousExecution: the cell is moving"
+        ):
             service.capture_plate_image()
         info = service.snapshot().calibration
+        newer = replace(cal, created_utc="2026-12-01T12:00:00+00:00")  # the same fit, another file: another id
+        new_info = replace(info, model="homography", source_image="plate-2.png", calibration_id=newer.content_id)
         with pytest.raises(InvalidState):
-            service.install_calibration(cal, info)
+            service.install_calibration(newer, new_info)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
         service.command(Command.PAUSE)
-        new = replace(info, model="homography", source_image="plate-2.png")
-        service.install_calibration(cal, new)  # paused: allowed
-        assert service.snapshot().calibration == new and seen[-1].snapshot.calibration == new
+        wait_for(lambda: service.snapshot().paused, what="paused at rest")
+        service.install_calibration(newer, new_info)  # at rest: allowed
+        assert service.snapshot().calibration == new_info
+        assert sub.wait_idle(30)
+        before = len(frames)
+        assert {f.calibration_id for f in frames} == {cal.content_id}
+        service.command(Command.RESUME)
+        wait_for(lambda: sub.wait_idle(5) and len(frames) > before, what="a frame after resuming")
+        assert frames[before].calibration_id == newer.content_id != cal.content_id
         service.command(Command.STOP)
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
 
 
-def test_counters_start_again_with_the_next_days_shift(tmp_path):
+def test_a_held_service_refuses_starts_and_resumes_for_the_same_reason_to_everyone(tmp_path):
     with running(small_config(tmp_path)) as service:
+        release = service.hold("a recalibration report is waiting for its answer")
+        for origin in (
+            Origin(Interface.OPCUA, "plc", Role.OPERATOR),
+            Origin(Interface.SCREEN, "ana", Role.ADMIN),
+            Origin(Interface.SIGNAL, "signal", Role.OPERATOR),
+        ):
+            with pytest.raises(InvalidState, match="StartContinuous is not allowed now: a recalibration report"):
+                service.command(Command.START_CONTINUOUS, origin)
+        assert Command.START_SINGLE not in service.snapshot().allowed
+        assert service.snapshot().hold.startswith("a recalibration report")
+        release()
         service.command(Command.START_SINGLE)
-        wait_for(lambda: service.snapshot().vision_state == V.READY and picked(service) == 17, what="the job")
-        today = service._shift_day
-        service._on_audit(
-            {"kind": "unreachable", "t_utc": "2999-01-01T00:00:00.001+00:00"}
-        )  # the first event after midnight
-        c = service.snapshot().counters
-        assert (c.unreachable, c.picked_nuts, c.picked_bolts) == (1, 0, 0)
-        assert today != service._shift_day
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="the job to end")
+
+
+def test_roles_are_checked_by_the_command_table(tmp_path):
+    with running(small_config(tmp_path)) as service:
+        viewer = Origin(Interface.SCREEN, "guest", Role.VIEWER)
+        with pytest.raises(AccessDenied, match="StartSingleJob needs the operator role; guest is viewer"):
+            service.command(Command.START_SINGLE, viewer)
+        service.command(Command.HALT, viewer)  # anyone who sees the cell may halt it
+        assert service.snapshot().vision_state == V.HALTED
+    refused = [e for e in read_shift(tmp_path / "logs") if e["kind"] == "command" and not e["accepted"]]
+    assert refused[-1]["refusal"] == "access_denied" and refused[-1]["origin"]["user"] == "guest"
+
+
+def test_after_shutdown_begins_commands_get_a_clear_refusal(tmp_path):
+    with running(small_config(tmp_path)) as service:
+        service.refuse_commands()
+        with pytest.raises(ShuttingDown, match="the service is stopping"):
+            service.command(Command.START_SINGLE)
+        assert service.snapshot().vision_state == V.READY
+
+
+def test_counters_start_again_with_the_next_days_shift():
+    ledger = Ledger()
+    today = datetime.now(UTC)
+    ledger.handle(PartUnreachable(track=1, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=today))
+    assert ledger.counters().unreachable == 1
+    tomorrow = today + timedelta(days=1)
+    ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=tomorrow))
+    assert ledger.counters().unreachable == 1 and ledger.shift == tomorrow.date().isoformat()

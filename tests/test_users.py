@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import stat
 
 import pytest
 
-from cell.cli import _dispatch
+from cell.cli import main
 from cell.commands import users as users_cli
 from cell.events import Role
 from cell.service.config import ServiceConfig
@@ -29,14 +28,11 @@ def config(tmp_path, monkeypatch):
 
 
 def run_user(*argv: str, stdin: str = "") -> int:
-    """`run-cell user ...` as cli.main runs it (parser, then _dispatch's one-line errors), stdin not a terminal."""
-    parser = argparse.ArgumentParser(prog="run-cell")
-    users_cli.register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(list(argv))
+    """`run-cell user ...` through run-cell's own entry point, stdin not a terminal."""
     old = users_cli.sys.stdin
     users_cli.sys.stdin = io.StringIO(stdin)
     try:
-        return _dispatch(args)
+        return main(list(argv))
     finally:
         users_cli.sys.stdin = old
 
@@ -111,11 +107,8 @@ def test_the_terminal_asks_twice(config, tmp_path, monkeypatch, capsys):
         def isatty(self) -> bool:
             return True
 
-    parser = argparse.ArgumentParser(prog="run-cell")
-    users_cli.register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["user", "add", "anna", "--role", "viewer", "--config", str(config)])
     monkeypatch.setattr(users_cli.sys, "stdin", Tty())
-    assert _dispatch(args) == 2
+    assert main(["user", "add", "anna", "--role", "viewer", "--config", str(config)]) == 2
     assert "the two passwords differ" in capsys.readouterr().err
     assert not (tmp_path / "users.json").exists()
 

@@ -80,7 +80,7 @@ def test_stop_ends_streams_and_threads_and_unsubscribes(service):
     before = {t.name for t in threading.enumerate()}
     srv = WebServer(service, CellConfig(), WebConfig(), "127.0.0.1", 0)
     srv.start()
-    assert service.listeners == 1
+    assert service.listeners == 2  # the screen: its state and its frames, each a subscriber of its own
     stream_ended = threading.Event()
 
     def hold_stream():
@@ -126,6 +126,7 @@ def test_screen_uses_the_services_user_and_password(service, monkeypatch, tmp_pa
     config = CellConfig()
     config.service.http_port = free_port()
     config.service.certificate_dir = tmp_path  # with users the screen is HTTPS only (issue 21): its certificate
+    config.service.login.backoff_first_s = 0  # the wrong password below would hold the right one back 1 s
     config.service.user = "operator"
     if where == "hash":
         config.service.password_hash = hash_password("line-4", iterations=1000)

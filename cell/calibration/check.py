@@ -19,6 +19,7 @@ from cell.calibration.pipeline import PlatePoints, find_points, find_points_pape
 from cell.calibration.store import Calibration
 from cell.config import CellConfig
 from cell.errors import InputError
+from cell.wording import plural
 
 
 @dataclass
@@ -86,7 +87,7 @@ def check_text(result: CheckResult, source: str) -> str:
     """The operator's report: every point, then the totals and the verdict."""
     pts = result.points
     lines = [
-        f"calibration check on {source}: {len(pts.number)} circles measured"
+        f"calibration check on {source}: {plural(len(pts.number), 'circle')} measured"
         + (f", missing: {pts.missing}" if pts.missing else ""),
         f"{'point':>5}{'X mm':>9}{'Y mm':>9}{'X mapped':>11}{'Y mapped':>11}{'dX':>9}{'dY':>9}{'error':>9}",
     ]
@@ -107,8 +108,6 @@ def check_text(result: CheckResult, source: str) -> str:
         + f": max error {result.max_mm:.4f} mm "
         + ("<=" if result.passed else ">")
         + f" calibration.check_max_mm {result.limit_mm} mm"
-        + (
-            "" if result.passed else "; recalibrate (scripts/recalibrate.py), or check the camera and the plate fixture"
-        ),
+        + ("" if result.passed else "; recalibrate (run-cell recalibrate), or check the camera and the plate fixture"),
     ]
     return "\n".join(lines)

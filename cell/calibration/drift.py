@@ -43,7 +43,7 @@ class DriftWatch:
         if calibration.camera is None:
             raise InputError(
                 "the drift watch needs the camera pose, which this calibration lacks",
-                hint="recalibrate with scripts/recalibrate.py",
+                hint="recalibrate with run-cell recalibrate",
             )
         self.calibration, self.config = calibration, config
         self.marks_mm = np.asarray(config.marks_mm, dtype=np.float64).reshape(-1, 2)
@@ -77,6 +77,6 @@ class DriftWatch:
                 f"camera moved {reading.drift_mm:.2f} mm since calibration (reference marks seen shifted by "
                 f"{mean[0]:+.2f}, {mean[1]:+.2f} mm, limit drift.limit_mm {self.config.limit_mm} mm); "
                 "check or recalibrate",
-                hint="run-cell check-calibration with the plate in its fixture, or scripts/recalibrate.py",
+                hint="run-cell check-calibration with the plate in its fixture, or run-cell recalibrate",
             )
         return reading

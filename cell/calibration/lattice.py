@@ -18,6 +18,7 @@ import numpy as np
 
 from cell.config import PlateConfig
 from cell.errors import PlateNotFound
+from cell.wording import plural
 
 
 @dataclass
@@ -118,7 +119,7 @@ def number_lattice(
     """
     n = len(points)
     if n < 4:
-        raise PlateNotFound(f"found {n} blobs, too few for a {plate.columns} x {plate.rows} plate")
+        raise PlateNotFound(f"found {plural(n, 'blob')}, too few for a {plate.columns} x {plate.rows} plate")
     # Seeds: blobs nearest the middle of the crowd first, then spread through the list.
     centre = np.median(points, axis=0)
     order = np.argsort(np.hypot(*(points - centre).T))
@@ -140,7 +141,7 @@ def number_lattice(
             if sorted(ab.max(axis=0) - ab.min(axis=0) + 1) == sorted((plate.columns, plate.rows)):
                 break  # the whole plate: other seeds would grow the same lattice
     if not best:
-        raise PlateNotFound(f"found {n} blobs, none form a consistent lattice")
+        raise PlateNotFound(f"found {plural(n, 'blob')}, none form a consistent lattice")
     idx = np.array(list(best.keys()))
     ab = np.array([best[i] for i in idx])
     ab -= ab.min(axis=0)
@@ -149,7 +150,7 @@ def number_lattice(
     extent = ab.max(axis=0) + 1
     col_row = _orient(points[idx], ab, extent, plate)
     ext = col_row.max(axis=0) + 1
-    fit = f"found {n} blobs, {len(idx)} fit a {ext[0]} x {ext[1]} lattice"
+    fit = f"found {plural(n, 'blob')}, {len(idx)} fit a {ext[0]} x {ext[1]} lattice"
     if tuple(ext) != (plate.columns, plate.rows):
         raise PlateNotFound(
             f"{fit}, expected {plate.columns} x {plate.rows}"

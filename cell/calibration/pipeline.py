@@ -16,6 +16,7 @@ from cell.calibration.models import fit_camera, fit_model, monomial_exponents
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
+from cell.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +92,7 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
     plate, det = config.plate, config.detection
     cands = find_candidates(to_gray(image))
     if len(cands) < 4:
-        raise PlateNotFound(f"found {len(cands)} round dark blobs: no plate in view")
+        raise PlateNotFound(f"found {plural(len(cands), 'round dark blob')}: no plate in view")
     group, numbering = _number_by_size(cands, plate, det)
     idx, cr = numbering.index, numbering.col_row
     centres, diam, ok = _refine(group, idx)

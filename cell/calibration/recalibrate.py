@@ -29,6 +29,7 @@ from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.sim.render import render_plate
 from cell.sim.rig import default_camera
+from cell.terminal import guarded_stdout
 from cell.vision.config import Preset
 from drivers.cameras.factory import make_camera
 
@@ -63,7 +64,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image", type=Path, help="plate image (default: capture from the configured camera)")
     p.add_argument("--out", type=Path, help="calibration file to replace (default: calibration.active_path)")
     p.add_argument("--config", type=Path, help="cell config TOML (default: built-in)")
-    p.add_argument("--model", choices=get_args(ModelName))
+    p.add_argument(
+        "--model",
+        choices=get_args(ModelName),
+        help="the mapping to fit (default: calibration.model; auto: the lowest cross-validated error)",
+    )
     p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
     p.add_argument(
         "--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here"
@@ -208,7 +213,19 @@ def recalibrate(args: argparse.Namespace, controls: Controls | None = None) -> i
 
 
 def main(argv: list[str] | None = None) -> int:
-    """scripts/recalibrate.py: its messages start with `recalibrate:`; signals handled from the start."""
+    """scripts/recalibrate.py: its messages start with `recalibrate:`; signals handled from the start;
+    a closed stdout (`| head`) does not stop the recalibration (cell.terminal)."""
+    with guarded_stdout() as stdout:
+        code = _main(argv)
+    if stdout.lost is not None:
+        tell_stderr(
+            f"recalibrate: note: standard output was closed early ({stdout.lost.strerror or stdout.lost}); "
+            f"the rest of the output was not shown, the command ran to its end (exit {code})"
+        )
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
     with handling_signals() as controls:
         args = build_parser().parse_args(argv)
         try:

@@ -14,6 +14,7 @@ import numpy as np
 from cell.atomicfile import ensure_folder, write_bytes_atomic, write_text_atomic
 from cell.calibration.pipeline import CalibrationResult
 from cell.imageio import write_image_atomic
+from cell.wording import plural
 
 
 def table3_rows(result: CalibrationResult) -> list[dict]:
@@ -70,8 +71,8 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     cal, pts = result.calibration, result.points
     fit, cv = result.chosen.fit, result.chosen.cv
     lines = [
-        f"plate: {len(pts.pixel)} circles numbered ({pts.blobs_found} blobs found, "
-        f"{pts.strays} strays ignored, missing: {pts.missing or 'none'})",
+        f"plate: {plural(len(pts.pixel), 'circle')} numbered ({plural(pts.blobs_found, 'blob')} found, "
+        f"{plural(pts.strays, 'stray')} ignored, missing: {pts.missing or 'none'})",
         f"image: {cal.image_size[0]} x {cal.image_size[1]} px",
         f"model: {result.why}",
         "",

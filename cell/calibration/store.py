@@ -6,6 +6,7 @@ model fit), because part-height (parallax) correction needs to know where the ca
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -62,6 +63,12 @@ class Calibration:
         q = self.pixel_to_table_mm(np.array([p, p + (1, 0), p + (0, 1)]))
         (ax, ay), (bx, by) = q[1] - q[0], q[2] - q[0]
         return float(math.sqrt(abs(ax * by - ay * bx)))
+
+    @property
+    def content_id(self) -> str:
+        """A short content hash (sha256 of the canonical JSON): which calibration a pick used."""
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"), default=_plain)
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
     def to_dict(self) -> dict:
         return {
@@ -125,7 +132,10 @@ class Calibration:
         try:
             text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
-            raise InputError(f"{path}: calibration file not found", hint="run scripts/recalibrate.py") from None
+            raise InputError(
+                f"{path}: calibration file not found",
+                hint="make one with run-cell recalibrate (the plate under the camera)",
+            ) from None
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(f"{path}: cannot read calibration: {e}") from None
         try:

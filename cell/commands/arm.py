@@ -21,20 +21,36 @@ log = logging.getLogger(__name__)
 
 
 def register(sub) -> None:
-    p = sub.add_parser("ports", help="list serial ports with their USB descriptions")
+    p = sub.add_parser(
+        "ports",
+        help="list serial ports with their USB descriptions",
+        description="List the serial ports with their USB descriptions and IDs: which one is the arm "
+        "(arm.port), a GRBL board or a Dynamixel U2D2.",
+    )
     p.set_defaults(func=cmd_ports)
 
-    j = sub.add_parser("jog", help="move the gripper to a robot-frame point, or open/close it")
+    j = sub.add_parser(
+        "jog",
+        help="move the gripper to a robot-frame point, or open/close it",
+        description="Connect the configured arm and move the gripper to a point in the robot's base frame (mm), "
+        "or open or close it. The target is checked against the arm's limits before anything is sent; "
+        "prints where the arm is afterwards.",
+    )
     add_arm_arguments(j)
     what = j.add_mutually_exclusive_group(required=True)
     what.add_argument(
         "--to", nargs=3, type=finite_float, metavar=("X", "Y", "Z"), help="target in mm, robot base frame"
     )
-    what.add_argument("--gripper", choices=["open", "close"])
+    what.add_argument("--gripper", choices=["open", "close"], help="open or close the gripper (instead of --to)")
     j.add_argument("--angle", type=finite_float, metavar="DEG", help="gripper angle about the vertical, with --to")
     j.set_defaults(func=cmd_jog)
 
-    h = sub.add_parser("home", help="home the arm (homing cycle or home pose)")
+    h = sub.add_parser(
+        "home",
+        help="home the arm (homing cycle or home pose)",
+        description="Connect the configured arm and home it: GRBL's homing cycle ($H; needs $22=1 and limit "
+        "switches), or a servo arm's home pose. Prints where the arm is afterwards.",
+    )
     add_arm_arguments(h)
     h.set_defaults(func=cmd_home)
 

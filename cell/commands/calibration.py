@@ -30,7 +30,12 @@ CHECK_FAILED = 3  # exit code of check-calibration when a point is over calibrat
 
 
 def register(sub) -> None:
-    p = sub.add_parser("map", help="map pixel points to table mm through a calibration")
+    p = sub.add_parser(
+        "map",
+        help="map pixel points to table mm through a calibration",
+        description="Map pixel points to table millimetres through a calibration file: one point as X Y, "
+        "or a CSV with header x_px,y_px (--pixels). Pixels outside the calibrated image are refused.",
+    )
     p.add_argument("--calibration", required=True, type=Path, help="calibration JSON")
     p.add_argument("--pixels", type=Path, help="CSV with header x_px,y_px")
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -49,7 +54,13 @@ def register(sub) -> None:
     c.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
     c.set_defaults(func=cmd_check_calibration)
 
-    d = sub.add_parser("calibrate-demo", help="render the built-in plate, calibrate it, print the report")
+    d = sub.add_parser(
+        "calibrate-demo",
+        help="render the built-in plate, calibrate it, print the report",
+        description="Render the built-in simulated plate, calibrate it with the default pipeline and with the "
+        "paper's preset, print both reports and write them (Table III CSV, numbered plate, deviation plot) "
+        "under --out-dir.",
+    )
     d.add_argument("--out-dir", type=Path, default=Path("demo-out"), help="report folder (default demo-out)")
     d.set_defaults(func=cmd_calibrate_demo)
 

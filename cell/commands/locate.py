@@ -20,7 +20,13 @@ from cell.vision.types import LocateResult
 
 
 def register(sub) -> None:
-    p = sub.add_parser("locate", help="find, classify and locate bolts and nuts in an image")
+    p = sub.add_parser(
+        "locate",
+        help="find, classify and locate bolts and nuts in an image",
+        description="Find the parts in one image, classify each (bolt, nut, or unknown with the reason) and give "
+        "its table position through a calibration or a plain mm-per-pixel scale. Prints a table (--json: "
+        "JSON); --annotate writes the image with each part outlined, numbered and labelled.",
+    )
     p.add_argument("--image", required=True, type=Path, help="the table seen by the calibrated camera")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--calibration", type=Path, help="calibration JSON (table mm, height correction)")

@@ -10,39 +10,32 @@ import os
 from pathlib import Path
 from typing import get_args
 
+from cell.assembly import Overrides, arm_only, assemble, cell_config, config_path
 from cell.audit import AuditLog
-from cell.calibration.drift import DriftWatch
-from cell.calibration.store import Calibration
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
-from cell.locks import device_locks, holding
+from cell.events import ConfigLoaded, RunEnded
+from cell.locks import holding
 from cell.oplog import log_to_file, stop_logging_to
-from cell.planning import Planner, save_taught, table_to_robot
+from cell.planning import save_taught
 from cell.recordfile import tell_stderr, unique_stem
 from cell.run_config import RunConfig
 from cell.runner import EXIT_FAULT, EXIT_STOPPED, Runner
 from cell.signals import Controls
-from cell.sim.cell import sim_arm_kind, sim_cell
 from cell.statemachine import markdown, mermaid
 from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
-from cell.vision.locate import locate
-from drivers.arm.config import ArmKind, DeviceKind
-from drivers.arm.factory import make_arm, with_overrides
-from drivers.cameras.factory import make_camera
+from drivers.arm.config import ArmKind
 
 log = logging.getLogger(__name__)
-
-# `--dry-run --arm KIND` with no --config: the shipped simulated cell laid out for that arm
-# (the built-in one is out of a gantry's reach and lays bolts a 4-axis arm cannot grip).
-SIM_CONFIGS = {"serial": "sim-grbl.toml", "dynamixel": "sim-dynamixel.toml"}
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Top-level options: `run-cell` with no sub-command runs the cell."""
     g = parser.add_argument_group("running the cell (no sub-command)")
-    g.add_argument("--config", dest="run_config", type=Path, help="cell config (TOML); required unless --dry-run")
+    g.add_argument(
+        "--config", dest="run_config", type=Path, metavar="FILE", help="cell config (TOML); required unless --dry-run"
+    )
     g.add_argument(
         "--dry-run",
         action="store_true",
@@ -68,7 +61,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub) -> None:
-    t = sub.add_parser("teach", help="fit the table -> robot transform from points jogged onto plate circles")
+    t = sub.add_parser(
+        "teach",
+        help="fit the table -> robot transform from points jogged onto plate circles",
+        description="Fit the table -> robot transform from plate circles the gripper was jogged onto: the robot "
+        "X Y of three or more circles with --point, or jog the arm onto them now with --circles. Writes "
+        "planning.taught_path (nothing with --dry-run).",
+    )
     t.add_argument("--config", type=Path, help="cell config (TOML); default: built-in")
     t.add_argument(
         "--point",
@@ -93,7 +92,11 @@ def register(sub) -> None:
     t.add_argument("--dry-run", action="store_true", help="fit and print, write nothing")
     t.set_defaults(func=cmd_teach)
 
-    d = sub.add_parser("diagram", help="print the state machine as a Mermaid diagram")
+    d = sub.add_parser(
+        "diagram",
+        help="print the state machine as a Mermaid diagram",
+        description="Print the cell's state machine as a Mermaid flowchart (--markdown: docs/state-machine.md).",
+    )
     d.add_argument("--markdown", action="store_true", help="the whole docs/state-machine.md")
     d.set_defaults(func=cmd_diagram)
 
@@ -108,8 +111,7 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.point and args.circles:
         raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
     if args.circles:
-        arm_cfg = with_overrides(config.arm, args.arm, args.port)
-        with device_locks(arm_cfg), make_arm(arm_cfg) as arm:
+        with arm_only(config, args.arm, args.port) as arm:
             points = jog_session(arm, args.circles, config, input, print)
     else:
         points = []
@@ -139,48 +141,24 @@ def cmd_teach(args: argparse.Namespace) -> int:
     return 0
 
 
-def _apply_overrides(config: CellConfig, args: argparse.Namespace) -> CellConfig:
-    if args.offset_x_mm or args.offset_y_mm:
-        if config.planning.frame != "offset":
-            raise ConfigError("--offset-x-mm/--offset-y-mm change planning.offset_*, but planning.frame is 'taught'")
-        config.planning.offset_x_mm += args.offset_x_mm
-        config.planning.offset_y_mm += args.offset_y_mm
-    if args.log_dir:
-        config.run.log_dir = args.log_dir
-    if args.arm or args.port:
-        config.arm = with_overrides(config.arm, args.arm, args.port)
-    return config
-
-
-def _devices(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack):
-    """(camera, arm, calibration, expect_motion, sim cell or None); what must be shut down
-    after the run (an emulated arm) goes on `resources`."""
-    if config.camera.source == "sim":
-        if sim_arm_kind(config.arm) != "sim" and config.arm.port:
-            log.warning(
-                "camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
-                config.arm.kind,
-                config.arm.port,
-            )
-        sim = resources.enter_context(sim_cell(config))
-        return sim.camera, sim.arm, sim.calibration, True, sim
-    calibration = Calibration.load(config.calibration.active_path)
-    arm_cfg = config.arm
-    if dry_run and arm_cfg.kind in get_args(DeviceKind):  # the mock checks every command as the real driver would
-        arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
-    resources.enter_context(device_locks(arm_cfg, config.camera.source))  # this job's alone until it ends
-    return make_camera(config.camera), make_arm(arm_cfg), calibration, not dry_run, None
+def overrides_from(args: argparse.Namespace) -> Overrides:
+    return Overrides(
+        arm=getattr(args, "arm", None),
+        port=getattr(args, "port", None),
+        log_dir=getattr(args, "log_dir", None),
+        offset_x_mm=getattr(args, "offset_x_mm", 0.0) or 0.0,
+        offset_y_mm=getattr(args, "offset_y_mm", 0.0) or 0.0,
+    )
 
 
 def run_cell(args: argparse.Namespace) -> int:
     """The job: start-up, the pick loop, the end; stop signals handled in every phase (cell.signals)."""
     if args.run_config is None and not args.dry_run:
         raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
-    if args.run_config is None and args.arm in SIM_CONFIGS:
-        args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
+    args.run_config = config_path(args.run_config, args.dry_run, getattr(args, "arm", None))
     controls = getattr(args, "controls", None) or Controls()
     try:
-        config = _apply_overrides(load_config(args.run_config), args)
+        config = cell_config(args.run_config, args.dry_run, overrides_from(args))
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
         with controls.shielded():
             _log_early_fault(args.log_dir or RunConfig().log_dir, args, e)
@@ -210,22 +188,16 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
     resources = contextlib.ExitStack()
     try:
         try:
-            audit.event(
-                "config",
-                source=str(args.run_config or "built-in"),
-                dry_run=args.dry_run,
-                config=config.model_dump(mode="json"),
-            )
-            camera, arm, calibration, expect_motion, sim = _devices(config, args.dry_run, resources)
-            planner = Planner(config.planning, table_to_robot(config.planning))
-            if sim is not None:
-                say(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
-            if sim is not None and sim.emulated is not None:
-                emu = sim.emulated
-                say(
-                    f"arm: the real {type(arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
-                    f"(motion {emu.speed_scale:g}x faster than the arm's)"
+            audit.record(
+                ConfigLoaded(
+                    source=str(args.run_config or "built-in"),
+                    dry_run=args.dry_run,
+                    config=config.model_dump(mode="json"),
                 )
+            )
+            cell = assemble(config, args.dry_run, resources)
+            for note in cell.notes:
+                say(note)
             say(
                 f"pid {os.getpid()}: Ctrl-C, SIGTERM or SIGHUP stop safely; "
                 f"`kill -USR1 {os.getpid()}` pauses and resumes"
@@ -236,19 +208,21 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                 _log_fault(audit, args, e)
             raise
         with controls.shielded():  # from here the runner decides what a signal interrupts
+            sim = cell.sim
             runner = Runner(
-                camera,
-                arm,
-                lambda frame: locate(frame, calibration, config),
-                planner,
+                cell.camera,
+                cell.arm,
+                lambda frame: cell.locate(frame, cell.calibration),
+                cell.planner(),
                 config.run,
                 audit,
                 controls,
-                expect_motion,
+                cell.expect_motion,
                 progress=say,
                 truth=None if sim is None else lambda: sim_truth(sim.world),
-                sim_motion_s=None if sim is None else sim.motion_time_s,
-                drift_watch=_drift_watch(config, calibration, sim),
+                sim_motion_s=None if sim is None else cell.motion_time_s,
+                drift_watch=cell.drift_watch(cell.calibration),
+                calibration_id=lambda: cell.calibration.content_id,
             )
             runner.run()
             return _report(runner, audit, sim)
@@ -281,7 +255,7 @@ def _report(runner: Runner, audit: AuditLog, sim) -> int:
         where = runner.sm.history[-1].source.name if runner.sm.history else "IDLE"
         what = "fault" if code == EXIT_FAULT else "stopped"
         reason = summary.reason if summary.outcome != "done" else f"audit log: {audit.failed}"
-        tell_stderr(f"run-cell run: {what} in {where}: {reason} (arm made safe; exit {code})")
+        tell_stderr(f"run-cell: {what} in {where}: {reason} (arm made safe; exit {code})")
     return code
 
 
@@ -315,14 +289,6 @@ def _log_early_fault(log_dir: Path, args: argparse.Namespace, e: BaseException) 
         _log_fault(audit, args, e)
 
 
-def _drift_watch(config: CellConfig, calibration, sim) -> DriftWatch | None:
-    """The reference-mark watch: the configured marks, else those printed on the simulated table."""
-    marks = config.drift.marks_mm or (sim.marks_mm if sim is not None else [])
-    if not marks:
-        return None
-    return DriftWatch(calibration, config.drift.model_copy(update={"marks_mm": list(marks)}))
-
-
 def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> None:
     """A run that never started still ends its log with the reason."""
     stopped = isinstance(e, KeyboardInterrupt)
@@ -330,7 +296,7 @@ def _log_fault(audit: AuditLog, args: argparse.Namespace, e: BaseException) -> N
     outcome, code = ("stopped", EXIT_STOPPED) if stopped else ("fault", getattr(e, "exit_code", 2))
     if not stopped:
         audit.event("fault", reason=reason, config_file=str(args.run_config or "built-in"))
-    audit.event("run_end", outcome=outcome, exit_code=code, reason=reason)
+    audit.record(RunEnded(outcome=outcome, exit_code=code, reason=reason))
 
 
 def sim_truth(world) -> dict:

@@ -15,27 +15,32 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
-from cell.commands.run import CONFIG_DIR, SIM_CONFIGS, _apply_overrides, _devices, _drift_watch
-from cell.config import CellConfig, load_config
+from cell.assembly import Overrides, assemble, cell_config
+from cell.config import CellConfig
 from cell.errors import ConfigError
+from cell.eventbus import EventBus
+from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
-from cell.service.api import Command, InvalidState
+from cell.service.api import Command, CommandRefused
 from cell.service.fdlimit import check_open_files
 from cell.service.security import check_exposure, hash_password
-from cell.service.service import Devices, LineService
+from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
 from cell.service.throttle import LoginThrottle
 from cell.signals import STOP_SIGNALS
-from cell.sim.feeder import FedCamera, Feeder, SimClock
-from cell.sim.render import render_plate
-from cell.vision.locate import locate
 from drivers.arm.config import ArmKind
 
 log = logging.getLogger(__name__)
 
 
 def register(sub) -> None:
-    p = sub.add_parser("serve", help="run the cell as a line service: OPC UA server, continuous mode, a whole shift")
+    p = sub.add_parser(
+        "serve",
+        help="run the cell as a line service: OPC UA server, continuous mode, a whole shift",
+        description="Run the cell as a line service: one process owns camera, calibration and arm; a PLC drives "
+        "it over OPC UA, operators through the screen in a browser. Prints one `ready:` line with both "
+        "addresses; SIGTERM or Ctrl-C halt it safely.",
+    )
     # SUPPRESS: the same options given before `serve` (run-cell's own) still count.
     p.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
     p.add_argument(
@@ -56,7 +61,9 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_serve)
 
     h = sub.add_parser(
-        "hash-password", help="read a password (twice, not echoed) and print its hash for service.password_hash"
+        "hash-password",
+        help="read a password (twice, not echoed) and print its hash for service.password_hash",
+        description="Read a password twice (not echoed) and print its PBKDF2 hash for service.password_hash.",
     )
     h.set_defaults(func=cmd_hash_password)
 
@@ -73,9 +80,8 @@ def serve_config(args: argparse.Namespace) -> CellConfig:
     """The config `serve` runs, with the command line's overrides."""
     if args.run_config is None and not args.dry_run:
         raise ConfigError("give --config FILE to serve the cell, or --dry-run for the built-in simulated shift")
-    if args.run_config is None and args.arm in SIM_CONFIGS:
-        args.run_config = CONFIG_DIR / SIM_CONFIGS[args.arm]
-    config = _apply_overrides(load_config(args.run_config), args)
+    overrides = Overrides(arm=args.arm, port=getattr(args, "port", None), log_dir=args.log_dir)
+    config = cell_config(args.run_config, args.dry_run, overrides)
     for key in ("opcua_port", "http_port"):
         if getattr(args, key, None) is not None:
             if not 1 <= getattr(args, key) <= 65535:
@@ -84,24 +90,17 @@ def serve_config(args: argparse.Namespace) -> CellConfig:
     return config
 
 
-def open_service(config: CellConfig, dry_run: bool, resources: contextlib.ExitStack) -> LineService:
-    """Devices built as `run-cell` builds them (the simulated cell gets its feeder), the shift's
-    audit log, and the service over them; everything to close goes on `resources`."""
-    camera, arm, calibration, expect_motion, sim = _devices(config, dry_run, resources)
-    devices = Devices(camera, arm, calibration, expect_motion, sim)
-    if sim is not None:
-        feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))
-        camera = FedCamera(sim.camera, feeder)
-        devices.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
-    audit = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
-    service = LineService(
-        config,
-        devices,
-        audit,
-        lambda frame, cal: locate(frame, cal, config),
-        camera,
-        drift_watch=lambda cal: _drift_watch(config, cal, sim),
-    )
+def open_service(
+    config: CellConfig, dry_run: bool, resources: contextlib.ExitStack, progress=lambda line: None
+) -> LineService:
+    """The cell assembled for a shift (the simulated cell gets its feeder), the event bus with the
+    shift's audit log as its record, and the service over them; everything to close goes on
+    `resources` (the service first, then the record, the bus and its subscribers last)."""
+    bus = EventBus()
+    resources.callback(bus.close)
+    cell = assemble(config, dry_run, resources, shift=True, progress=progress)
+    record = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
+    service = LineService(cell, bus, record)
     resources.callback(service.close)
     return service
 
@@ -140,16 +139,17 @@ def _check_port_free(host: str, port: int, option: str) -> None:
 
 def _toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
-    command = Command.RESUME if service.snapshot().paused else Command.PAUSE
+    command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
     try:
-        service.command(command)
+        service.command(command, SIGNAL_ORIGIN)
         log.info("SIGUSR1: %s", command.value)
-    except InvalidState as e:
+    except CommandRefused as e:
         log.warning("SIGUSR1 ignored: %s", e)
 
 
 async def _serve(config: CellConfig, service: LineService) -> int:
-    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT; the job is halted before they go down.
+    """Interfaces up, one ready line, then wait for SIGTERM/SIGINT. Then, in order: no interface takes
+    a command any more (each gets a clear refusal), the job halts safely, the interfaces go down.
 
     An interface is anything with `start()`, `stop()` (coroutines) and `ready_text`."""
     # imported here, not at the top: asyncua would cost every run-cell command 1.6-1.8 s (measured on 2 busy cores)
@@ -165,6 +165,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     # one login throttle for both interfaces (issue 21); the lead wires on_lockout to the alarm
     throttle = LoginThrottle(config.service.login)
     interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
+    safe = True
     try:
         for interface in interfaces:
             await interface.start()
@@ -172,14 +173,21 @@ async def _serve(config: CellConfig, service: LineService) -> int:
         ready = "; ".join(i.ready_text for i in interfaces)
         print(f"ready: {ready} (pid {os.getpid()}; SIGTERM or Ctrl-C stops safely)", flush=True)
         await stop.wait()
-        log.info("stop signal: halting the cell")
-        await asyncio.to_thread(service.close)
-        await asyncio.sleep(0.2)  # let subscribers see the final state
+        log.info("stop signal: refusing commands, halting the cell")
+        service.refuse_commands()
+        safe = await asyncio.to_thread(service.close)
     finally:
         for interface in reversed(started):
             await interface.stop()
         for sig, handler in previous.items():
             loop.remove_signal_handler(sig)
             signal.signal(sig, handler)
+    if not safe:
+        print(
+            f"stopped: the arm's safe state could not be confirmed within {config.run.motion_timeout_s + 10:g} s "
+            "(check the arm before anyone approaches it; exit 3)",
+            flush=True,
+        )
+        return 3
     print("stopped: cell halted safely", flush=True)
     return 0

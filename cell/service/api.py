@@ -129,7 +129,9 @@ class Rest:
     paused: bool = False
 
 
-def allowed(state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = "") -> frozenset[Command]:
+def allowed(
+    state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = ""
+) -> frozenset[Command]:
     """The commands the state accepts (any role), as every interface shows them (buttons enabled)."""
     rest = Rest(state, pausing, pausing if paused is None else paused)
     return frozenset(c for c in STATE_COMMANDS if state_refusal(c, rest, hold) is None)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import time
 from collections import deque
 from datetime import UTC, datetime
 
@@ -20,7 +21,9 @@ from asyncua import ua
 
 from cell.config import CellConfig
 from cell.errors import ConfigError
-from cell.service.api import AccessDenied, Command, InvalidState, LineServiceAPI, PickRecord, ServiceEvent, Snapshot
+from cell.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
+from cell.service.api import STATE_COMMANDS, Command, CommandRefused, LineServiceAPI, PickRecord, Refusal, Snapshot
+from cell.service.ledger import PickRecords
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
 from cell.service.security import credentials_configured
 from cell.service.throttle import LoginThrottle
@@ -38,6 +41,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "VisionState": (_T.String, False),
     "CellState": (_T.String, False),
     "Paused": (_T.Boolean, False),
+    "Pausing": (_T.Boolean, False),
     "WaitingForParts": (_T.Boolean, False),
     "PickedBolts": (_T.UInt32, False),
     "PickedNuts": (_T.UInt32, False),
@@ -59,6 +63,8 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "CalibrationCvRmsMm": (_T.Double, False),
     "CalibrationCvMaxMm": (_T.Double, False),
     "CalibrationTime": (_T.DateTime, False),
+    "JobId": (_T.String, False),
+    "DroppedEvents": (_T.UInt32, False),
 }
 
 
@@ -69,6 +75,7 @@ def _values(s: Snapshot) -> dict:
         "VisionState": s.vision_state.value,
         "CellState": s.cell_state,
         "Paused": s.paused,
+        "Pausing": s.pausing,
         "WaitingForParts": s.waiting_for_parts,
         "PickedBolts": c.picked_bolts,
         "PickedNuts": c.picked_nuts,
@@ -79,8 +86,8 @@ def _values(s: Snapshot) -> dict:
         "UnknownLeft": c.unknown_left,
         "PartsPerMinute": round(s.parts_per_min, 3),
         "LastPickClass": last.cls if last else "",
-        "LastPickTableMm": [float(v) for v in last.table_mm] if last else [],
-        "LastPickRobotMm": [float(v) for v in last.robot_mm] if last else [],
+        "LastPickTableMm": [float(v) for v in last.table_mm] if last else [0.0, 0.0],
+        "LastPickRobotMm": [float(v) for v in last.robot_mm] if last else [0.0, 0.0, 0.0],
         "LastPickAngleDeg": float(last.angle_deg) if last and last.angle_deg is not None else 0.0,
         "LastPickOutcome": last.outcome if last else "",
         "LastPickTime": last.time_utc if last else _EPOCH,
@@ -90,6 +97,8 @@ def _values(s: Snapshot) -> dict:
         "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
         "CalibrationCvMaxMm": _finite(cal.cv_max_mm) if cal else 0.0,
         "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
+        "JobId": s.job_id,
+        "DroppedEvents": sum(x.dropped + x.failed for x in s.subscribers),
     }
 
 
@@ -103,6 +112,14 @@ PICK_EVENT_FIELDS = [
     ("Outcome", _T.String),
 ]
 _PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
+_STATUS = {  # a refused command's status code
+    Refusal.INVALID_STATE: ua.StatusCodes.BadInvalidState,
+    Refusal.ACCESS_DENIED: ua.StatusCodes.BadUserAccessDenied,
+    Refusal.SHUTTING_DOWN: ua.StatusCodes.BadShutdown,
+    Refusal.BAD_ARGUMENT: ua.StatusCodes.BadInvalidArgument,
+    Refusal.NOT_RECORDED: ua.StatusCodes.BadResourceUnavailable,
+}
+_RETRY_LOG_S = 60.0
 
 
 def _finite(v: float) -> float:
@@ -127,7 +144,10 @@ class OpcUaServer:
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_QUEUED)
         self._pick_events = None
         self._task: asyncio.Task | None = None
-        self._unsubscribe = None
+        self._subscription = None
+        self._records = PickRecords()
+        self._last_failure_log = -_RETRY_LOG_S
+        self._publishing = asyncio.Lock()
 
     @property
     def ready_text(self) -> str:
@@ -155,14 +175,18 @@ class OpcUaServer:
             )
             self.nodes[name] = var.nodeid
             self._written[name] = values[name]
-        for command in Command:
+        for command in STATE_COMMANDS:
             await cell.add_method(
                 ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns), self._method(command), [], []
             )
         etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
         self._pick_events = await s.get_event_generator(etype, cell)
         loop = asyncio.get_running_loop()
-        self._unsubscribe = self.service.subscribe(lambda e: self._on_event(loop, e))
+        self._subscription = self.service.subscribe(
+            "opcua",
+            lambda e: self._on_event(loop, e),
+            kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted),
+        )
         quiet = logging.getLogger("asyncua.server.server")
         quiet.setLevel(logging.CRITICAL)  # its traceback for a taken port; we say it in one line
         try:
@@ -190,43 +214,75 @@ class OpcUaServer:
                 log.warning("OPC UA %s called with %d arguments: refused", command.value, len(args))
                 return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
             try:
-                self.service.command(command, caller_origin())  # the caller's user and role (issue 21)
-            except AccessDenied as e:
+                self.service.command(command, self._origin(parent))
+            except CommandRefused as e:
                 log.info("OPC UA %s refused: %s", command.value, e)
-                return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
-            except InvalidState as e:
-                log.info("OPC UA %s refused: %s", command.value, e)
-                return ua.StatusCode(ua.StatusCodes.BadInvalidState)
+                return ua.StatusCode(_STATUS[e.reason])
+            await self._publish_now()  # the caller reads the state its command made
             return []
 
         return call
 
-    def _on_event(self, loop: asyncio.AbstractEventLoop, event: ServiceEvent) -> None:
-        """From the cell's thread: only wake the publisher (frames carry nothing OPC UA shows)."""
-        if event.kind == "pick":
-            self._picks.append(event.pick)  # deque.append is atomic; the loop drains it
-        if event.kind != "frame" and not loop.is_closed():
-            loop.call_soon_threadsafe(self._dirty.set)
+    @staticmethod
+    def _origin(parent) -> Origin:
+        """Who called: the session's user and role (loopback with no users: anonymous, with every right).
+        Issue 21: cell.service.opcua_security.caller_origin, from the request being handled."""
+        return caller_origin()
+
+    def _on_event(self, loop: asyncio.AbstractEventLoop, event: Event) -> None:
+        """On the subscriber's thread: queue picks for the events, wake the publisher."""
+        record = self._records.of(event)
+        if record is not None:
+            self._picks.append(record)  # deque.append is atomic; the loop drains it
+        if not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._dirty.set)
+            except RuntimeError:
+                pass  # the server's loop is shutting down
 
     async def _publish(self) -> None:
-        """Write every value that changed (the heartbeat at least once a second)."""
+        """Write every value that changed (the heartbeat at least once a second). A failed write is
+        logged (once a minute at most) and retried on the next round; the task never dies of it."""
         while True:
             try:
                 await asyncio.wait_for(self._dirty.wait(), timeout=0.5)
             except TimeoutError:
                 pass
             self._dirty.clear()
-            while self._picks:
-                await self._fire(self._picks.popleft())
-            now = datetime.now(UTC)
-            for name, value in _values(self.service.snapshot()).items():
-                if self._written.get(name) != value:
-                    vtype, array = VARIABLES[name]
-                    variant = ua.Variant(value, vtype, is_array=array or None)
-                    await self.server.write_attribute_value(
-                        self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now)
-                    )
-                    self._written[name] = value
+            try:
+                await self._publish_once()
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                now = time.monotonic()
+                if now - self._last_failure_log >= _RETRY_LOG_S:
+                    self._last_failure_log = now
+                    log.exception("OPC UA: publishing failed; retrying")
+                await asyncio.sleep(0.5)
+
+    async def _publish_now(self) -> None:
+        try:
+            await self._publish_once()
+        except Exception:  # the publishing task retries; the method's answer stands
+            log.debug("OPC UA: immediate publish failed", exc_info=True)
+
+    async def _publish_once(self) -> None:
+        async with self._publishing:  # the task and a method's immediate publish, one at a time
+            await self._write_changes()
+
+    async def _write_changes(self) -> None:
+        while self._picks:
+            await self._fire(self._picks[0])
+            self._picks.popleft()
+        now = datetime.now(UTC)
+        for name, value in _values(self.service.snapshot()).items():
+            if self._written.get(name) != value:
+                vtype, array = VARIABLES[name]
+                variant = ua.Variant(value, vtype, is_array=array or None)
+                await self.server.write_attribute_value(
+                    self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now)
+                )
+                self._written[name] = value
 
     async def _fire(self, p: PickRecord) -> None:
         """One pick as a PickEventType event from Cell."""
@@ -241,8 +297,9 @@ class OpcUaServer:
         await self._pick_events.trigger(p.time_utc)
 
     async def stop(self) -> None:
-        if self._unsubscribe is not None:
-            self._unsubscribe()
+        if self._subscription is not None:
+            await asyncio.to_thread(self.service.unsubscribe, self._subscription)
+            self._subscription = None
         if self._task is not None:
             self._task.cancel()
             try:

@@ -1,72 +1,93 @@
 """The line service: one worker thread runs the cell's jobs through the Runner and its state
-machine; every interface (OPC UA, the web screen, signals) only calls `command()`.
+machine; every interface (OPC UA, the screen, MQTT, signals) only calls `command()`.
 
-A command is checked against the command table (`api.allowed`) under the service's lock,
-then becomes a job for the worker or a request on the running job's Controls: nothing
-reaches the arm or the camera another way. The service watches the runner through its
-audit stream (every event the runner writes), turns it into counters, pick records,
-frames and alarms, and pushes them to subscribers from the worker thread.
+A command is checked against the one command table (cell.service.api: states, guards,
+roles) under the service's lock, recorded (accepted or refused, with who sent it), then
+becomes a job for the worker or a request on the running job's Controls: nothing reaches
+the arm or the camera another way.
+
+What happens goes out as typed events on one bus (cell.eventbus): the audit log is its
+synchronous record; the ledger (counters, last picks), OPC UA, the screen and whatever
+comes next subscribe, each on its own thread. The service itself never waits on them.
 
 Outward states (OPC 40100-1): Preoperational while starting; Ready between jobs (the last
 job homed the arm); SingleExecution / ContinuousExecution while a job runs; Halted after a
 Halt (the runner's safe stop: arm safe, torque released); Error after a fault. Both of
-the last two need an explicit Reset.
+the last two need an explicit Reset. Paused means at rest: a pause asked for while the arm
+moves shows as pausing until the runner reaches its safe point.
+
+Shutdown, in order: `refuse_commands()` (every interface's command now gets ShuttingDown),
+`close()` halts the job safely and waits for the worker (False if the arm's safe state
+could not be confirmed in time), then the interfaces and subscribers are stopped.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
 
 import numpy as np
 
+from cell.assembly import Cell
+from cell.audit import AuditWriteFailed
 from cell.calibration.store import Calibration
-from cell.config import CellConfig
-from cell.planning import Planner, table_to_robot
+from cell.errors import REPORTED_ERRORS, CellError
+from cell.eventbus import EventBus, Subscription
+from cell.events import (
+    SERVICE_ORIGIN,
+    AlarmCleared,
+    AlarmRaised,
+    CalibrationInstalled,
+    CommandHandled,
+    Event,
+    JobEnded,
+    JobStarted,
+    Origin,
+    ServiceStarted,
+    ServiceStopped,
+    SnapshotChanged,
+    VisionStateChanged,
+    new_job_id,
+)
 from cell.runner import Runner
 from cell.service.api import (
+    AccessDenied,
     Alarm,
+    BadArgument,
     CalibrationInfo,
     Command,
-    FrameView,
+    CommandRefused,
+    CommandResult,
     InvalidState,
-    PickRecord,
-    ServiceEvent,
+    JobRequest,
+    NotRecorded,
+    RecipeRequest,
+    Rest,
+    ShuttingDown,
     Snapshot,
     VisionState,
     allowed,
+    needed_role,
+    state_refusal,
 )
-from cell.service.counters import ShiftCounts
+from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.signals import Controls
 from cell.statemachine import State
-from cell.vision.annotate import annotate
-from drivers.arm.base import Arm
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
 
 V = VisionState
-_PICKS_KEPT = 20
-_RATE_WINDOW = 20  # picks the parts-per-minute figure is taken over
-
-
-@dataclass
-class Devices:
-    """What `run-cell` builds for a run (cell.commands.run._devices), owned by the service for its life."""
-
-    camera: Camera
-    arm: Arm
-    calibration: Calibration
-    expect_motion: bool
-    sim: object | None = None  # cell.sim.cell.SimCell for the simulated cell
-    plate_image: Callable[[], np.ndarray] | None = None  # the simulated cell renders its plate for recalibration
+_IDLE_CELL_STATE = {V.ERROR: "FAULT", V.HALTED: "STOPPED"}  # between jobs; otherwise IDLE
+_TO_REST = frozenset({Command.HALT, Command.STOP, Command.PAUSE, Command.ABORT, Command.RESET})
 
 
 def calibration_info(cal: Calibration, source_image: str = "") -> CalibrationInfo:
@@ -81,10 +102,11 @@ def calibration_info(cal: Calibration, source_image: str = "") -> CalibrationInf
         float(cv.get("max_mm", float("nan"))),
         made,
         source_image or (cal.image_sha256[:12] and f"sha256 {cal.image_sha256[:12]}"),
+        cal.content_id,
     )
 
 
-def _split_hint(reason: str) -> tuple[str, str]:
+def split_hint(reason: str) -> tuple[str, str]:
     """CellError's text is 'what (hint: what to do)'; the alarm shows them apart."""
     if reason.endswith(")") and " (hint: " in reason:
         what, hint = reason[:-1].rsplit(" (hint: ", 1)
@@ -92,324 +114,473 @@ def _split_hint(reason: str) -> tuple[str, str]:
     return reason, "remove the cause, then Reset"
 
 
+@dataclass(frozen=True)
+class Vision:
+    """The calibration in use, with its drift watch: swapped as one, so locate and the watch agree."""
+
+    calibration: Calibration
+    info: CalibrationInfo
+    drift_watch: Callable[[np.ndarray], object] | None
+
+
+@dataclass
+class _Job:
+    job_id: str
+    mode: str  # single | continuous
+    controls: Controls
+    origin: Origin
+    request: JobRequest
+    runner: Runner | None = None
+    halt: bool = False  # Halt or a signal: end in Halted
+    abort: bool = False  # Abort: the safe stop, then Ready
+
+
 class LineService:
     """Implements cell.service.api.LineServiceAPI."""
 
-    def __init__(
-        self,
-        config: CellConfig,
-        devices: Devices,
-        audit: ShiftLog,
-        locate: Callable[[np.ndarray, Calibration], object],
-        camera: Camera | None = None,
-        drift_watch: Callable[[Calibration], Callable | None] | None = None,
-    ):
-        self.config, self.devices, self.audit = config, devices, audit
-        self._locate = locate
-        self._drift_watch = drift_watch or (lambda calibration: None)  # per job, for the calibration in use
-        self._camera = camera or devices.camera  # the simulated cell's is wrapped by its feeder
-        self._planner = Planner(config.planning, table_to_robot(config.planning))
-        self._calibration = devices.calibration
-        self._cal_info = calibration_info(devices.calibration)
+    def __init__(self, cell: Cell, bus: EventBus, record: ShiftLog):
+        self.cell, self.config, self.bus, self.record = cell, cell.config, bus, record
         self._lock = threading.RLock()  # guards the outward state below
-        self._device_lock = threading.Lock()  # the camera between the runner and capture_plate_image
+        self._device_lock = threading.Lock()  # the camera between the runner and a plate capture
         self._vstate = V.PREOPERATIONAL
-        self._cell_state = "IDLE"
         self._alarm: Alarm | None = None
-        self._halt_requested = False
-        self._controls: Controls | None = None
-        self._runner: Runner | None = None
-        self._counts = ShiftCounts.from_events(iter_shift(config.run.log_dir))  # the day's shift so far
-        self._shift_day = datetime.now(UTC).date().isoformat()
-        self._picks: deque[PickRecord] = deque(maxlen=_PICKS_KEPT)
-        self._pick_times: deque[float] = deque(maxlen=_RATE_WINDOW)
-        self._last_target: dict | None = None
-        self._frame: FrameView | None = None
-        self._frame_seq = 0
-        self._located: tuple[np.ndarray, object, float] | None = None  # frame, result, capture time: awaiting PLAN
-        self._job_camera: _Locked | None = None
-        self._listeners: list[Callable[[ServiceEvent], None]] = []
-        self._jobs: queue.Queue = queue.Queue()
-        self._t0 = time.monotonic()
+        self._warnings: dict[str, Alarm] = {}
+        self._alarm_ids = itertools.count(1)
+        self._job: _Job | None = None
+        self._holds: dict[int, str] = {}
+        self._hold_ids = itertools.count(1)
+        self._still_ops = 0  # plate captures in progress: the cell must stay at rest
+        self._vision = Vision(cell.calibration, calibration_info(cell.calibration), cell.drift_watch(cell.calibration))
+        self._accepting = True
+        self._closing_reason = ""
         self._closed = False
+        self._t0 = time.monotonic()
+        self._jobs: queue.Queue[_Job | None] = queue.Queue()
         self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
-        interval = config.service.capture_interval_s
-        self.capture_interval_s = interval / config.sim.speed_factor if devices.sim is not None else interval
-        audit.listeners.append(self._on_audit)
+        interval = self.config.service.capture_interval_s
+        self.capture_interval_s = interval / self.config.sim.speed_factor if cell.sim is not None else interval
+        self.camera = _Locked(cell.camera, self._device_lock)
+        bus.add_record(record.record, owner=record)
+        self.ledger = Ledger(iter_shift(self.config.run.log_dir), self._changed)
+        self._ledger_sub = bus.subscribe("ledger", self.ledger.handle, maxsize=100_000)
 
     # ---- life -----------------------------------------------------------------------
     def start(self) -> None:
-        c = self._counts.counters()
-        self.audit.event(
-            "service_start",
-            counters=c.__dict__,
-            calibration=self._cal_info.model,
-            capture_interval_s=self.capture_interval_s,
+        self.bus.emit(
+            ServiceStarted(
+                counters=self.ledger.as_dict(),
+                calibration=self._vision.info.model,
+                capture_interval_s=self.capture_interval_s,
+            )
         )
+        self.bus.emit(self._calibration_event(self._vision, None))
         self._worker.start()
         self._set_state(V.READY, "service started")
-        self._publish("state")
 
-    def close(self, timeout_s: float | None = None) -> None:
-        """Halt any job (the safe stop), end the worker and write the last line; idempotent."""
+    def refuse_commands(self, reason: str = "the service is stopping") -> None:
+        """From now on every command is refused (ShuttingDown): the first step of an orderly stop."""
+        with self._lock:
+            self._accepting = False
+            self._closing_reason = reason
+
+    def close(self, timeout_s: float | None = None) -> bool:
+        """Halt any job (the safe stop), end the worker, write the last line; idempotent. False when the
+        worker did not end in time: the arm's safe state is not confirmed."""
+        self.refuse_commands()
         with self._lock:
             if self._closed:
-                return
+                return not self._worker.is_alive()
             self._closed = True
-            if self._controls is not None:
-                self._halt_requested = True
-                self._controls.request(self._controls.stop, reason="the service is stopping")
+            job = self._job
+            if job is not None:
+                job.halt = True
+                job.controls.request(job.controls.stop, reason="the service is stopping")
+        ended = True
         if self._worker.is_alive():
             self._jobs.put(None)
             self._worker.join(timeout_s or self.config.run.motion_timeout_s + 10)
-        if self._worker.is_alive():
-            log.error("the worker did not end within its timeout")
-        self.audit.event("service_stop", counters=self._counts.counters().__dict__)
+            ended = not self._worker.is_alive()
+        if not ended:
+            log.error("the worker did not end within its timeout: the arm's safe state is not confirmed")
+        self._emit_best_effort(ServiceStopped(counters=self.ledger.as_dict()))
+        self.bus.wait_idle(5.0)
+        return ended
 
-    # ---- LineServiceAPI -------------------------------------------------------------
-    def command(self, command: Command) -> None:
+    # ---- LineServiceAPI: commands --------------------------------------------------------
+    def command(
+        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
+    ) -> CommandResult:
         with self._lock:
-            paused = self._paused()
-            if command not in allowed(self._vstate, paused):
-                raise InvalidState(command, self._vstate, paused)
-            self.audit.event("command", command=command.value, vision_state=self._vstate.value)
-            log.info("command %s in %s", command.value, self._vstate.value)
-            getattr(self, "_cmd_" + command.name.lower())()
-        self._publish("state")  # outside the lock: a listener never runs while the service is held
+            try:
+                self._check(command, origin)
+                result = self._accept(command, origin, request)
+            except CommandRefused as e:
+                self._record_command(command, origin, request, refused=e)
+                log.info("command %s from %s refused: %s", command.value, origin.describe(), e)
+                raise
+        self._changed("state")
+        return result
 
+    def _check(self, command: Command, origin: Origin) -> None:
+        """The command table: shutting down, the role, then the state and its guards."""
+        if not self._accepting:
+            raise ShuttingDown(command, f"{command.value} refused: {self._closing_reason}", self._vstate)
+        role = needed_role(command)
+        if not origin.role.may(role):
+            raise AccessDenied(
+                command,
+                f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role.value}",
+                self._vstate,
+            )
+        why = state_refusal(command, self._rest(), self._hold_reason())
+        if why is not None:
+            raise InvalidState(command, why, self._vstate)
+
+    def _accept(self, command: Command, origin: Origin, request: Any) -> CommandResult:
+        try:
+            self._record_command(command, origin, request)
+        except AuditWriteFailed as e:
+            if command not in _TO_REST:  # bringing the cell to rest is never held up by the record
+                raise NotRecorded(command, f"{command.value} not carried out: {e}", self._vstate) from None
+        log.info("command %s from %s", command.value, origin.describe())
+        handler = getattr(self, "_cmd_" + command.name.lower(), None)
+        if handler is None:
+            raise BadArgument(command, f"{command.value} is not handled by this service", self._vstate)
+        job_id = handler(origin, request)
+        return CommandResult(command, job_id)
+
+    def _record_command(
+        self, command: Command, origin: Origin, request: Any, refused: CommandRefused | None = None
+    ) -> None:
+        event = CommandHandled(
+            command=command.value,
+            origin=origin,
+            accepted=refused is None,
+            vision_state=self._vstate.value,
+            refusal="" if refused is None else refused.reason.value,
+            message="" if refused is None else str(refused),
+            arguments=request.as_json() if request is not None else {},
+        )
+        if refused is None:
+            self.bus.emit(event)
+        else:
+            self._emit_best_effort(event)
+
+    # ---- the commands (under the lock, already allowed and recorded) ---------------------------
+    def _cmd_start_single(self, origin: Origin, request: Any) -> str:
+        return self._start_job("single", origin, request)
+
+    def _cmd_start_continuous(self, origin: Origin, request: Any) -> str:
+        return self._start_job("continuous", origin, request)
+
+    def _start_job(self, mode: str, origin: Origin, request: Any) -> str:
+        req = request if isinstance(request, JobRequest) else JobRequest()
+        job = _Job(new_job_id(), mode, Controls(), origin, req)
+        self.bus.emit(JobStarted(job_id=job.job_id, mode=mode, origin=origin, arguments=req.as_json()))
+        self._job = job
+        self._jobs.put(job)
+        self._set_state(V.SINGLE_EXECUTION if mode == "single" else V.CONTINUOUS_EXECUTION, "job started")
+        return job.job_id
+
+    def _cmd_stop(self, origin: Origin, request: Any) -> None:
+        job = self._running_job()
+        job.controls.request(job.controls.finish)
+
+    def _cmd_abort(self, origin: Origin, request: Any) -> None:
+        job = self._running_job()
+        job.abort = True
+        job.controls.request(job.controls.stop, reason=f"Abort from {origin.interface.value}")
+
+    def _cmd_pause(self, origin: Origin, request: Any) -> None:
+        job = self._running_job()
+        job.controls.request(job.controls.pause)
+
+    def _cmd_resume(self, origin: Origin, request: Any) -> None:
+        job = self._running_job()
+        job.controls.request(job.controls.pause, on=False)
+
+    def _cmd_halt(self, origin: Origin, request: Any) -> None:
+        job = self._job
+        if job is None:  # between jobs the arm is already parked and at rest
+            self._set_state(V.HALTED, f"halted between jobs by {origin.describe()}")
+            return
+        job.halt = True
+        job.controls.request(job.controls.stop, reason=f"Halt from {origin.interface.value}")
+
+    def _cmd_reset(self, origin: Origin, request: Any) -> None:
+        if self._alarm is not None:
+            self._emit_best_effort(AlarmCleared(alarm_id=self._alarm.alarm_id, origin=origin))
+            self._alarm = None
+        self._set_state(V.READY, f"reset by {origin.describe()}")
+
+    def _running_job(self) -> _Job:
+        assert self._job is not None, "the command table allows this command only while a job runs"
+        return self._job
+
+    # ---- holds, plate capture, calibration swap -------------------------------------------------
+    def hold(self, reason: str, origin: Origin = SERVICE_ORIGIN) -> Callable[[], None]:
+        with self._lock:
+            n = next(self._hold_ids)
+            self._holds[n] = reason
+
+        def release() -> None:
+            with self._lock:
+                gone = self._holds.pop(n, None)
+            if gone is not None:
+                self._changed("hold")
+
+        self._changed("hold")
+        return release
+
+    def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
+        with self._lock:
+            try:
+                self._check(Command.CAPTURE_PLATE, origin)
+            except CommandRefused as e:
+                self._record_command(Command.CAPTURE_PLATE, origin, None, refused=e)
+                raise
+            self._record_command(Command.CAPTURE_PLATE, origin, None)
+            self._still_ops += 1  # Start and Resume wait until the frame is taken
+        try:
+            plate = self.cell.plate_image
+            if plate is None:
+                raise CellError("this cell has no camera to capture a plate from")
+            if self.cell.sim is not None:
+                return plate()
+            with self._device_lock:
+                return plate()
+        finally:
+            with self._lock:
+                self._still_ops -= 1
+
+    def install_calibration(
+        self, calibration: Calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN
+    ) -> None:
+        with self._lock:
+            try:
+                self._check(Command.INSTALL_CALIBRATION, origin)
+                self._record_command(Command.INSTALL_CALIBRATION, origin, None)
+            except CommandRefused as e:
+                self._record_command(Command.INSTALL_CALIBRATION, origin, None, refused=e)
+                raise
+            if not info.calibration_id:
+                info = CalibrationInfo(**{**info.__dict__, "calibration_id": calibration.content_id})
+            vision = Vision(calibration, info, self.cell.drift_watch(calibration))
+            self._vision = vision  # locate and the drift watch change together, at rest
+            self._emit_best_effort(self._calibration_event(vision, origin))
+        self._changed("calibration")
+
+    def _calibration_event(self, vision: Vision, origin: Origin | None) -> CalibrationInstalled:
+        i = vision.info
+        return CalibrationInstalled(
+            calibration_id=i.calibration_id,
+            model=i.model,
+            cv_rms_mm=i.cv_rms_mm,
+            cv_max_mm=i.cv_max_mm,
+            source_image=i.source_image,
+            file=str(self.config.calibration.active_path),
+            origin=origin,
+        )
+
+    # ---- LineServiceAPI: state and events --------------------------------------------------------
     def snapshot(self) -> Snapshot:
         with self._lock:
-            paused = self._paused()
-            rate = 0.0
-            if len(self._pick_times) >= 2 and self._pick_times[-1] > self._pick_times[0]:
-                rate = 60.0 * (len(self._pick_times) - 1) / (self._pick_times[-1] - self._pick_times[0])
+            rest, job = self._rest(), self._job
+            cell_state = self._cell_state()
             return Snapshot(
-                self._vstate,
-                self._cell_state,
-                paused,
-                self._cell_state == State.WAIT.name,
-                self._counts.counters(),
-                rate,
-                tuple(self._picks),
-                self._alarm,
-                self._cal_info,
-                self.heartbeat,
-                allowed(self._vstate, paused),
+                vision_state=self._vstate,
+                cell_state=cell_state,
+                paused=rest.paused,
+                waiting_for_parts=cell_state == State.WAIT.name,
+                counters=self.ledger.counters(),
+                parts_per_min=self.ledger.parts_per_min() if job is not None and not rest.pausing else 0.0,
+                last_picks=self.ledger.last_picks(),
+                alarm=self._alarm,
+                calibration=self._vision.info,
+                heartbeat=self.heartbeat,
+                allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason()),
+                pausing=rest.pausing and not rest.paused,
+                job_id=job.job_id if job is not None else "",
+                job_mode=job.mode if job is not None else "",
+                hold=self._hold_reason(),
+                warnings=tuple(self._warnings.values()),
+                subscribers=self.bus.stats(),
+                shift=self.ledger.shift,
             )
 
     @property
     def heartbeat(self) -> int:
         return int(time.monotonic() - self._t0)
 
-    def latest_frame(self) -> FrameView | None:
-        return self._frame
+    def subscribe(
+        self,
+        name: str,
+        handler: Callable[[Event], None],
+        *,
+        kinds: Iterable[type[Event]] | None = None,
+        maxsize: int = 1024,
+    ) -> Subscription:
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize)
 
-    def subscribe(self, listener: Callable[[ServiceEvent], None]) -> Callable[[], None]:
+    def unsubscribe(self, subscription: Subscription) -> None:
+        self.bus.unsubscribe(subscription)
+
+    # ---- warnings raised by other parts (history, telemetry, logins) ------------------------
+    def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None:
+        """A warning alarm shown until cleared by its source (`clear_warning`); no Reset needed."""
         with self._lock:
-            self._listeners = [*self._listeners, listener]
+            if key in self._warnings and self._warnings[key].reason == reason:
+                return
+            alarm = Alarm(reason, hint, datetime.now(UTC), f"A{next(self._alarm_ids)}", "warning", source)
+            self._warnings[key] = alarm
+            self._emit_best_effort(
+                AlarmRaised(alarm_id=alarm.alarm_id, severity="warning", reason=reason, hint=hint, source=source)
+            )
+        self._changed("alarm")
 
-        def unsubscribe() -> None:
-            with self._lock:
-                self._listeners = [x for x in self._listeners if x is not listener]
-
-        return unsubscribe
-
-    def capture_plate_image(self) -> np.ndarray:
-        self._need_still("capture_plate_image")
-        if self.devices.plate_image is not None:
-            return self.devices.plate_image()
-        with self._device_lock:
-            cam = self.devices.camera
-            if cam.is_connected:
-                return cam.capture()
-            with cam:
-                return cam.capture()
-
-    def install_calibration(self, calibration: Calibration, info: CalibrationInfo) -> None:
-        self._need_still("install_calibration")
+    def clear_warning(self, key: str) -> None:
         with self._lock:
-            self._calibration, self._cal_info = calibration, info
-        self.audit.event(
-            "calibration",
-            model=info.model,
-            cv_rms_mm=info.cv_rms_mm,
-            cv_max_mm=info.cv_max_mm,
-            source_image=info.source_image,
-        )
-        self._publish("calibration")
+            alarm = self._warnings.pop(key, None)
+            if alarm is not None:
+                self._emit_best_effort(AlarmCleared(alarm_id=alarm.alarm_id, origin=SERVICE_ORIGIN))
+        if alarm is not None:
+            self._changed("alarm")
 
-    # ---- commands (under the lock, already allowed) -----------------------------------
-    def _cmd_start_single(self) -> None:
-        self._start_job(V.SINGLE_EXECUTION)
-
-    def _cmd_start_continuous(self) -> None:
-        self._start_job(V.CONTINUOUS_EXECUTION)
-
-    def _start_job(self, state: VisionState) -> None:
-        self._controls = Controls()
-        self._halt_requested = False
-        self._jobs.put((state, self._controls))
-        self._set_state(state, "job started")
-
-    def _cmd_stop(self) -> None:
-        self._controls.request(self._controls.finish)
-
-    def _cmd_pause(self) -> None:
-        self._controls.request(self._controls.pause)
-
-    def _cmd_resume(self) -> None:
-        self._controls.request(self._controls.pause, on=False)
-
-    def _cmd_halt(self) -> None:
-        if self._controls is None:  # between jobs the arm is already parked and at rest
-            self._set_state(V.HALTED, "halted between jobs")
-            return
-        self._halt_requested = True
-        self._controls.request(self._controls.stop, reason="Halt requested")
-
-    def _cmd_reset(self) -> None:
-        self._alarm = None
-        self._set_state(V.READY, "reset")
-
-    # ---- the worker -------------------------------------------------------------------
+    # ---- the worker -------------------------------------------------------------------------------
     def _work(self) -> None:
         while (job := self._jobs.get()) is not None:
-            state, controls = job
-            self._run_job(state, controls)
+            try:
+                self._run_job(job)
+            except BaseException:  # nothing may end the worker: the cell would take commands and run none
+                log.exception("job %s: the worker caught an error outside the runner", job.job_id)
+                with self._lock:
+                    self._end_job(job, "fault", "internal error outside the runner (details in the log)")
+                self._changed("alarm")
 
-    def _run_job(self, state: VisionState, controls: Controls) -> None:
-        sim = self.devices.sim
-        self._job_camera = _Locked(self._camera, self._device_lock)
+    def _run_job(self, job: _Job) -> None:
+        outcome, reason, counts = "fault", "", {}
         try:
-            self._runner = Runner(
-                self._job_camera,
-                self.devices.arm,
-                lambda frame: self._locate(frame, self._calibration),
-                self._planner,
+            self.record.best_effort = False
+            self.record.ensure_writable()  # no job runs without its record
+            perception = _Perception(self)
+            job.runner = Runner(
+                self.camera,
+                self.cell.arm,
+                perception.locate,
+                self.cell.planner(),
                 self.config.run,
-                self.audit,
-                controls,
-                self.devices.expect_motion,
+                _JobEvents(self.bus),
+                job.controls,
+                self.cell.expect_motion,
                 progress=lambda line: log.info("%s", line),
-                sim_motion_s=None if sim is None else sim.motion_time_s,
-                drift_watch=self._drift_watch(self._calibration),
-                continuous_interval_s=self.capture_interval_s if state == V.CONTINUOUS_EXECUTION else None,
+                sim_motion_s=self.cell.motion_time_s if self.cell.sim is not None else None,
+                drift_watch=perception.drift,
+                continuous_interval_s=self.capture_interval_s if job.mode == "continuous" else None,
+                job_id=job.job_id,
+                calibration_id=perception.calibration_id,
             )
-            summary = self._runner.run()
-            outcome, reason = summary.outcome, summary.reason
+            summary = job.runner.run()
+            outcome, reason, counts = summary.outcome, summary.reason, summary.counts()
+        except (*REPORTED_ERRORS, OSError) as e:  # the record could not be opened: nothing moved
+            reason = f"{type(e).__name__}: {e}"
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
-            log.exception("job ended by an internal error")
-            outcome, reason = "fault", f"internal error: {type(e).__name__}: {e}"
-        self._publish_frame()  # a frame located just before the job ended is still shown
+            log.exception("job %s ended by an internal error", job.job_id)
+            reason = f"internal error: {type(e).__name__}: {e}"
         with self._lock:
-            self._controls = self._runner = None
-            if outcome == "fault":
-                what, hint = _split_hint(reason)
-                self._alarm = Alarm(what, hint, datetime.now(UTC))
-                self._set_state(V.ERROR, reason)
-            elif self._halt_requested:
-                self._set_state(V.HALTED, reason)
-            else:
-                self._set_state(V.READY, reason)
-        self._publish("alarm" if outcome == "fault" else "state")
+            self._end_job(job, outcome, reason, counts)
+        self._changed("alarm" if outcome == "fault" else "state")
 
-    def _on_audit(self, e: dict) -> None:
-        """The runner's events (worker thread): state, counters, picks, frames, alarms."""
-        kind = e["kind"]
-        if kind == "state":
-            if State(e["target"]) not in (State.VERIFY, State.PLAN):  # PLAN ran, or will not for this frame
-                self._publish_frame()
-            with self._lock:
-                self._cell_state = State(e["target"]).name
-            self._publish("state")
-        elif kind == "target":
-            self._last_target = e
-            self._publish_frame()  # PLAN chose: the frame goes out with its order before the arm moves
-        elif kind == "frame":
-            self._hold_frame()
-        if kind in ("verify", "failed"):
-            self._pick_event(e)
-        with self._lock:
-            if e["t_utc"][:10] != self._shift_day:  # 00:00 UTC: the log rolls to a new day's files, a new shift
-                self._shift_day, self._counts = e["t_utc"][:10], ShiftCounts()
-            changed = self._counts.apply(e)
-        if changed:
-            self._publish("counters")
-
-    def _hold_frame(self) -> None:
-        """A located frame waits for PLAN, so the screen can number the parts in the order picked."""
-        runner = self._runner
-        if runner is None or runner.frame is None or runner.result is None:
-            return
-        self._publish_frame()  # never more than one frame waiting
-        captured_s = self._job_camera.captured_s if self._job_camera is not None else time.monotonic()
-        self._located = (runner.frame, runner.result, captured_s)
-
-    def _publish_frame(self) -> None:
-        """The waiting frame, numbered with the runner's pick order if PLAN ran for it (else without numbers)."""
-        if self._located is None:
-            return
-        (frame, result, captured_s), self._located = self._located, None
-        order = None if self._runner is None else self._runner.pick_order
-        order = tuple(order) if order is not None else ()
-        self._frame_seq += 1
-        self._frame = FrameView(self._frame_seq, captured_s, annotate(frame, result, order), order)
-        self._publish("frame", frame=self._frame)
-
-    def _pick_event(self, e: dict) -> None:
-        t = self._last_target
-        if t is None or t["track"] != e["track"]:
-            return
-        outcome = "failed" if e["kind"] == "failed" else e["result"]
-        record = PickRecord(
-            datetime.fromisoformat(e["t_utc"]),
-            e["track"],
-            t["cls"],
-            tuple(t["table_mm"]),
-            tuple(t["robot_mm"]),
-            t["jaw_angle_deg"],
-            outcome,
+    def _end_job(self, job: _Job, outcome: str, reason: str, counts: dict | None = None) -> None:
+        """Under the lock: the job's end recorded, the outward state set, a fault's alarm raised."""
+        self._job = None
+        ended = "halted" if job.halt and outcome != "fault" else outcome
+        self._emit_best_effort(
+            JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
         )
-        with self._lock:
-            self._picks.append(record)
-            if outcome == "picked":
-                self._pick_times.append(time.monotonic())
-        self._publish("pick", pick=record)
+        if outcome == "fault":
+            what, hint = split_hint(reason)
+            self._alarm = Alarm(what, hint, datetime.now(UTC), f"A{next(self._alarm_ids)}", "fault", "job")
+            self._emit_best_effort(AlarmRaised(alarm_id=self._alarm.alarm_id, severity="fault", reason=what, hint=hint))
+            self._set_state(V.ERROR, reason)
+        elif job.halt:
+            self._set_state(V.HALTED, reason)
+        else:
+            self._set_state(V.READY, reason)
 
-    # ---- helpers ----------------------------------------------------------------------
-    def _paused(self) -> bool:
-        return self._controls is not None and self._controls.pause.is_set()
+    # ---- helpers ----------------------------------------------------------------------------------
+    def _rest(self) -> Rest:
+        job = self._job
+        if job is None:
+            return Rest(self._vstate)
+        pausing = job.controls.pause.is_set()
+        runner = job.runner
+        paused = pausing and runner is not None and runner.sm.state is State.PAUSED
+        return Rest(self._vstate, pausing, paused)
 
-    def _need_still(self, what: str) -> None:
-        """Ready, Halted or a paused job: the camera is free and nothing moves."""
-        with self._lock:
-            paused = self._paused()
-            if not (self._vstate in (V.READY, V.HALTED) or paused):
-                raise InvalidState(_StillCommand(what), self._vstate, paused)
+    def _cell_state(self) -> str:
+        job = self._job
+        if job is None or job.runner is None:
+            return _IDLE_CELL_STATE.get(self._vstate, State.IDLE.name)
+        return job.runner.sm.state.name
+
+    def _hold_reason(self) -> str:
+        if self._still_ops:
+            return "a plate image is being captured for recalibration"
+        return next(iter(self._holds.values()), "")
 
     def _set_state(self, state: VisionState, reason: str) -> None:
-        """Under the lock; the caller publishes once it has let go of it."""
+        """Under the lock; the caller tells the interfaces once it has let go of it."""
         with self._lock:
             if state == self._vstate:
                 return
-            self.audit.event("vision_state", source=self._vstate.value, target=state.value, reason=reason)
+            self._emit_best_effort(VisionStateChanged(source=self._vstate.value, target=state.value, reason=reason))
             log.info("vision state %s -> %s: %s", self._vstate.value, state.value, reason)
             self._vstate = state
 
-    def _publish(self, kind: str, **kw) -> None:
-        event = ServiceEvent(kind, self.snapshot(), **kw)
-        for listener in self._listeners:
-            try:
-                listener(event)
-            except Exception:  # a listener's bug must not stop the cell
-                log.exception("service listener failed on a %s event", kind)
+    def _emit_best_effort(self, event: Event) -> None:
+        """A record that must not stop what it records (a refusal, a fault's alarm, the service's end)."""
+        try:
+            self.bus.emit(event)
+        except AuditWriteFailed as e:
+            log.error("not recorded (%s): %s", event.kind, e)
+
+    def _changed(self, what: str) -> None:
+        """Tell the interfaces to read the snapshot again (never under the lock: nothing waits on them)."""
+        self.bus.emit(SnapshotChanged(what=what))
 
 
-class _StillCommand:
-    """Stands in for a Command in InvalidState for the two calls that are not commands."""
+class _JobEvents:
+    """The bus as one job sees it: its own best-effort switch (set while making safe), so a failed
+    record during the safe stop is dropped, never raised, and the next job starts strict again."""
 
-    def __init__(self, name: str):
-        self.value = name
+    def __init__(self, bus: EventBus):
+        self.bus, self.best_effort = bus, False
+
+    def emit(self, event: Event) -> None:
+        try:
+            self.bus.emit(event)
+        except AuditWriteFailed:
+            if not self.best_effort:
+                raise
+
+
+class _Perception:
+    """Locate and the drift watch for one job, bound per frame to the calibration in use then."""
+
+    def __init__(self, service: LineService):
+        self.service = service
+        self.bound: Vision = service._vision
+
+    def locate(self, frame: np.ndarray):
+        self.bound = self.service._vision  # one reference read: the pair swapped together
+        return self.service.cell.locate(frame, self.bound.calibration)
+
+    def drift(self, frame: np.ndarray) -> object:
+        watch = self.bound.drift_watch
+        return None if watch is None else watch(frame)
+
+    def calibration_id(self) -> str:
+        return self.bound.info.calibration_id
 
 
 class _Locked(Camera):
@@ -417,7 +588,6 @@ class _Locked(Camera):
 
     def __init__(self, camera: Camera, lock: threading.Lock):
         self.inner, self.lock = camera, lock
-        self.captured_s = time.monotonic()
         self.source, self.width_px, self.height_px = camera.source, camera.width_px, camera.height_px
 
     def connect(self) -> None:
@@ -434,6 +604,4 @@ class _Locked(Camera):
 
     def _grab(self):
         with self.lock:
-            frame = self.inner.capture()
-        self.captured_s = time.monotonic()  # the frame's capture time, for the screen's latency
-        return frame
+            return self.inner.capture()

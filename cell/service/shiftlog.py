@@ -1,9 +1,12 @@
 """The service's audit log: the same JSON lines as a run's, in files that roll over at each UTC
 day and past a size, so a shift of any length stays readable and no file grows without end.
 
-A roll happens only between two events, so every file holds whole lines. The files of a
-day are that day's shift: the service reads them back at start to carry its counters over
-a restart. Listeners hear every event as it is written (the service's view of the runner).
+It is the event stream's synchronous record (cell.eventbus): each event is on disk before
+the emitter goes on. A roll happens only between two events, so every file holds whole
+lines. Files are named `cell-YYYYMMDD-N.jsonl` with N counting up from 000 for as many
+files as a day needs. A file that failed (a full disk) is never written again: the next
+event opens the day's next file, and if that cannot be written either the event's write
+raises AuditWriteFailed, so nothing moves without its record.
 """
 
 from __future__ import annotations
@@ -16,11 +19,12 @@ from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
-from cell.audit import AuditLog
+from cell.audit import AuditLog, AuditWriteFailed
+from cell.events import Event
 
 log = logging.getLogger(__name__)
 
-_NAME = re.compile(r"^cell-(\d{8})-(\d{3})\.jsonl$")
+_NAME = re.compile(r"^cell-(\d{8})-(\d{3,})\.jsonl$")
 
 
 def _today() -> str:
@@ -28,13 +32,13 @@ def _today() -> str:
 
 
 def shift_files(log_dir: Path, day: str) -> list[Path]:
-    """The audit files of one UTC day (YYYYMMDD), oldest first."""
-    found = [(m.group(2), p) for p in Path(log_dir).glob(f"cell-{day}-*.jsonl") if (m := _NAME.match(p.name))]
+    """The audit files of one UTC day (YYYYMMDD), oldest first (numbered 000, 001, ... 999, 1000 ...)."""
+    found = [(int(m.group(2)), p) for p in Path(log_dir).glob(f"cell-{day}-*.jsonl") if (m := _NAME.match(p.name))]
     return [p for _, p in sorted(found)]
 
 
 def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict]:
-    """Every complete event of the day's shift, in order, one at a time (a day may hold gigabytes);
+    """Every complete event of the day's files, in order, one at a time (a day may hold gigabytes);
     a torn line (a writer killed mid-line) is skipped."""
     for path in shift_files(log_dir, day or _today()):
         with open(path, encoding="utf-8") as f:
@@ -50,12 +54,12 @@ def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
 
 
 class ShiftLog:
-    """AuditLog's interface (event, state, close) over rolling files; thread-safe."""
+    """The service's record over rolling files; thread-safe. `record(event)` is the bus's record."""
 
     def __init__(self, log_dir: Path, max_bytes: int, day: Callable[[], str] = _today):
         self.log_dir, self.max_bytes, self._day = Path(log_dir), max_bytes, day
         self.state = "idle"
-        self.listeners: list[Callable[[dict], None]] = []
+        self.best_effort = False  # set by the bus while a job makes safe: a failed write is not raised
         self._lock = threading.Lock()
         self._log: AuditLog | None = None
         self._open_day = ""
@@ -64,27 +68,59 @@ class ShiftLog:
     def path(self) -> Path | None:
         return None if self._log is None else self._log.path
 
+    @property
+    def failed(self) -> OSError | None:
+        return None if self._log is None else self._log.failed
+
     def _current(self) -> AuditLog:
         day = self._day()
-        if self._log is not None and day == self._open_day and self._log.path.stat().st_size < self.max_bytes:
-            return self._log
-        if self._log is not None:
-            self._log.close()
+        current = self._log
+        if current is not None and current.failed is not None and self.best_effort:
+            return current  # making safe: drop the line rather than create a file per event on a full disk
+        if (
+            current is not None
+            and day == self._open_day
+            and current.failed is None
+            and current.path.stat().st_size < self.max_bytes
+        ):
+            return current
+        if current is not None:
+            current.close()
+            self._log = None
         files = shift_files(self.log_dir, day)  # audit logs are created, never reopened: a restart takes the next
-        n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0
-        self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl")
+        n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0  # type: ignore[union-attr]
+        try:
+            self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl")
+        except OSError as e:
+            raise AuditWriteFailed(
+                f"audit log in {self.log_dir}: cannot create cell-{day}-{n:03d}.jsonl: {e.strerror or e}",
+                hint="free space on its filesystem or set run.log_dir elsewhere",
+            ) from None
         self._open_day = day
         log.info("audit log: %s", self._log.path)
         return self._log
 
-    def event(self, kind: str, **fields) -> dict:
+    def record(self, event: Event) -> dict | None:
+        """Write one event (raises AuditWriteFailed when it cannot, unless best_effort)."""
+        if not event.audited:
+            return None
         with self._lock:
-            audit = self._current()
+            try:
+                audit = self._current()
+            except AuditWriteFailed:
+                if self.best_effort:
+                    return None
+                raise
             audit.state = self.state
-            record = audit.event(kind, **fields)
-        for listener in list(self.listeners):
-            listener(record)
-        return record
+            audit.best_effort = self.best_effort
+            line = audit.record(event)
+            self.state = audit.state
+            return line
+
+    def ensure_writable(self) -> None:
+        """Before a job: a broken file is left for the day's next one now, not at the first motion."""
+        with self._lock:
+            self._current()
 
     def close(self) -> None:
         with self._lock:

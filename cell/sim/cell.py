@@ -26,7 +26,7 @@ from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.sim.emulated_arm import EmulatedArm, emulated_arm
 from cell.sim.parts import PartSpec, random_scene
-from cell.sim.render import render_plate
+from cell.sim.render import plate_centres_mm, render_plate
 from cell.sim.rig import default_camera
 from cell.sim.sim_arm import SimArm
 from cell.sim.sim_camera import SimCamera
@@ -244,3 +244,17 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         realtime=sim.realtime,
     )
     yield SimCell(world, camera, arm, calibration, note, None, marks)
+
+
+def sim_plate_camera(config: CellConfig) -> SimCamera:
+    """The simulated camera over the calibration plate, nothing else on the table: what
+    `run-cell camera` looks through with camera.source 'sim' (fresh sensor noise each frame)."""
+    model = default_camera(config.camera.width_px, config.camera.height_px)
+    world = World([], Truth(0.0, 0.0, 0.0, 0.0), [])
+    return SimCamera(
+        world,
+        model,
+        seed=config.sim.seed,
+        marks_mm=plate_centres_mm(config.plate),
+        mark_diameter_mm=config.plate.diameter_mm,
+    )

@@ -18,7 +18,8 @@ from starlette.routing import Route
 
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
-from cell.service.api import Command, InvalidState, LineServiceAPI
+from cell.events import Origin
+from cell.service.api import CommandRefused, LineServiceAPI, Refusal
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
 from cell.web.hub import Hub
@@ -44,7 +45,13 @@ SECURITY_HEADERS = [
     (b"referrer-policy", b"no-referrer"),
     (b"cache-control", b"no-store"),
 ]
-BLOCKED_WHILE_RECALIBRATING = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.RESUME})
+REFUSAL_STATUS = {  # a refused command's HTTP status
+    Refusal.INVALID_STATE: 409,
+    Refusal.ACCESS_DENIED: 403,
+    Refusal.SHUTTING_DOWN: 503,
+    Refusal.BAD_ARGUMENT: 422,
+    Refusal.NOT_RECORDED: 503,
+}
 KEEPALIVE_S = 1.0
 PICTURES = {"plate.jpg": "image/jpeg", "deviation.png": "image/png"}
 
@@ -98,6 +105,15 @@ class ScreenApp:
         if not self.access.may_view(self._sid(request)):
             return _error(401, "log in to watch the cell")
         return None
+
+    def _origin(self, request: Request) -> Origin:
+        """Who sends a control: the logged-in user with their role (without logins, anyone on this PC, with every
+        right; issue 21: Access.origin)."""
+        address = request.client.host if request.client else ""
+        return self.access.origin(self._sid(request), address)
+
+    def web_user(self, request: Request) -> str:
+        return "operator" if self.access.login_required and self.access.session(self._sid(request)) else ""
 
     def _control_refused(self, request: Request) -> Response | None:
         """Same origin, logged in where a password is set, and this session's CSRF token."""
@@ -225,19 +241,17 @@ class ScreenApp:
         command = COMMANDS.get(request.path_params["name"])
         if command is None:
             return _error(404, "unknown command", known=sorted(COMMANDS))
-        if command in BLOCKED_WHILE_RECALIBRATING and self.desk.open is not None:
-            return _error(409, "a recalibration report is open: accept or reject it first")
         try:
-            self.service.command(command)
-        except InvalidState as e:
-            return _error(409, str(e))
+            self.service.command(command, self._origin(request))
+        except CommandRefused as e:
+            return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
         log.info("screen: %s accepted", command.value)
         return JSONResponse({"ok": True, "command": command.value})
 
     async def recal_capture(self, request: Request) -> Response:
         if refused := self._control_refused(request):
             return refused
-        return await self._recal(self.desk.from_camera)
+        return await self._recal(self.desk.from_camera, self._origin(request))
 
     async def recal_upload(self, request: Request) -> Response:
         if refused := self._control_refused(request):
@@ -248,17 +262,17 @@ class ScreenApp:
         gone = threading.Event()  # the decode stops when the client goes (issue 21)
         watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
         try:
-            return await self._recal(self.desk.from_upload, body, gone)
+            return await self._recal(self.desk.from_upload, body, self._origin(request), gone)
         finally:
             watcher.cancel()
 
     async def _recal(self, make, *args) -> Response:
         if not may_recalibrate(self.service.snapshot()):
-            return _error(409, "recalibrate only while stopped (Ready), paused or halted")
+            return _error(409, "recalibrate only while stopped (Ready), paused, halted or after a fault")
         try:
             report = await run_in_threadpool(make, *args)
-        except InvalidState as e:
-            return _error(409, str(e))
+        except CommandRefused as e:
+            return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
         except Busy as e:
             return _error(409, str(e))
         except REPORTED_ERRORS as e:  # no plate, bad image, or the camera failed
@@ -291,13 +305,15 @@ class ScreenApp:
                 return JSONResponse({"ok": True, "accepted": False})
             if not may_recalibrate(self.service.snapshot()):
                 return _error(409, "the cell is running: pause or stop it before accepting a calibration")
-            info = await run_in_threadpool(self.desk.accept, report_id)
+            info = await run_in_threadpool(self.desk.accept, report_id, self._origin(request))
         except Busy as e:
             return _error(409, str(e))
         except CalibrationRejected as e:
             return _error(422, str(e))
-        except InvalidState as e:
-            return _error(409, f"{e}: the calibration file was written but the running cell did not take it")
+        except CommandRefused as e:
+            return _error(
+                REFUSAL_STATUS[e.reason], f"{e}: the calibration file was written but the running cell did not take it"
+            )
         except (*REPORTED_ERRORS, OSError) as e:
             return _error(500, f"accepting failed: {e}")
         self.hub.publish_now()

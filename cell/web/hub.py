@@ -1,9 +1,11 @@
-"""Fan-out of the service's events to every open screen.
+"""Fan-out of the cell's events to every open screen, off the control thread.
 
-The service calls our listener from its own thread, which must never wait on a browser:
-the listener only keeps the newest frame and wakes an encoder thread; the JPEG is made once
-and handed to the web server's event loop, where each screen keeps only the newest state and
-frame (a slow screen skips frames, it never holds up the cell or the other screens).
+Two subscriptions on the service's event bus, each on its own thread: state changes only
+wake the web server's loop with a fresh snapshot; located frames are held until PLAN has
+numbered their parts (so the order drawn is the runner's own), then annotated and encoded
+as a JPEG once, and handed to the loop. Each screen keeps only the newest state and frame:
+a slow screen skips frames, it never holds up the cell or the other screens, and a frame
+the subscriber has not drawn yet is replaced by the next (the bus coalesces frames).
 """
 
 from __future__ import annotations
@@ -17,9 +19,12 @@ from dataclasses import dataclass, field
 
 import cv2
 
-from cell.service.api import FrameView, LineServiceAPI, ServiceEvent, Snapshot
+from cell.events import Event, FrameLocated, FrameRef, PickOrderChosen, RunEnded, SnapshotChanged, StateChanged
+from cell.service.api import FrameView, LineServiceAPI, Snapshot
+from cell.vision.annotate import annotate
 
 log = logging.getLogger(__name__)
+_HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits through these for its pick order
 
 
 @dataclass(frozen=True)
@@ -70,34 +75,32 @@ class Hub:
         self.max_width_px, self.jpeg_quality, self.max_screens = max_width_px, jpeg_quality, max_screens
         self.screens: set[Screen] = set()
         self.latest: EncodedFrame | None = None
+        self.latest_view: FrameView | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._pending: FrameView | None = None
-        self._pending_lock = threading.Lock()
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._unsubscribe = None
+        self._held: FrameRef | None = None  # located, waiting for PLAN to number its parts
+        self._seq = 0
+        self._subs: list = []
+        self._lock = threading.Lock()
 
     # ---- life ----------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
-        self._thread = threading.Thread(target=self._encode_loop, name="screen-jpeg", daemon=True)
-        self._thread.start()
-        self._unsubscribe = self.service.subscribe(self._on_event)
-        first = self.service.latest_frame()
-        if first is not None:
-            self._hand_over(first)
+        self._subs = [
+            self.service.subscribe("screen-state", self._on_state, kinds=(SnapshotChanged, StateChanged), maxsize=256),
+            self.service.subscribe(
+                "screen-frames",
+                self._on_frame_event,
+                kinds=(FrameLocated, PickOrderChosen, StateChanged, RunEnded),
+                maxsize=256,
+            ),
+        ]
 
     def close(self) -> None:
-        """Unsubscribe, stop the encoder and end every open stream (safe to call twice)."""
-        if self._unsubscribe:
-            self._unsubscribe()
-            self._unsubscribe = None
-        self._stop.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+        """Unsubscribe and end every open stream (safe to call twice)."""
+        with self._lock:
+            subs, self._subs = self._subs, []
+        for sub in subs:
+            self.service.unsubscribe(sub)
         if self._loop is not None and not self._loop.is_closed():
             try:
                 self._loop.call_soon_threadsafe(self._close_screens)
@@ -109,40 +112,46 @@ class Hub:
             s.closed = True
             s.wake.set()
 
-    # ---- the service's thread ------------------------------------------------------
-    def _on_event(self, event: ServiceEvent) -> None:
-        if event.frame is not None:
-            self._hand_over(event.frame)
+    # ---- the subscribers' threads --------------------------------------------------
+    def _on_state(self, event: Event) -> None:
+        self._to_loop(self._publish_state, self.service.snapshot())
+
+    def _on_frame_event(self, event: Event) -> None:
+        """Hold a located frame until its pick order (or until the runner moves on without one)."""
+        if isinstance(event, FrameLocated):
+            self._flush(None)  # never more than one frame waiting
+            self._held = event.ref
+        elif isinstance(event, PickOrderChosen):
+            if self._held is not None and self._held.frame_no == event.frame:
+                self._flush(event.order)
+        elif isinstance(event, StateChanged):
+            if event.target not in _HELD_THROUGH:
+                self._flush(None)
+        elif isinstance(event, RunEnded):
+            self._flush(None)
+
+    def _flush(self, order: tuple[int, ...] | None) -> None:
+        ref, self._held = self._held, None
+        if ref is None:
+            return
+        self._seq += 1
+        try:
+            image = annotate(ref.image, ref.result, order or ())
+            view = FrameView(self._seq, ref.captured_monotonic_s, image, tuple(order or ()))
+            encoded = encode_frame(view, self.max_width_px, self.jpeg_quality)
+        except (ValueError, cv2.error) as e:
+            log.warning("screen: frame not shown: %s", e)
+            return
+        self.latest_view = view
+        self._to_loop(self._publish_frame, encoded)
+
+    def _to_loop(self, fn, *args) -> None:
         loop = self._loop
         if loop is not None and not loop.is_closed():
             try:
-                loop.call_soon_threadsafe(self._publish_state, event.snapshot)
+                loop.call_soon_threadsafe(fn, *args)
             except RuntimeError:
                 pass  # the server is shutting down
-
-    def _hand_over(self, frame: FrameView) -> None:
-        with self._pending_lock:
-            self._pending = frame
-        self._wake.set()
-
-    # ---- the encoder thread --------------------------------------------------------
-    def _encode_loop(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait()
-            self._wake.clear()
-            with self._pending_lock:
-                frame, self._pending = self._pending, None
-            if frame is None or self._stop.is_set():
-                continue
-            try:
-                encoded = encode_frame(frame, self.max_width_px, self.jpeg_quality)
-            except (ValueError, cv2.error) as e:
-                log.warning("screen: frame not shown: %s", e)
-                continue
-            try:
-                self._loop.call_soon_threadsafe(self._publish_frame, encoded)
-            except RuntimeError:
-                return  # the server's loop is gone
 
     # ---- the server's loop ---------------------------------------------------------
     def _publish_state(self, snapshot: Snapshot) -> None:

@@ -14,6 +14,7 @@ import logging
 import secrets
 import struct
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
@@ -25,6 +26,7 @@ from cell.calibration.recalibrate import check_image_size, gate_failure, replace
 from cell.calibration.report import annotate_plate, deviation_png
 from cell.config import CellConfig
 from cell.errors import InputError
+from cell.events import SERVICE_ORIGIN, Origin
 from cell.imagedecode import decode_limited
 from cell.service.api import CalibrationInfo, LineServiceAPI
 
@@ -62,6 +64,9 @@ class Report:
             "passes": self.gate_failure is None,
             "gate_failure": self.gate_failure,
         }
+
+
+HOLD_REASON = "a recalibration report is waiting for its answer: accept or reject it on the operator screen"
 
 
 class Busy(Exception):
@@ -119,6 +124,7 @@ class RecalibrationDesk:
         self.service, self.config = service, config
         self._lock = threading.Lock()  # one fit at a time (matplotlib is not thread-safe either)
         self.open: Report | None = None
+        self._release_hold: Callable[[], None] | None = None  # the service holds starts while a report is open
         self.active_pictures: dict[str, bytes] = {}  # the accepted report's pictures, for the card
         self.active_time: datetime | None = None
 
@@ -126,12 +132,14 @@ class RecalibrationDesk:
         """Whether the calibration in use is the one accepted here (whose pictures we hold)."""
         return bool(self.active_pictures) and info is not None and info.time_utc == self.active_time
 
-    def from_camera(self) -> Report:
-        image = self.service.capture_plate_image()  # raises InvalidState unless Ready/paused/Halted
+    def from_camera(self, origin: Origin = SERVICE_ORIGIN) -> Report:
+        image = self.service.capture_plate_image(origin)  # refused unless the cell is at rest
         check_image_size(image, self.config, "camera frame")
         return self._fit(image, f"camera frame {_now():%Y-%m-%d %H:%M:%S} UTC")
 
-    def from_upload(self, data: bytes, cancelled: threading.Event | None = None) -> Report:
+    def from_upload(
+        self, data: bytes, origin: Origin = SERVICE_ORIGIN, cancelled: threading.Event | None = None
+    ) -> Report:
         image = decode_upload(data, self.config, cancelled)
         digest = hashlib.sha256(data).hexdigest()[:12]
         return self._fit(image, f"uploaded image sha256 {digest}, {_now():%Y-%m-%d %H:%M:%S} UTC")
@@ -151,7 +159,7 @@ class RecalibrationDesk:
                 deviation_png(result),
                 gate_failure(result, self.config),
             )
-            self.open = report
+            self._set_open(report)
             log.info("recalibration report %s from %s: %s", report.id, source, result.why)
             return report
         finally:
@@ -163,22 +171,36 @@ class RecalibrationDesk:
             raise Busy("no such recalibration report open (rejected, accepted, or replaced by a newer one)")
         return r
 
+    def _set_open(self, report: Report | None) -> None:
+        """The open report, and the service's hold on starts while one waits for its answer."""
+        self.open = report
+        release, self._release_hold = self._release_hold, None
+        if release is not None:
+            release()
+        if report is not None:
+            self._release_hold = self.service.hold(HOLD_REASON)
+
     def reject(self, report_id: str) -> None:
         self.report(report_id)
         log.info("recalibration report %s rejected by the operator", report_id)
-        self.open = None
+        self._set_open(None)
 
-    def accept(self, report_id: str) -> CalibrationInfo:
+    def close(self) -> None:
+        self._set_open(None)
+
+    def accept(self, report_id: str, origin: Origin = SERVICE_ORIGIN) -> CalibrationInfo:
         """Gate, atomic replacement, then the service starts using it; refused: nothing changes."""
         with self._lock:
             report = self.report(report_id)
             path, backup = replace_active(report.result, self.config)  # CalibrationRejected: file untouched
             cal, cv = report.result.calibration, report.result.chosen.cv
-            info = CalibrationInfo(cal.model_name, cv.rms_mm, cv.max_mm, _created(cal.created_utc), report.source)
-            self.service.install_calibration(cal, info)
+            info = CalibrationInfo(
+                cal.model_name, cv.rms_mm, cv.max_mm, _created(cal.created_utc), report.source, cal.content_id
+            )
+            self.service.install_calibration(cal, info, origin)
             self.active_pictures = {"plate.jpg": report.plate_jpeg, "deviation.png": report.deviation_png}
             self.active_time = info.time_utc
-            self.open = None
+            self._set_open(None)
             log.info(
                 "recalibration %s accepted from the screen: %s written%s",
                 report_id,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict
 from datetime import datetime
 
-from cell.service.api import Command, PickRecord, Snapshot, VisionState
+from cell.service.api import STATE_COMMANDS, PickRecord, Snapshot, VisionState
 
 V = VisionState
 RUNNING = frozenset({V.SINGLE_EXECUTION, V.CONTINUOUS_EXECUTION})
@@ -22,6 +22,8 @@ def display_state(s: Snapshot) -> tuple[str, str]:
     if s.vision_state in RUNNING:
         if s.paused:
             return "paused", "Paused"
+        if s.pausing:
+            return "pausing", "Pausing: finishing the current motion"
         if s.waiting_for_parts:
             return "waiting", "Waiting for parts"
         job = "continuous" if s.vision_state is V.CONTINUOUS_EXECUTION else "single job"
@@ -57,9 +59,13 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "vision_state": s.vision_state.value,
         "cell_state": s.cell_state,
         "paused": s.paused,
+        "pausing": s.pausing,
+        "job_id": s.job_id,
+        "hold": s.hold,
+        "dropped_events": {x.name: x.dropped + x.failed for x in s.subscribers if x.dropped or x.failed},
         "waiting_for_parts": s.waiting_for_parts,
         "counters": asdict(s.counters),
-        "parts_per_min": round(s.parts_per_min, 1),
+        "parts_per_min": round(s.parts_per_min, 1) if s.vision_state in RUNNING and not s.paused else None,
         "last_picks": [pick_json(p) for p in reversed(s.last_picks)],  # newest first
         "alarm": None
         if s.alarm is None
@@ -86,4 +92,4 @@ def may_recalibrate(s: Snapshot) -> bool:
     return s.vision_state in (V.READY, V.HALTED) or (s.vision_state in RUNNING and s.paused)
 
 
-COMMANDS = {c.value: c for c in Command}
+COMMANDS = {c.value: c for c in STATE_COMMANDS}

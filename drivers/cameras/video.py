@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from drivers.cameras.errors import CameraError
-from drivers.cameras.opencv import CaptureCamera
+from drivers.cameras.opencv import CaptureCamera, opencv_quiet
 
 
 class VideoFileCamera(CaptureCamera):
@@ -22,17 +22,20 @@ class VideoFileCamera(CaptureCamera):
     def connect(self) -> None:
         if not self.path.is_file():
             raise CameraError("video file not found", source=self.source)
-        cap = cv2.VideoCapture(str(self.path))
-        if not cap.isOpened():
+        with opencv_quiet():
+            cap = cv2.VideoCapture(str(self.path))
+            opened = cap.isOpened()
+        if not opened:
             cap.release()
             raise CameraError("cannot decode the video file", source=self.source)
         self._cap = cap
 
     def _grab(self) -> np.ndarray | None:
-        ok, frame = self._cap.read()
-        if not ok and self.loop:
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+        with opencv_quiet():
             ok, frame = self._cap.read()
+            if not ok and self.loop:
+                self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                ok, frame = self._cap.read()
         if not ok:
             raise CameraError("the video has no more frames", source=self.source)
         return frame

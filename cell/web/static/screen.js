@@ -68,7 +68,7 @@ function render(s) {
     const cell = $(`count-${name}`);
     if (cell) cell.textContent = value;
   }
-  $("parts-per-min").textContent = s.parts_per_min.toFixed(1);
+  $("parts-per-min").textContent = s.parts_per_min === null ? "-" : s.parts_per_min.toFixed(1);
   renderAlarm(s.alarm);
   renderCalibration(s.calibration);
   renderPicks(s.last_picks);

@@ -1,0 +1,195 @@
+"""The one place a cell is assembled from its config: camera, arm, calibration, drift watch,
+device locks and, for a dry run, the simulated world.
+
+Every command that touches a device (run, serve, teach, jog, home, recalibrate,
+check-calibration) and the line service get their devices here, so a rule about devices
+(which arm a dry run gets, what is locked, which calibration is loaded) holds everywhere.
+What must be shut down afterwards (an emulated arm's pty, the locks) goes on the caller's
+ExitStack.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import get_args
+
+import numpy as np
+
+from cell.calibration.drift import DriftWatch
+from cell.calibration.store import Calibration
+from cell.config import CellConfig, load_config
+from cell.errors import ConfigError
+from cell.locks import device_locks
+from cell.planning import Planner, table_to_robot
+from cell.vision.locate import locate
+from cell.vision.types import LocateResult
+from drivers.arm.base import Arm
+from drivers.arm.config import ArmConfig, DeviceKind
+from drivers.arm.factory import make_arm, with_overrides
+from drivers.cameras.base import Camera
+from drivers.cameras.factory import make_camera
+
+log = logging.getLogger(__name__)
+
+# `--dry-run --arm KIND` with no --config: the shipped simulated cell laid out for that arm
+# (the built-in one is out of a gantry's reach and lays bolts a 4-axis arm cannot grip).
+SIM_CONFIGS = {"serial": "sim-grbl.toml", "dynamixel": "sim-dynamixel.toml"}
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """What the command line may change in a config (every field optional)."""
+
+    arm: str | None = None
+    port: str | None = None
+    log_dir: Path | None = None
+    offset_x_mm: float = 0.0
+    offset_y_mm: float = 0.0
+
+
+def config_path(path: Path | None, dry_run: bool, arm: str | None) -> Path | None:
+    """The config file a run uses: the one given, or for `--dry-run --arm serial|dynamixel` the shipped
+    simulated cell for that arm; None: the built-in simulated cell."""
+    if path is None and not dry_run:
+        raise ConfigError("give --config FILE to run the cell, or --dry-run to rehearse on the built-in simulated cell")
+    if path is None and arm in SIM_CONFIGS:
+        return CONFIG_DIR / SIM_CONFIGS[arm]
+    return path
+
+
+def cell_config(path: Path | None, dry_run: bool, overrides: Overrides = Overrides()) -> CellConfig:
+    """The config a run or the service uses (see config_path), with the command line's overrides."""
+    return apply_overrides(load_config(config_path(path, dry_run, overrides.arm)), overrides)
+
+
+def apply_overrides(config: CellConfig, o: Overrides) -> CellConfig:
+    if o.offset_x_mm or o.offset_y_mm:
+        if config.planning.frame != "offset":
+            raise ConfigError("--offset-x-mm/--offset-y-mm change planning.offset_*, but planning.frame is 'taught'")
+        config.planning.offset_x_mm += o.offset_x_mm
+        config.planning.offset_y_mm += o.offset_y_mm
+    if o.log_dir:
+        config.run.log_dir = o.log_dir
+    if o.arm or o.port:
+        config.arm = with_overrides(config.arm, o.arm, o.port)
+    return config
+
+
+@dataclass
+class Cell:
+    """A cell's devices and how it sees, for one run or one service's life."""
+
+    config: CellConfig
+    camera: Camera  # the simulated cell's is fed by its feeder when assembled for a shift
+    arm: Arm
+    calibration: Calibration
+    expect_motion: bool  # False: a mock arm over a real table, nothing can move
+    sim: object | None = None  # cell.sim.cell.SimCell for the simulated cell
+    plate_image: Callable[[], np.ndarray] | None = None  # how a plate frame is taken for recalibration
+    notes: list[str] = field(default_factory=list)  # what the operator should be told about the set-up
+
+    def planner(self) -> Planner:
+        return Planner(self.config.planning, table_to_robot(self.config.planning))
+
+    def locate(self, frame: np.ndarray, calibration: Calibration) -> LocateResult:
+        return locate(frame, calibration, self.config)
+
+    def drift_watch(self, calibration: Calibration) -> DriftWatch | None:
+        """The reference-mark watch for this calibration: the configured marks, else those printed on
+        the simulated table; None when there are none."""
+        sim_marks = getattr(self.sim, "marks_mm", None) or []
+        marks = self.config.drift.marks_mm or sim_marks
+        if not marks:
+            return None
+        return DriftWatch(calibration, self.config.drift.model_copy(update={"marks_mm": list(marks)}))
+
+    def motion_time_s(self) -> float:
+        return float(self.sim.motion_time_s()) if self.sim is not None else 0.0  # type: ignore[attr-defined]
+
+
+def assemble(
+    config: CellConfig,
+    dry_run: bool,
+    resources: contextlib.ExitStack,
+    *,
+    shift: bool = False,
+    progress: Callable[[str], None] = lambda line: None,
+) -> Cell:
+    """The cell's devices, opened lazily by the runner (connect); locks and emulators go on
+    `resources`. `shift`: the simulated cell gets its feeder (the line service's dry run)."""
+    if config.camera.source == "sim":
+        return _simulated(config, resources, shift, progress)
+    calibration = Calibration.load(config.calibration.active_path)
+    arm_cfg = config.arm
+    if dry_run and arm_cfg.kind in get_args(DeviceKind):  # the mock checks every command as the real driver would
+        arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
+    resources.enter_context(device_locks(arm_cfg, config.camera.source))  # this process's alone until it ends
+    camera = make_camera(config.camera)
+    cell = Cell(config, camera, make_arm(arm_cfg), calibration, not dry_run)
+    cell.plate_image = lambda: _capture(camera)
+    return cell
+
+
+def _simulated(
+    config: CellConfig, resources: contextlib.ExitStack, shift: bool, progress: Callable[[str], None]
+) -> Cell:
+    from cell.sim.cell import sim_arm_kind, sim_cell
+    from cell.sim.feeder import FedCamera, Feeder, SimClock
+    from cell.sim.render import render_plate
+
+    if sim_arm_kind(config.arm) != "sim" and config.arm.port:
+        log.warning(
+            "camera.source is 'sim': the emulated %s arm gets a pseudo-terminal; arm.port %r is not used",
+            config.arm.kind,
+            config.arm.port,
+        )
+    progress("rendering the simulated plate and calibrating on it")
+    sim = resources.enter_context(sim_cell(config))
+    camera: Camera = sim.camera
+    if shift:
+        feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))
+        camera = FedCamera(sim.camera, feeder)
+    cell = Cell(config, camera, sim.arm, sim.calibration, True, sim)
+    cell.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
+    cell.notes.append(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
+    if sim.emulated is not None:
+        emu = sim.emulated
+        cell.notes.append(
+            f"arm: the real {type(sim.arm).__name__} driver against an emulated {emu.firmware} on {emu.port} "
+            f"(motion {emu.speed_scale:g}x faster than the arm's)"
+        )
+    return cell
+
+
+def _capture(camera: Camera) -> np.ndarray:
+    if camera.is_connected:
+        return camera.capture()
+    with camera:
+        return camera.capture()
+
+
+def capture_plate(config: CellConfig) -> np.ndarray:
+    """One frame of the plate from the configured camera (the simulated camera renders the built-in plate)."""
+    if config.camera.source.strip() == "sim":
+        from cell.sim.render import render_plate
+        from cell.sim.rig import default_camera
+
+        log.info("capturing the plate from the simulated camera")
+        return render_plate(default_camera(config.camera.width_px, config.camera.height_px), config.plate)
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(device_locks(None, config.camera.source))
+        return _capture(make_camera(config.camera))
+
+
+@contextlib.contextmanager
+def arm_only(config: CellConfig, kind: str | None = None, port: str | None = None):
+    """The configured arm (with the command line's kind and port), locked for this process, connected
+    by the caller; for teach, jog and home."""
+    arm_cfg: ArmConfig = with_overrides(config.arm, kind, port)
+    with device_locks(arm_cfg), make_arm(arm_cfg) as arm:
+        yield arm
