@@ -14,10 +14,11 @@ import resource
 import socket
 import ssl
 import time
+from pathlib import Path
 
 import httpx
 import pytest
-from asyncua import Client, ua
+from asyncua import Client
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse, PlainTextResponse
@@ -27,6 +28,7 @@ from cell.web.shield import Shield
 from cell.web.tls import ensure_self_signed, server_context
 from cell.web.transport import ServerThread, TransportLimits
 from tests.probes import ProbeServer, Slowloris, connect_from, wait_until
+from tests.serve_process import ServeProcess
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -190,23 +192,33 @@ def _latency(call) -> float:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(180)
 def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
-    """The issue's probe: `ulimit -n 1024`, 1,100 connections that send a request line and nothing
-    more. The screen and OPC UA must answer a real client within 1 s all along, the process must
-    keep descriptors to spare, and the log must not fill with the same failure."""
+    """The issue's probe against `run-cell serve --dry-run` under `ulimit -n 1024`, picking in continuous
+    mode: 1,100 connections that send a request line and nothing more. The screen and OPC UA must answer a
+    real client within 1 s all along, the picks must go on, the process must keep descriptors to spare, and
+    the log must not fill with the same failure."""
     _raise_own_limit(1400)
-    # The header deadline is raised so the attack holds all through the measurement (on a loaded machine
-    # too); what keeps the screen answering here is the caps and eviction, not the deadline.
-    server = ProbeServer(tmp_path, nofile=1024, limits={"web": {"header_timeout_s": 120}})
-    attack = Slowloris(int(server.screen_url.rsplit(":", 1)[1].strip("/")), 1100, per_address=20)
+    serve = ServeProcess(tmp_path, nofile=1024)
+    screen = serve.url
+    attack = Slowloris(int(screen.rsplit(":", 1)[1].strip("/")), 1100, per_address=20)
     try:
+        token = httpx.get(screen + "api/session", timeout=10).json()["csrf"]
+        r = httpx.post(screen + "api/command/StartContinuous", headers={"x-csrf-token": token}, timeout=10)
+        assert r.status_code == 200, r.text
+
+        def picked() -> int:
+            counters = httpx.get(screen + "api/state", timeout=30).json()["counters"]
+            return counters["picked_bolts"] + counters["picked_nuts"]
+
+        wait_until(picked, 60, "the first pick")
 
         async def opcua_reads(seconds: float) -> list[float]:
-            client = Client(server.opcua_url, timeout=10)  # loopback without users: as the cell runs locally
+            client = Client(f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", timeout=10)  # loopback, no users
             await client.connect()
             try:
                 ns = await client.get_namespace_index("urn:pick-cell")
-                node = client.get_node(ua.NodeId("Heartbeat", ns))
+                node = await client.nodes.objects.get_child([f"{ns}:Cell", f"{ns}:Heartbeat"])
                 out, end = [], time.monotonic() + seconds
                 while time.monotonic() < end:
                     t0 = time.monotonic()
@@ -219,29 +231,26 @@ def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
 
         attack.start()
         wait_until(lambda: attack.opened >= 1100, 60, "1,100 attacking connections opened")
-
-        def absorbed() -> bool:  # every attacking connection accepted: held, refused or evicted
-            report = httpx.get(server.screen_url + "api/status", timeout=30).json()
-            return sum(report["screen_tally"].values()) + report["screen_open"] >= 1100
-
-        # The burst itself queues in the kernel's accept queue ahead of anyone else (~1 s on this 2-core box
-        # under load); the acceptance is about the screen while the unfinished requests are held.
-        wait_until(absorbed, 60, "the server took in the 1,100 connections")
-        screen = [
-            _latency(lambda: httpx.get(server.screen_url + "api/state", timeout=10).raise_for_status())
-            for _ in range(10)
+        before = picked()
+        # The burst itself queues in the kernel's accept queue ahead of anyone else (a first request waits for
+        # it: ~0.3 s measured); the acceptance is about the screen while the unfinished requests are held (the
+        # header deadline, 10 s, then frees them), so the requests measured come after a first one got through.
+        httpx.get(screen + "api/state", timeout=30).raise_for_status()
+        latencies = [
+            _latency(lambda: httpx.get(screen + "api/state", timeout=30).raise_for_status()) for _ in range(10)
         ]
         opcua = asyncio.run(opcua_reads(3.0))
-        report = httpx.get(server.screen_url + "api/status", timeout=10).json()
+        wait_until(lambda: picked() > before, 60, "picks going on during the attack")
+        descriptors = len(list(Path(f"/proc/{serve.proc.pid}/fd").iterdir()))
     finally:
         attack.stopping.set()
         attack.join(timeout=30)
-        assert server.stop() == 0, "\n".join(server.lines[-30:])
-    assert report["nofile_limit"] == 1024
-    assert report["open_descriptors"] < 700, f"the process held {report['open_descriptors']} of its 1024 descriptors"
-    assert max(screen) < 1.0, f"the screen took {max(screen):.2f} s to answer during the attack (acceptance: 1 s)"
+        code = serve.stop()
+    assert code == 0, "\n".join(serve.lines[-30:])
+    assert descriptors < 700, f"run-cell serve held {descriptors} of its 1024 descriptors"
+    assert max(latencies) < 1.0, f"the screen took {max(latencies):.2f} s to answer during the attack (acceptance: 1 s)"
     assert max(opcua) < 1.0, f"OPC UA took {max(opcua):.2f} s to answer during the attack (acceptance: 1 s)"
-    log = (tmp_path / "serve.log").read_text()
+    log = "".join(p.read_text() for p in (tmp_path / "logs").glob("serve-*.log"))
     assert "Too many open files" not in log
     complaints = [line for line in log.splitlines() if " WARNING " in line or " ERROR " in line]
     assert len(complaints) < 30, f"{len(complaints)} warnings for one attack: not rate-limited:\n" + "\n".join(
