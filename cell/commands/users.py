@@ -33,17 +33,38 @@ LOCK_WAIT_S = 5.0
 
 
 def register(sub) -> None:
-    p = sub.add_parser("user", help="add, remove, re-password or list the users of service.users_file")
+    p = sub.add_parser(
+        "user",
+        help="add, remove, re-password or list the users of service.users_file",
+        description="Keep the users of the config's service.users_file: one per person, each with a role "
+        "(viewer, operator, engineer, admin; docs/security.md). A running service reads the file again at the "
+        "next login.",
+    )
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    add = verbs.add_parser("add", help="add a user with a role; the password from stdin or asked twice")
-    add.add_argument("name")
+    add = verbs.add_parser(
+        "add",
+        help="add a user with a role; the password from stdin or asked twice",
+        description="Add a user with a role. The password is one line on stdin when stdin is not a terminal, "
+        "else asked twice without echo; at least 8 characters.",
+    )
+    add.add_argument("name", help="the user name: letters, digits and _ . @ -")
     add.add_argument("--role", required=True, choices=ROLE_NAMES, help="what the user may do (docs/security.md)")
-    remove = verbs.add_parser("remove", help="remove a user (their next login fails)")
-    remove.add_argument("name")
-    passwd = verbs.add_parser("passwd", help="give a user a new password; --role also changes the role")
-    passwd.add_argument("name")
+    remove = verbs.add_parser(
+        "remove", help="remove a user (their next login fails)", description="Remove a user: their next login fails."
+    )
+    remove.add_argument("name", help="the user to remove")
+    passwd = verbs.add_parser(
+        "passwd",
+        help="give a user a new password; --role also changes the role",
+        description="Give a user a new password (read as for add); --role also changes their role.",
+    )
+    passwd.add_argument("name", help="the user")
     passwd.add_argument("--role", choices=ROLE_NAMES, help="also change the role")
-    verbs.add_parser("list", help="the users and their roles (no hashes)")
+    verbs.add_parser(
+        "list",
+        help="the users and their roles (no hashes)",
+        description="List the users, their roles and when changed.",
+    )
     for v in (add, remove, passwd, verbs.choices["list"]):
         v.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
         v.set_defaults(func=cmd_user)

@@ -46,10 +46,16 @@ class WebConfig(Strict):
     )
     max_connections: int = Field(256, ge=8, le=10000, description="open screen connections at once, all clients")
     max_connections_per_address: int = Field(
-        32, ge=2, le=10000, description="open screen connections from one client address"
+        32,
+        ge=2,
+        le=10000,
+        description="open screen connections from one client address (not this PC's own 127.0.0.1 / ::1)",
     )
     max_streams_per_address: int = Field(
-        4, ge=1, le=256, description="open event streams (screens) from one client address"
+        4,
+        ge=1,
+        le=256,
+        description="open event streams (screens) from one client address (not this PC's own: max_screens bounds those)",
     )
     write_stall_s: float = Field(
         15.0,

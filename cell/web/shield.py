@@ -5,7 +5,8 @@ the routes do.
   app sets HttpOnly and SameSite=Strict itself; `Secure` is added here if it is missing).
 - Event streams (`/api/events`): at most `max_streams_per_address` open from one client
   address, so one machine cannot take every screen slot (the rest get 503 and the page
-  tries again by itself).
+  tries again by itself); this PC's own browser (127.0.0.1, ::1) is bounded by the
+  screen's `max_screens` only.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from starlette.responses import JSONResponse
+
+from cell.web.transport import THIS_PC
 
 STREAM_PATHS = frozenset({"/api/events"})
 
@@ -45,7 +48,7 @@ class Shield:
         if scope.get("path") not in self.stream_paths:
             return await self.app(scope, receive, send)
         address = (scope.get("client") or ("?", 0))[0]
-        if self.streams[address] >= self.max_streams:
+        if self.streams[address] >= self.max_streams and address not in THIS_PC:  # this PC's tabs: max_screens
             reply = JSONResponse(
                 {
                     "error": f"{self.max_streams} screens are already open from {address} (service.web.max_streams_per_address)"

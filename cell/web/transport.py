@@ -46,6 +46,7 @@ from cell.logratelimit import Tally
 log = logging.getLogger(__name__)
 
 EARLY_DATA_MAX_BYTES = 65536  # bytes a client may send between the TLS handshake and the hand-over
+THIS_PC = frozenset({"127.0.0.1", "::1", "::ffff:127.0.0.1"})  # the addresses a browser on this PC comes from
 ACCEPT_BATCH = 32  # connections asyncio accepts at one wake-up (its `backlog`), before their Gates run
 LISTEN_QUEUE = 1024  # the kernel's queue of connections waiting to be accepted
 
@@ -83,7 +84,10 @@ class Admission:
         self.open = 0
 
     def refusal(self, address: str) -> str | None:
-        """Why a connection from `address` may not be admitted even at the cost of a waiting one (None: it may)."""
+        """Why a connection from `address` may not be admitted even at the cost of a waiting one (None: it may).
+        This PC's own browser (127.0.0.1, ::1) is not capped per address: its tabs share one address."""
+        if address in THIS_PC:
+            return None
         if self.per_address[address] >= self.limits.max_connections_per_address:
             return f"refused: {self.limits.max_connections_per_address} open from one address (max_connections_per_address)"
         return None
