@@ -74,8 +74,8 @@ from cell.service.api import (
     VisionState,
 )
 from cell.service.mv_addressspace import DI_URI, MV_URI
-from cell.service.opcua_security import caller_origin
 from cell.service.mv_results import ResultMaker, external_id, internal_id, result_data, result_message
+from cell.service.opcua_security import caller_origin
 from cell.service.results import (
     MemoryResultStore,
     ResultFilter,
