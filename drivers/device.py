@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import abc
+from types import TracebackType
 from typing import Self
 
 
@@ -23,5 +24,7 @@ class Device(abc.ABC):
         self.connect()
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.disconnect()

@@ -18,7 +18,7 @@ class DeviceError(Exception):
         command: str | None = None,
         reply: str | None = None,
         hint: str | None = None,
-    ):
+    ) -> None:
         details = []
         if port:
             details.append(f"port {port}")

@@ -5,7 +5,9 @@ from __future__ import annotations
 import abc
 import contextlib
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
+from types import TracebackType
 from typing import Literal
 
 from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach, PositionLost
@@ -112,7 +114,7 @@ class Arm(Device):
         self._restart_evidence = None
 
     @contextlib.contextmanager
-    def _guard(self, command: str):
+    def _guard(self, command: str) -> Iterator[None]:
         """Leave the arm safe when `command` fails with an ArmError, then let the error through.
 
         A lost link is only noted (nothing can be sent); a refused target or an unconnected
@@ -135,7 +137,9 @@ class Arm(Device):
         """After a failed command: stop the device the way this driver knows is safe."""
         self.stop()
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is not None:
             log.info("stopping arm on %s after %s", getattr(self, "port", "?"), exc_type.__name__)
             self.stop()

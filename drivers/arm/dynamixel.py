@@ -29,6 +29,7 @@ import logging
 import math
 import termios
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import serial
@@ -42,7 +43,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from drivers.arm.base import Arm, ArmStatus
+from drivers.arm.base import Arm, ArmState, ArmStatus
 from drivers.arm.config import DynamixelArmConfig
 from drivers.arm.errors import (
     ArmError,
@@ -86,6 +87,8 @@ STATUS_ERRORS = {
     6: "data limit error",
     7: "access error",
 }
+# What an SDK call returns: a result code, (result, error) or (value, result, error).
+SdkResult = int | tuple[int, int] | tuple[int, int, int]
 BUS_HINT = "check the servos' power, and arm.port / arm.dynamixel.baud / ids (`run-cell ports`)"
 
 
@@ -97,12 +100,12 @@ class ExclusivePortHandler(PortHandler):
         super().__init__(port_name)
         self.latency_timer_ms = latency_timer_ms
 
-    def setPacketTimeout(self, packet_length):
+    def setPacketTimeout(self, packet_length: int) -> None:
         """The SDK's own formula (wire time + twice the latency timer + 2 ms) with the configured timer."""
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
 
-    def setupPort(self, cflag_baud):
+    def setupPort(self, cflag_baud: int) -> bool:
         if self.is_open:
             self.closePort()
         self.ser = serial.Serial(
@@ -114,7 +117,14 @@ class ExclusivePortHandler(PortHandler):
         return True
 
 
-def plan_move(kin: FourAxisKinematics, cfg: DynamixelArmConfig, x_mm, y_mm, z_mm, angle_deg=None) -> list[int]:
+def plan_move(
+    kin: FourAxisKinematics,
+    cfg: DynamixelArmConfig,
+    x_mm: float,
+    y_mm: float,
+    z_mm: float,
+    angle_deg: float | None = None,
+) -> list[int]:
     """Goal ticks for the joints (base to wrist), after the workspace and joint-limit checks."""
     if why := cfg.workspace.violation(x_mm, y_mm, z_mm):
         raise OutOfReach(f"target ({x_mm}, {y_mm}, {z_mm}) mm: {why} (arm.dynamixel.workspace)")
@@ -147,7 +157,7 @@ class DynamixelArm(Arm):
         self._connected = False
         self._lost = False
         self._torque_off = True
-        self._state = "disconnected"
+        self._state: ArmState = "disconnected"
         self._gripper_closed: bool | None = None
         self._read = GroupSyncRead(self.ph, self.packet, READ_START, READ_LENGTH)
         for i in self.all_ids:
@@ -197,7 +207,7 @@ class DynamixelArm(Arm):
         self._close()
         self._lost = False
 
-    def check_target(self, x_mm, y_mm, z_mm, angle_deg=None) -> None:
+    def check_target(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> None:
         plan_move(self.kin, self.cfg, x_mm, y_mm, z_mm, angle_deg)
 
     def home(self) -> None:
@@ -208,7 +218,9 @@ class DynamixelArm(Arm):
         self._move_joints(goals, wait=True, what="home", recover=True)
         self._position_regained("homed")
 
-    def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True) -> None:
+    def move_to(
+        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True
+    ) -> None:
         goals = plan_move(self.kin, self.cfg, x_mm, y_mm, z_mm, angle_deg)
         what = f"move to ({x_mm}, {y_mm}, {z_mm}) mm"
         self._refuse_while_position_lost(what)
@@ -249,7 +261,9 @@ class DynamixelArm(Arm):
                 self._check(present, "status")  # a restart found here latches as anywhere
         pose = self.kin.forward(self.kin.from_ticks([present[i].ticks for i in self.cfg.joint_ids]))
         moving = any(r.moving for r in present.values())
-        state = "fault" if errors else ("alarm" if self.position_lost else ("moving" if moving else self._state))
+        state: ArmState = (
+            "fault" if errors else ("alarm" if self.position_lost else ("moving" if moving else self._state))
+        )
         detail = "; ".join(f"servo {i}: {decode_hardware_error(b)}" for i, b in errors.items())
         if self.position_lost and not errors:
             detail = PositionLost.MESSAGE
@@ -428,7 +442,7 @@ class DynamixelArm(Arm):
             group.addParam(i, d)
         self._call(group.txPacket, what)
 
-    def _call(self, fn, what: str, dxl_id: int | None = None):
+    def _call(self, fn: Callable[[], SdkResult], what: str, dxl_id: int | None = None) -> int | None:
         """Run one SDK transfer with retries; map its result codes and exceptions to ArmErrors."""
         for attempt in range(self.cfg.comm_retries + 1):
             try:
@@ -480,7 +494,7 @@ class DynamixelArm(Arm):
         self.stop()
 
 
-def _unpack(out) -> tuple[int, int, object]:
+def _unpack(out: SdkResult) -> tuple[int, int, int | None]:
     """SDK calls return a result code, (result, error), or (value, result, error)."""
     if isinstance(out, int):
         return out, 0, None

@@ -19,7 +19,7 @@ class NoResponse(ArmError):
 class ErrorResponse(ArmError):
     """The device refused a command with its own error code."""
 
-    def __init__(self, message: str, *, code: int | None = None, **kw):
+    def __init__(self, message: str, *, code: int | None = None, **kw: str | None) -> None:
         super().__init__(message, **kw)
         self.code = code
 
@@ -29,7 +29,7 @@ class AlarmResponse(ArmError):
 
     default_hint = "clear the cause, then re-home the arm (`run-cell home`); the driver never unlocks an alarm itself"
 
-    def __init__(self, message: str, *, code: int | None = None, **kw):
+    def __init__(self, message: str, *, code: int | None = None, **kw: str | None) -> None:
         super().__init__(message, **kw)
         self.code = code
 
@@ -70,5 +70,5 @@ class PositionLost(ArmError):
         "controller says may unlock it instead (Arm.unlock)"
     )
 
-    def __init__(self, message: str = MESSAGE, **kw):
+    def __init__(self, message: str = MESSAGE, **kw: str | None) -> None:
         super().__init__(message, **kw)

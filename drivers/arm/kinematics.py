@@ -9,12 +9,15 @@ forward. Angles in radians, lengths in mm, points in the robot base frame.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from drivers.arm.config import DynamixelArmConfig
 from drivers.arm.errors import OutOfReach
 
 TICKS_PER_RAD = 4096 / (2 * math.pi)
+
+Joints = tuple[float, float, float, float]  # radians, base (1) to wrist (4)
 
 
 @dataclass(frozen=True)
@@ -40,7 +43,7 @@ class FourAxisKinematics:
         self.min_rad = [math.radians(v) for v in cfg.joint_min_deg]
         self.max_rad = [math.radians(v) for v in cfg.joint_max_deg]
 
-    def forward(self, joints_rad: tuple[float, float, float, float]) -> Pose:
+    def forward(self, joints_rad: Joints) -> Pose:
         """Tool pose for joint angles; pose angle is the base yaw (no wrist roll)."""
         q1, q2, q3, q4 = joints_rad
         g = self.g
@@ -57,13 +60,11 @@ class FourAxisKinematics:
         )
         return Pose(g.yaw_axis_x_mm + r * math.cos(q1), r * math.sin(q1), z, math.degrees(q1))
 
-    def tool_pitch_rad(self, joints_rad: tuple[float, float, float, float]) -> float:
+    def tool_pitch_rad(self, joints_rad: Joints) -> float:
         """Gripper pitch below horizontal; pi/2 is straight down."""
         return joints_rad[1] + joints_rad[2] + joints_rad[3]
 
-    def inverse(
-        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None
-    ) -> tuple[float, float, float, float]:
+    def inverse(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> Joints:
         """Joint angles putting the tool point at (x, y, z), gripper down; OutOfReach if none."""
         where = f"({x_mm:.1f}, {y_mm:.1f}, {z_mm:.1f}) mm"
         if not all(math.isfinite(v) for v in (x_mm, y_mm, z_mm)):
@@ -104,14 +105,14 @@ class FourAxisKinematics:
             q2 = self.upper_zero_rad - phi1
             q3 = -phi2 - q2
             q4 = math.pi / 2 - q2 - q3
-            joints = tuple(_wrap(q) for q in (q1, q2, q3, q4))
+            joints = (_wrap(q1), _wrap(q2), _wrap(q3), _wrap(q4))
             violation = self.limit_violation(joints)
             if not violation:
                 return joints
             refusal = refusal or violation  # report the preferred (elbow-up) solution's problem
         raise OutOfReach(f"target {where} needs {refusal}")
 
-    def limit_violation(self, joints_rad) -> str:
+    def limit_violation(self, joints_rad: Sequence[float]) -> str:
         """Which joint leaves its limits, or '' if none."""
         for j, (q, lo, hi) in enumerate(zip(joints_rad, self.min_rad, self.max_rad, strict=True), start=1):
             if not lo - 1e-9 <= q <= hi + 1e-9:
@@ -121,17 +122,19 @@ class FourAxisKinematics:
                 )
         return ""
 
-    def to_ticks(self, joints_rad) -> list[int]:
+    def to_ticks(self, joints_rad: Sequence[float]) -> list[int]:
         """Servo goal positions (2048 ticks = 0 rad by default)."""
         return [
             int(round(self.cfg.zero_ticks + d * q * TICKS_PER_RAD))
             for q, d in zip(joints_rad, self.cfg.joint_directions, strict=True)
         ]
 
-    def from_ticks(self, ticks) -> tuple[float, float, float, float]:
-        return tuple(
+    def from_ticks(self, ticks: Sequence[float]) -> Joints:
+        """Joint angles for the four joints' servo positions (base to wrist)."""
+        q = [
             (t - self.cfg.zero_ticks) / TICKS_PER_RAD * d for t, d in zip(ticks, self.cfg.joint_directions, strict=True)
-        )
+        ]
+        return q[0], q[1], q[2], q[3]
 
 
 def _wrap(angle_rad: float) -> float:

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass
 
 from drivers.arm import dynamixel, serial_gcode
-from drivers.arm.base import Arm, ArmStatus
+from drivers.arm.base import Arm, ArmState, ArmStatus
 from drivers.arm.config import ArmConfig
 from drivers.arm.errors import NotConnected
 from drivers.arm.kinematics import FourAxisKinematics, Pose
@@ -21,8 +21,8 @@ class MockCommand:
     """One accepted command and what the real driver would have sent for it."""
 
     name: str
-    args: tuple = ()
-    wire: tuple = ()
+    args: tuple[float | None, ...] = ()  # move_to's x_mm, y_mm, z_mm, angle_deg
+    wire: tuple[int | str, ...] = ()  # goal ticks (Dynamixel) or G-code lines
 
 
 class MockArm(Arm):
@@ -34,11 +34,12 @@ class MockArm(Arm):
         self.commands: list[MockCommand] = []
         self._connected = False
         self._gripper_closed: bool | None = None
+        self._kin: FourAxisKinematics | None = None
         if cfg.mock_of == "dynamixel":
             self._kin = FourAxisKinematics(cfg.dynamixel)
-            self._home = self._kin.forward([math.radians(v) for v in cfg.dynamixel.home_joints_deg])
+            q1, q2, q3, q4 = (math.radians(v) for v in cfg.dynamixel.home_joints_deg)
+            self._home = self._kin.forward((q1, q2, q3, q4))
         else:
-            self._kin = None
             self._home = Pose(*cfg.serial.home_position_mm, 0.0)
         self._pose = self._home
 
@@ -55,12 +56,12 @@ class MockArm(Arm):
             self.commands.append(MockCommand("disconnect"))
         self._connected = False
 
-    def _plan(self, x_mm, y_mm, z_mm, angle_deg) -> tuple:
+    def _plan(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None) -> tuple[int | str, ...]:
         if self._kin is not None:
             return tuple(dynamixel.plan_move(self._kin, self.cfg.dynamixel, x_mm, y_mm, z_mm, angle_deg))
         return tuple(serial_gcode.plan_move(self.cfg.serial, x_mm, y_mm, z_mm, angle_deg))
 
-    def check_target(self, x_mm, y_mm, z_mm, angle_deg=None) -> None:
+    def check_target(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> None:
         self._plan(x_mm, y_mm, z_mm, angle_deg)
 
     def home(self) -> None:
@@ -71,7 +72,9 @@ class MockArm(Arm):
         self.commands.append(MockCommand("home"))
         self._pose = self._home
 
-    def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True) -> None:
+    def move_to(
+        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True
+    ) -> None:
         wire = self._plan(x_mm, y_mm, z_mm, angle_deg)
         self._require()
         self.commands.append(MockCommand("move_to", (x_mm, y_mm, z_mm, angle_deg), wire))
@@ -104,7 +107,7 @@ class MockArm(Arm):
         self.commands.append(MockCommand("unlock"))
 
     def status(self) -> ArmStatus:
-        state = "idle" if self._connected else "disconnected"
+        state: ArmState = "idle" if self._connected else "disconnected"
         return ArmStatus(state, self._pose, self._gripper_closed, f"mock of a {self.cfg.mock_of} arm")
 
     def _require(self) -> None:

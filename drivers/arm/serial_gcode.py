@@ -35,7 +35,7 @@ import math
 import re
 import time
 
-from drivers.arm.base import Arm, ArmStatus
+from drivers.arm.base import Arm, ArmState, ArmStatus
 from drivers.arm.config import SerialArmConfig
 from drivers.arm.errors import (
     AlarmResponse,
@@ -57,7 +57,7 @@ FEED_HOLD = b"!"
 STATUS_QUERY = b"?"
 _BANNER = re.compile(r"Grbl (\S+)")
 _STATUS = re.compile(r"<([A-Za-z]+)(?::\d+)?\|(.*)>")
-_STATES = {
+_STATES: dict[str, ArmState] = {
     "Idle": "idle",
     "Run": "moving",
     "Jog": "moving",
@@ -112,7 +112,7 @@ class SerialGcodeArm(Arm):
         self._lost = False
         self._setup_done = False
         self._held = False
-        self._state = "disconnected"
+        self._state: ArmState = "disconnected"
         self._pose: Pose | None = None
         self._target_mm: tuple[float, float, float] | None = None  # end of the last move sent
         self._stale = False  # the controller restarted under the driver: its session must be set up again
@@ -139,7 +139,7 @@ class SerialGcodeArm(Arm):
         self._connected = self._lost = False
         self._state = "disconnected"
 
-    def check_target(self, x_mm, y_mm, z_mm, angle_deg=None) -> None:
+    def check_target(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> None:
         plan_move(self.cfg, x_mm, y_mm, z_mm, angle_deg)
 
     def home(self) -> None:
@@ -168,7 +168,9 @@ class SerialGcodeArm(Arm):
             self._target_mm = None  # where homing ends is the controller's to report
             self._position_regained("homed")
 
-    def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True) -> None:
+    def move_to(
+        self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None, *, wait: bool = True
+    ) -> None:
         lines = plan_move(self.cfg, x_mm, y_mm, z_mm, angle_deg)
         self._refuse_while_position_lost(lines[-1])
         with self._guard(lines[-1]):
@@ -263,10 +265,13 @@ class SerialGcodeArm(Arm):
             self._query_status()
         if held and not self.position_lost and (jump := self._position_jump(held)):
             self._restarted(jump, "connect")
-        if self._state == "alarm":
+        if self._in_alarm():  # as the status query just reported it
             log.warning("arm on %s is in alarm after start-up; it needs homing", self.port)
         else:
             self._setup()
+
+    def _in_alarm(self) -> bool:
+        return self._state == "alarm"
 
     def _await_banner(self) -> None:
         deadline = time.monotonic() + self.cfg.connect_timeout_s
@@ -406,7 +411,7 @@ class SerialGcodeArm(Arm):
             return
         raise NoResponse("unreadable reply from the arm", port=self.port, command=cmd, reply=reply[:80], hint=BAUD_HINT)
 
-    def _parse_status(self, m: re.Match) -> str:
+    def _parse_status(self, m: re.Match[str]) -> str:
         self._state = _STATES.get(m.group(1), "fault")
         for field in m.group(2).split("|"):
             key, _, value = field.partition(":")

@@ -31,7 +31,7 @@ class SerialLine:
     def __init__(self, port: str, baud: int):
         self.port = port
         self.baud = baud
-        self._ser: serial.SerialBase | None = None
+        self._ser: serial.Serial | None = None
         self._buf = bytearray()
 
     @property
@@ -101,7 +101,7 @@ class SerialLine:
                 raise ConnectionLost(f"connection lost while reading: {e}", port=self.port, command=what) from None
             self._buf += chunk
 
-    def _require(self, what: str | None) -> serial.SerialBase:
+    def _require(self, what: str | None) -> serial.Serial:
         if self._ser is None:
             raise ConnectionLost("serial port is not open", port=self.port, command=what)
         return self._ser

@@ -41,11 +41,14 @@ class FolderCamera(Camera):
         return self._files is not None
 
     def _grab(self) -> np.ndarray | None:
-        if self._next >= len(self._files):
+        files = self._files
+        if files is None:
+            raise CameraError("capture before connect", source=self.source)
+        if self._next >= len(files):
             if not self.loop:
-                raise CameraError(f"no more images after {len(self._files)}", source=self.source)
+                raise CameraError(f"no more images after {len(files)}", source=self.source)
             self._next = 0
-        path = self._files[self._next]
+        path = files[self._next]
         self._next += 1
         try:
             size = image_size(path)

@@ -7,7 +7,9 @@ operator hands the cell. Anything else is reported as an unknown format.
 
 from __future__ import annotations
 
+import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -21,10 +23,10 @@ class UnknownFormat(ValueError):
 def image_size(path: str | Path | BinaryIO) -> tuple[int, int]:
     """(width, height) in pixels from the header of a file (a path, or an open binary file such as
     io.BytesIO over uploaded bytes); UnknownFormat if it cannot tell."""
-    if hasattr(path, "read"):
-        return _size(path)  # type: ignore[arg-type]
-    with open(path, "rb") as f:  # type: ignore[arg-type]
-        return _size(f)
+    if isinstance(path, str | os.PathLike):
+        with open(path, "rb") as f:
+            return _size(f)
+    return _size(path)
 
 
 def _size(f: BinaryIO) -> tuple[int, int]:
@@ -107,7 +109,7 @@ def _pnm(f: BinaryIO) -> tuple[int, int]:
     raise ValueError("no size in the header")
 
 
-_READERS = [
+_READERS: list[tuple[Callable[[bytes], bool], Callable[[BinaryIO], tuple[int, int]]]] = [
     (lambda h: h.startswith(b"\x89PNG\r\n\x1a\n"), _png),
     (lambda h: h.startswith(b"\xff\xd8"), _jpeg),
     (lambda h: h.startswith(b"BM"), _bmp),

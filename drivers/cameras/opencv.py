@@ -92,6 +92,12 @@ class CaptureCamera(Camera):
     def is_connected(self) -> bool:
         return self._cap is not None
 
+    def _opened(self) -> cv2.VideoCapture:
+        """The open capture; CameraError before connect or after disconnect."""
+        if self._cap is None:
+            raise CameraError("capture before connect", source=self.source)
+        return self._cap
+
 
 class OpenCVCamera(CaptureCamera):
     def __init__(
@@ -142,11 +148,12 @@ class OpenCVCamera(CaptureCamera):
                 cap.grab()
 
     def _set(self, prop: int, value: float, what: str) -> None:
-        if not self._cap.set(prop, value):
+        if not self._opened().set(prop, value):
             log.warning("camera %s: could not set %s to %s", self.source, what, value)
 
     def _grab(self) -> np.ndarray | None:
         with opencv_quiet():
-            self._cap.grab()  # the buffered frame may be old: drop it, keep the next
-            ok, frame = self._cap.read()
+            cap = self._opened()
+            cap.grab()  # the buffered frame may be old: drop it, keep the next
+            ok, frame = cap.read()
         return frame if ok else None

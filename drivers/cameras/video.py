@@ -32,10 +32,11 @@ class VideoFileCamera(CaptureCamera):
 
     def _grab(self) -> np.ndarray | None:
         with opencv_quiet():
-            ok, frame = self._cap.read()
+            cap = self._opened()
+            ok, frame = cap.read()
             if not ok and self.loop:
-                self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-                ok, frame = self._cap.read()
+                cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                ok, frame = cap.read()
         if not ok:
             raise CameraError("the video has no more frames", source=self.source)
         return frame

@@ -10,10 +10,11 @@ call listeners on gripper open/close. Faults can be injected.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from drivers.arm.config import DynamixelArmConfig
 from drivers.arm.kinematics import FourAxisKinematics
-from drivers.sim.emulated_device import EmulatedDevice
+from drivers.sim.emulated_device import EmulatedDevice, FaultParams
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -232,7 +233,7 @@ class DxlBusEmulator(EmulatedDevice):
     def gripper_closed(self) -> bool:
         return self._gripper_closed
 
-    def inject(self, fault: str, **params) -> None:
+    def inject(self, fault: str, **params: Any) -> None:
         """Arm a fault.
 
         no_answer (ids=None: all): those servos stop answering.
@@ -412,7 +413,7 @@ class DxlBusEmulator(EmulatedDevice):
             reply = b"\x13\x37" * (len(reply) // 2)
         return reply
 
-    def _take(self, fault: str) -> dict | None:
+    def _take(self, fault: str) -> FaultParams | None:
         params = self._faults.get(fault)
         if params is None:
             return None

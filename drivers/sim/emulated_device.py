@@ -5,10 +5,15 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from typing import Any
+
+from drivers.sim.pty_port import PtyServer
 
 log = logging.getLogger(__name__)
 
 ToolListener = Callable[[bool, float, float, float, float], None]
+# An armed fault's parameters, as inject() was given them (after_s, count, code, ids, ...).
+FaultParams = dict[str, Any]
 
 
 class EmulatedDevice:
@@ -23,9 +28,9 @@ class EmulatedDevice:
     def __init__(self) -> None:
         self.lock = threading.RLock()
         self.unplug_requested = False
-        self.server = None  # set by PtyServer
+        self.server: PtyServer | None = None  # set by PtyServer
         self._listeners: list[ToolListener] = []
-        self._faults: dict[str, dict] = {}
+        self._faults: dict[str, FaultParams] = {}
         self._restart_on_plug = False
 
     def add_tool_listener(self, listener: ToolListener) -> None:
@@ -38,20 +43,25 @@ class EmulatedDevice:
             self._faults.clear()
 
     def unplug(self) -> None:
-        self.server.unplug()
+        self._served().unplug()
 
     def replug(self, *, power_cycled: bool = False) -> None:
         """The cable is plugged back in. power_cycled: the device lost its power meanwhile too and
         starts afresh; otherwise it kept running and only the link comes back."""
         with self.lock:
             self._restart_on_plug = power_cycled
-        self.server.replug()
+        self._served().replug()
+
+    def _served(self) -> PtyServer:
+        if self.server is None:
+            raise RuntimeError(f"{type(self).__name__} is not served on a pty: start a PtyServer (serve_pty) first")
+        return self.server
 
     def _take_restart_on_plug(self) -> bool:
         restart, self._restart_on_plug = self._restart_on_plug, False
         return restart
 
-    def _arm_fault(self, fault: str, params: dict) -> None:
+    def _arm_fault(self, fault: str, params: FaultParams) -> None:
         if fault not in self.FAULTS:
             raise ValueError(f"unknown fault {fault!r} (known: {', '.join(self.FAULTS)})")
         with self.lock:

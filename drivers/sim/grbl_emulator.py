@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from typing import Any
 
 from drivers.sim.emulated_device import EmulatedDevice
 
@@ -81,6 +82,9 @@ class GrblEmulator(EmulatedDevice):
     """Emulated GRBL firmware; serve it with drivers.sim.pty_port.serve_pty."""
 
     FAULTS = ("no_answer", "garbage", "error", "alarm", "unplug", "restart")
+    # Set by _power_up (every start-up), read by the pty server's calls before it in the source.
+    _state: str
+    _rx_line: bytearray
 
     def __init__(
         self,
@@ -126,7 +130,7 @@ class GrblEmulator(EmulatedDevice):
         with self.lock:
             return self._state
 
-    def inject(self, fault: str, **params) -> None:
+    def inject(self, fault: str, **params: Any) -> None:
         """Arm a fault for what comes next.
 
         no_answer: stop answering anything (a hung controller).
@@ -422,7 +426,7 @@ class GrblEmulator(EmulatedDevice):
         self._spindle_on = on
         self._spindle_speed = speed if on else 0.0
         if changed:
-            self._notify_tool(on, tuple(self._physical()[:4]))
+            self._notify_tool(on, self.tool_pose())
 
     def _status_report(self) -> bytes:
         pos = self._position()[: max(3, len(self.axes))]

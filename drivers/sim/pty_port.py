@@ -162,7 +162,8 @@ class PtyServer:
 
 def _unread_bytes(fd: int) -> int:
     try:
-        return struct.unpack("I", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        (count,) = struct.unpack("I", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))
+        return int(count)
     except OSError:
         return 0
 
