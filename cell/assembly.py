@@ -15,7 +15,7 @@ import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, get_args
+from typing import TYPE_CHECKING, Protocol, get_args
 
 import numpy as np
 
@@ -34,6 +34,9 @@ from drivers.arm.config import ArmConfig, DeviceKind
 from drivers.arm.factory import make_arm, with_overrides
 from drivers.cameras.base import Camera
 from drivers.cameras.factory import make_camera
+
+if TYPE_CHECKING:  # imported where a simulated cell is built: a real cell never loads cell.sim
+    from cell.sim.cell import SimCell
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +94,7 @@ class Cell:
     arm: Arm
     calibration: Calibration
     expect_motion: bool  # False: a mock arm over a real table, nothing can move
-    sim: object | None = None  # cell.sim.cell.SimCell for the simulated cell
+    sim: SimCell | None = None  # the simulated cell's world, when there is one
     plate_image: Callable[[], np.ndarray] | None = None  # how a plate frame is taken for recalibration
     notes: list[str] = field(default_factory=list)  # what the operator should be told about the set-up
 
@@ -104,14 +107,14 @@ class Cell:
     def drift_watch(self, calibration: Calibration) -> DriftWatch | None:
         """The reference-mark watch for this calibration: the configured marks, else those printed on
         the simulated table; None when there are none."""
-        sim_marks = getattr(self.sim, "marks_mm", None) or []
+        sim_marks = self.sim.marks_mm if self.sim is not None else []
         marks = self.config.drift.marks_mm or sim_marks
         if not marks:
             return None
         return DriftWatch(calibration, self.config.drift.model_copy(update={"marks_mm": list(marks)}))
 
     def motion_time_s(self) -> float:
-        return float(self.sim.motion_time_s()) if self.sim is not None else 0.0  # type: ignore[attr-defined]
+        return float(self.sim.motion_time_s()) if self.sim is not None else 0.0
 
 
 def assemble(

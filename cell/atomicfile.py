@@ -15,7 +15,7 @@ from typing import BinaryIO
 from cell.errors import OutputError, output_error
 
 
-def write_atomic(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
+def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
     """Call write(f) on a temporary file, then make it `path`; OutputError if that cannot be done."""
     path = Path(path)
     tmp = _temporary_beside(path)

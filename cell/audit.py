@@ -18,6 +18,7 @@ import logging
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from cell.errors import CellError
 from cell.events import Event, StateChanged, to_json
@@ -54,7 +55,7 @@ class AuditLog:
         """The write error that broke the log, if any (later events were dropped)."""
         return self._file.failed
 
-    def record(self, event: Event) -> dict | None:
+    def record(self, event: Event) -> dict[str, Any] | None:
         """Write one typed event; a StateChanged moves the stamped state on after its own line."""
         if not event.audited:
             return None
@@ -68,7 +69,7 @@ class AuditLog:
 
     emit = record  # an AuditLog is a bus with one record and no subscribers
 
-    def event(self, kind: str, **fields) -> dict:
+    def event(self, kind: str, **fields: Any) -> dict[str, Any]:
         self._seq += 1
         record = {
             "seq": self._seq,
@@ -80,9 +81,10 @@ class AuditLog:
         }
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
             if not self.best_effort:  # every write, not only the first: nothing runs without its record
+                failed = self.failed
+                why = "the log is closed" if failed is None else (failed.strerror or str(failed))
                 raise AuditWriteFailed(
-                    f"audit log {self.path}: cannot write event {self._seq} ({kind}): "
-                    f"{self.failed.strerror or self.failed}",
+                    f"audit log {self.path}: cannot write event {self._seq} ({kind}): {why}",
                     hint="free space on its filesystem or set run.log_dir elsewhere",
                 )
         return record
@@ -93,11 +95,11 @@ class AuditLog:
     def __enter__(self) -> AuditLog:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def read_events(path: str | Path) -> list[dict]:
+def read_events(path: str | Path) -> list[dict[str, Any]]:
     """Every complete event of a log; a torn last line (a killed writer) is skipped."""
     events = []
     for line in Path(path).read_text(encoding="utf-8").splitlines():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 
 from drivers.errors import DeviceError
 
@@ -67,7 +68,7 @@ def describe_os_error(e: OSError) -> str:
     return f"{where}: {reason}" if where else reason
 
 
-def output_error(path, e: OSError) -> OutputError:
+def output_error(path: str | os.PathLike[str], e: OSError) -> OutputError:
     """A failed write to `path` as a one-line error: exit 2 for a wrong destination, 3 for the disk failing."""
     err = OutputError(
         f"{path}: cannot write: {e.strerror or e}", hint="give a writable file path with free space on its filesystem"

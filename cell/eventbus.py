@@ -19,6 +19,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Protocol
 
 from cell.events import Event, FrameLocated
 
@@ -112,7 +113,7 @@ class Subscription:
                     self._busy = False
                     self._cond.notify_all()
 
-    def _note(self, what: str, message: str, *args, exc: bool = False) -> None:
+    def _note(self, what: str, message: str, *args: object, exc: bool = False) -> None:
         now = time.monotonic()
         if now - self._last_log[what] >= _LOG_EVERY_S:
             self._last_log[what] = now
@@ -152,23 +153,29 @@ class Subscription:
             return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue))
 
 
+class RecordOwner(Protocol):
+    """What keeps a synchronous record (the audit log): its writes raise unless best effort."""
+
+    best_effort: bool
+
+
 class EventBus:
     """The one stream: `emit` from the runner or the service; records and subscribers listen."""
 
     def __init__(self) -> None:
-        self._records: list[Callable[[Event], None]] = []
+        self._records: list[Callable[[Event], object]] = []
         self._subs: tuple[Subscription, ...] = ()
         self._lock = threading.Lock()
         self._best_effort = False
-        self._record_objs: list[object] = []
+        self._record_objs: list[RecordOwner] = []
 
     # ---- listeners -----------------------------------------------------------------------
-    def add_record(self, record: Callable[[Event], None], owner: object | None = None) -> None:
+    def add_record(self, record: Callable[[Event], object], owner: RecordOwner | None = None) -> None:
         """A synchronous record (the audit log): `owner.best_effort` follows the bus's."""
         self._records.append(record)
         if owner is not None:
             self._record_objs.append(owner)
-            owner.best_effort = self._best_effort  # type: ignore[attr-defined]
+            owner.best_effort = self._best_effort
 
     def subscribe(
         self,
@@ -198,7 +205,7 @@ class EventBus:
     def best_effort(self, on: bool) -> None:
         self._best_effort = on
         for owner in self._record_objs:
-            owner.best_effort = on  # type: ignore[attr-defined]
+            owner.best_effort = on
 
     def emit(self, event: Event) -> None:
         """Records first (may raise: the record could not be kept), then every subscriber's queue."""

@@ -82,7 +82,7 @@ class Origin:
         where = f" from {self.address}" if self.address else ""
         return f"{who} ({self.role.value}) via {self.interface.value}{where}"
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         return {"interface": self.interface.value, "user": self.user, "role": self.role.value, "address": self.address}
 
 
@@ -130,7 +130,7 @@ class Event:
     time_utc: datetime = field(default_factory=utc_now, metadata=_NOT_RECORDED)
     job_id: str | None = field(default=None, metadata=_NOT_RECORDED)
 
-    def record(self) -> dict:
+    def record(self) -> dict[str, Any]:
         """The fields the audit log writes for this event (besides seq, time, kind, state, job)."""
         return {
             f.name: to_json(getattr(self, f.name)) for f in fields(self) if f.metadata.get("record", True) is not False
@@ -163,7 +163,7 @@ class ArmCommanded(Event):
 
     kind: ClassVar[str] = "arm"
     command: str
-    args: tuple = ()
+    args: tuple[float | None, ...] = ()  # the call's positional arguments (coordinates mm, angle deg)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -174,7 +174,7 @@ class FrameLocated(Event):
     frame: int
     locate_ms: float
     warnings: tuple[str, ...]
-    detections: tuple[dict, ...]
+    detections: tuple[dict[str, Any], ...]
     calibration_id: str = ""
     ref: FrameRef | None = field(default=None, metadata=_NOT_RECORDED)
 
@@ -263,7 +263,7 @@ class SafeStepDone(Event):
     ok: bool
     error: str | None = None
 
-    def record(self) -> dict:
+    def record(self) -> dict[str, Any]:
         out = super().record()
         if self.error is None:
             out.pop("error")
@@ -273,16 +273,16 @@ class SafeStepDone(Event):
 @dataclass(frozen=True, kw_only=True)
 class SimTruth(Event):
     kind: ClassVar[str] = "sim_truth"
-    where: dict
+    where: dict[str, Any]
 
 
 @dataclass(frozen=True, kw_only=True)
 class RunSummarized(Event):
     kind: ClassVar[str] = "summary"
-    summary: dict
+    summary: dict[str, Any]
 
-    def record(self) -> dict:
-        return to_json(self.summary)
+    def record(self) -> dict[str, Any]:
+        return {str(k): to_json(v) for k, v in self.summary.items()}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -301,13 +301,13 @@ class ConfigLoaded(Event):
     kind: ClassVar[str] = "config"
     source: str
     dry_run: bool
-    config: dict
+    config: dict[str, Any]
 
 
 @dataclass(frozen=True, kw_only=True)
 class ServiceStarted(Event):
     kind: ClassVar[str] = "service_start"
-    counters: dict
+    counters: dict[str, Any]
     calibration: str
     capture_interval_s: float
 
@@ -315,7 +315,7 @@ class ServiceStarted(Event):
 @dataclass(frozen=True, kw_only=True)
 class ServiceStopped(Event):
     kind: ClassVar[str] = "service_stop"
-    counters: dict
+    counters: dict[str, Any]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -329,7 +329,7 @@ class CommandHandled(Event):
     vision_state: str
     refusal: str = ""  # the refusal's code (cell.service.api.Refusal value)
     message: str = ""  # why, in words
-    arguments: dict = field(default_factory=dict)
+    arguments: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -348,7 +348,7 @@ class JobStarted(Event):
     mode: str  # single | continuous
     origin: Origin
     recipe: str = ""
-    arguments: dict = field(default_factory=dict)  # OPC 40100 MeasId, PartId, ProductId ...
+    arguments: dict[str, Any] = field(default_factory=dict)  # OPC 40100 MeasId, PartId, ProductId ...
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -357,7 +357,7 @@ class JobEnded(Event):
     mode: str
     outcome: str  # done | fault | stopped | halted
     reason: str
-    counts: dict
+    counts: dict[str, Any]
 
 
 @dataclass(frozen=True, kw_only=True)

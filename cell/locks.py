@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from cell.errors import CellError
+from drivers.arm.config import ArmConfig
 
 LOCK_DIR_ENV = "RUN_CELL_LOCK_DIR"
 
@@ -49,7 +50,7 @@ def holder_name() -> str:
 
 
 @contextlib.contextmanager
-def holding(resource: str | os.PathLike, what: str = "port", wait_s: float = 0.0) -> Iterator[Path]:
+def holding(resource: str | os.PathLike[str], what: str = "port", wait_s: float = 0.0) -> Iterator[Path]:
     """Hold the lock of `resource` for the block; Busy naming the holder if another process
     keeps it longer than `wait_s` (0: do not wait)."""
     resource = str(resource)
@@ -86,7 +87,7 @@ def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
             time.sleep(0.05)
 
 
-def camera_lock(camera_source: str | None) -> contextlib.AbstractContextManager:
+def camera_lock(camera_source: str | None) -> contextlib.AbstractContextManager[object]:
     """The lock of a camera device (an index is /dev/videoN); a file, folder, URL or the
     simulation needs none."""
     source = (camera_source or "").strip()
@@ -94,7 +95,7 @@ def camera_lock(camera_source: str | None) -> contextlib.AbstractContextManager:
     return holding(device, "camera") if device else contextlib.nullcontext()
 
 
-def device_locks(arm_cfg, camera_source: str | None = None) -> contextlib.ExitStack:
+def device_locks(arm_cfg: ArmConfig | None, camera_source: str | None = None) -> contextlib.ExitStack:
     """The locks of the configured arm's serial port and of a camera device (an index is
     /dev/videoN), for a `with` block; a mock arm and a file or URL camera need none."""
     stack = contextlib.ExitStack()

@@ -67,11 +67,11 @@ class LogRateLimiter:
     ) -> None:
         self.burst, self.window_s, self.max_kinds = burst, window_s, max_kinds
         self._clock = clock
-        self._windows: OrderedDict[tuple, _Window] = OrderedDict()
+        self._windows: OrderedDict[tuple[str, int, str, str], _Window] = OrderedDict()
         self._lock = threading.Lock()
 
     @staticmethod
-    def kind(record: logging.LogRecord) -> tuple:
+    def kind(record: logging.LogRecord) -> tuple[str, int, str, str]:
         exc = record.exc_info[0].__name__ if record.exc_info and record.exc_info[0] else ""
         return record.name, record.levelno, str(record.msg), exc
 

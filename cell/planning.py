@@ -11,8 +11,10 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from cell.calibration.store import write_json_atomic
 from cell.errors import CellError, InputError
@@ -44,18 +46,18 @@ class TableToRobot:
         a = math.radians(self.rotation_deg)
         return self.scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
 
-    def to_robot(self, table_xy_mm) -> np.ndarray:
+    def to_robot(self, table_xy_mm: npt.ArrayLike) -> np.ndarray:
         xy = np.asarray(table_xy_mm, dtype=np.float64).reshape(-1, 2)
         return xy @ self._matrix().T + (self.tx_mm, self.ty_mm)
 
-    def to_table(self, robot_xy_mm) -> np.ndarray:
+    def to_table(self, robot_xy_mm: npt.ArrayLike) -> np.ndarray:
         xy = np.asarray(robot_xy_mm, dtype=np.float64).reshape(-1, 2)
         return (xy - (self.tx_mm, self.ty_mm)) @ np.linalg.inv(self._matrix()).T
 
     def angle_to_robot(self, table_angle_deg: float) -> float:
         return wrap_jaw_deg(table_angle_deg + self.rotation_deg)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, float]:
         return {
             "rotation_deg": self.rotation_deg,
             "tx_mm": self.tx_mm,
@@ -93,7 +95,7 @@ def fit_table_to_robot(
     return fit, residuals
 
 
-def save_taught(path: Path, fit: TableToRobot, points: list[dict], residuals: np.ndarray) -> None:
+def save_taught(path: Path, fit: TableToRobot, points: list[dict[str, Any]], residuals: np.ndarray) -> None:
     write_json_atomic(
         path,
         {"schema": SCHEMA, "transform": fit.to_dict(), "points": points, "residuals_mm": [float(r) for r in residuals]},

@@ -70,6 +70,8 @@ class RecordFile:
 
     def _write(self, data: bytes) -> int:
         """The one system call that writes (tests inject a full disk here)."""
+        if self._fd is None:
+            raise OSError(errno.EBADF, f"{self.what} {self.path} is closed")
         return os.write(self._fd, data)
 
     def close(self) -> None:

@@ -26,7 +26,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -100,7 +100,7 @@ class Runner:
         controls: Controls | None = None,
         expect_motion: bool = True,
         progress: Callable[[str], None] | None = None,
-        truth: Callable[[], dict] | None = None,
+        truth: Callable[[], dict[str, Any]] | None = None,
         sim_motion_s: Callable[[], float] | None = None,
         drift_watch: Callable[[np.ndarray], object] | None = None,
         continuous_interval_s: float | None = None,
@@ -209,7 +209,7 @@ class Runner:
             ref=self.frame_ref,
         )
 
-    def _emit(self, kind: type[Event], **fields) -> None:
+    def _emit(self, kind: type[Event], **fields: Any) -> None:
         """One event of this job on the stream (its record written before this returns)."""
         self.events.emit(kind(job_id=self.job_id, **fields))
 
@@ -263,9 +263,9 @@ class Runner:
         steps: list[tuple[str, Callable[[], None]]] = [
             ("finish motion", lambda: self.arm.wait_until_idle(self.cfg.motion_timeout_s)),
         ]
-        if self.holding and self.target is not None:
-            bx, by, bz = self.target.bin_robot_mm
-            steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, self.target.approach_z_mm))))
+        if self.holding and (target := self.target) is not None:
+            bx, by, bz = target.bin_robot_mm
+            steps.append(("carry to bin", lambda: self.arm.move_to(bx, by, max(bz, target.approach_z_mm))))
             steps.append(("open gripper over bin", self._open_over_bin))
         elif not park_only:
             steps.append(("open gripper", self.arm.open_gripper))
@@ -307,11 +307,11 @@ class Runner:
             self.summary.arm_s += time.perf_counter() - t0
 
     # ---- devices, timed -------------------------------------------------------------
-    def _arm(self, method: str, *args, **kw) -> None:
+    def _arm(self, method: str, *args: float | None) -> None:
         self._emit(ArmCommanded, command=method, args=args)
         t0 = time.perf_counter()
         try:
-            getattr(self.arm, method)(*args, **kw)
+            getattr(self.arm, method)(*args)
         finally:
             self.summary.arm_s += time.perf_counter() - t0
 
@@ -327,7 +327,8 @@ class Runner:
     def _settle_released(self, state: State) -> None:
         """A part let go over its bin just before the job ended is verified on one more frame (the arm
         is parked out of view by now); where no frame can be had, it is recorded as placed, unverified."""
-        if self.track is None or not self.released:
+        track, target = self.track, self.target
+        if track is None or not self.released:
             return
         if state is not S.FAULT and self.expect_motion and self.camera.is_connected:
             try:
@@ -339,7 +340,6 @@ class Runner:
                 log.warning("the part released before the end could not be verified: %s", e)
             except Exception:
                 log.exception("verifying the part released before the end")
-        track, target = self.track, self.target
         self.track = None
         if target is not None:
             self._emit(
@@ -391,15 +391,16 @@ class Runner:
 
     def _locate(self) -> Step:
         t0 = time.perf_counter()
-        self.result = self.locate(self.frame)
+        frame = self._last_frame()
+        self.result = result = self.locate(frame)
         self.pick_order = None
         self.summary.locate_s += time.perf_counter() - t0
-        objects, warnings = self.result.objects, self.result.warnings
-        self.frame_ref = FrameRef(self.summary.frames, self.frame, self.result, self._captured_s)
+        objects, warnings = result.objects, result.warnings
+        self.frame_ref = FrameRef(self.summary.frames, frame, result, self._captured_s)
         self._emit(
             FrameLocated,
             frame=self.summary.frames,
-            locate_ms=round(self.result.elapsed_ms, 3),
+            locate_ms=round(result.elapsed_ms, 3),
             warnings=tuple(warnings),
             detections=tuple(_detection(o) for o in objects),
             calibration_id=self.calibration_id(),
@@ -414,9 +415,9 @@ class Runner:
         return S.PLAN, why
 
     def _verify(self) -> Step:
-        track, target = self.track, self.target
+        target, track = self._attempt()
         self.track = None
-        still = self.tracker.near(track, self.result.objects)
+        still = self.tracker.near(track, self._last_result().objects)
         if not self.expect_motion:
             track.status, result = PartStatus.REHEARSED, "rehearsed"
             self.summary.rehearsed += 1
@@ -464,7 +465,7 @@ class Runner:
 
     def _plan(self) -> Step:
         if self.drift_watch is not None:  # the camera must still be where it was calibrated
-            self.drift_watch(self.frame)
+            self.drift_watch(self._last_frame())
         if (n := self.summary.attempts - self._attempt_mark) >= self.cfg.max_attempts_total:
             since = " since the last pick or clear table" if self.continuous_interval_s is not None else ""
             return S.FAULT, f"safety stop: {plural(n, 'pick attempt')}{since} (run.max_attempts_total)"
@@ -483,7 +484,7 @@ class Runner:
 
     def _choose(self) -> list[tuple[LocatedPart, Track]]:
         """The last frame's pickable parts still pending, in the planner's order from where the arm is."""
-        pickable = [o for o in self.result.objects if o.pick]
+        pickable = [o for o in self._last_result().objects if o.pick]
         seen = [self.tracker.track_for(o) for o in pickable]
         pending = {id(o): (o, t) for o, t in zip(pickable, seen, strict=True) if t.status is PartStatus.PENDING}
         if self.continuous_interval_s is not None:  # forget parts gone from the table: a shift leaks nothing
@@ -512,7 +513,8 @@ class Runner:
         except (Unreachable, OutOfReach) as e:
             track.status = PartStatus.UNREACHABLE
             self.summary.unreachable += 1
-            self.pick_order.remove(part.id)  # skipped: it gets no number on the screen
+            if self.pick_order is not None:
+                self.pick_order.remove(part.id)  # skipped: it gets no number on the screen
             self._emit(PartUnreachable, track=track.id, cls=part.cls, table_mm=part.table_mm, reason=str(e))
             self.progress(
                 f"part {track.id} {part.cls} at table ({part.table_mm[0]:.1f}, {part.table_mm[1]:.1f}) mm: "
@@ -544,23 +546,23 @@ class Runner:
         )
 
     def _pick(self) -> Step:
-        t = self.target
+        t, track = self._attempt()
         x, y, z = t.robot_mm
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
         self._arm("move_to", x, y, z, t.jaw_angle_deg)
         self._arm("close_gripper")
         self.holding = True
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
-        return S.PLACE, f"part {self.track.id} gripped at robot ({x:.1f}, {y:.1f}, {z:.1f}) mm"
+        return S.PLACE, f"part {track.id} gripped at robot ({x:.1f}, {y:.1f}, {z:.1f}) mm"
 
     def _place(self) -> Step:
-        t = self.target
+        t, track = self._attempt()
         bx, by, bz = t.bin_robot_mm
         self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
         self._arm("move_to", bx, by, bz)
         self._release()
         self._arm("move_to", bx, by, max(bz, t.approach_z_mm))
-        return S.CAPTURE, f"part {self.track.id} released over the {t.cls} bin"
+        return S.CAPTURE, f"part {track.id} released over the {t.cls} bin"
 
     def _paused(self) -> Step:
         self.progress("paused at a safe point")
@@ -583,6 +585,25 @@ class Runner:
         self.controls.wake.clear()
         return S.CAPTURE, f"waited up to {self.continuous_interval_s:g} s for parts"
 
+    # ---- what a state needs from the ones before it ----------------------------------
+    def _last_frame(self) -> np.ndarray:
+        """The frame CAPTURE took (LOCATE and PLAN come after it)."""
+        if self.frame is None:
+            raise RuntimeError(f"{self.sm.state.name} before any frame was captured")
+        return self.frame
+
+    def _last_result(self) -> LocateResult:
+        """What LOCATE found on the last frame (VERIFY and PLAN come after it)."""
+        if self.result is None:
+            raise RuntimeError(f"{self.sm.state.name} before any frame was located")
+        return self.result
+
+    def _attempt(self) -> tuple[Target, Track]:
+        """The pick in progress, chosen by PLAN (PICK, PLACE and VERIFY come after it)."""
+        if self.target is None or self.track is None:
+            raise RuntimeError(f"{self.sm.state.name} without a pick in progress")
+        return self.target, self.track
+
     def _pick_line(self, t: Target, track: Track, result: str) -> str:
         s = self.summary
         angle = "" if t.jaw_angle_deg is None else f", jaws {t.jaw_angle_deg:+.1f} deg"
@@ -594,7 +615,7 @@ class Runner:
         )
 
 
-def _detection(o: LocatedPart) -> dict:
+def _detection(o: LocatedPart) -> dict[str, Any]:
     return {
         "id": o.id,
         "cls": o.cls,

@@ -14,10 +14,16 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from types import FrameType
+from typing import Any
 
 STOP_SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 EXIT_STOPPED = 130
+
+
+# What signal.signal returns: the handler it replaced.
+_Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
 
 class StopRequested(KeyboardInterrupt):
@@ -31,7 +37,7 @@ class StopRequested(KeyboardInterrupt):
 class Controls:
     """Operator requests, safe to set from another thread or a signal handler."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.stop = threading.Event()  # the safe stop (signals, Halt): arm safe, torque released
         self.pause = threading.Event()
         self.finish = threading.Event()  # the line service's Stop: end the job at the next safe point, arm homed
@@ -83,12 +89,12 @@ def handling_signals(controls: Controls | None = None, install: bool = True) -> 
     if not install:
         yield controls
         return
-    previous = {}
+    previous: dict[signal.Signals, _Handler] = {}
 
-    def on_stop(signum, _frame):
+    def on_stop(signum: int, _frame: FrameType | None) -> None:
         controls.request_stop(STOP_SIGNALS[signal.Signals(signum)])
 
-    def on_pause(_signum, _frame):
+    def on_pause(_signum: int, _frame: FrameType | None) -> None:
         controls.toggle_pause()
 
     for sig in STOP_SIGNALS:

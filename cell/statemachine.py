@@ -16,7 +16,7 @@ import ast
 import inspect
 import itertools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, MutableSequence
 from dataclasses import dataclass
 from enum import Enum
 
@@ -92,7 +92,7 @@ class StateMachine:
 
     def __init__(self, listeners: list[Callable[[Transition], None]] | None = None):
         self.state = S.IDLE
-        self.history: list[Transition] = []
+        self.history: MutableSequence[Transition] = []  # a runner may bound it (a deque)
         self.listeners = list(listeners or [])
 
     @property
@@ -136,11 +136,18 @@ def markdown() -> str:
 def _state_docs() -> dict[State, str]:
     """Enum members cannot carry docstrings; read the string after each member from the source."""
     tree = ast.parse(inspect.getsource(State))
-    body = tree.body[0].body
+    cls = tree.body[0]
+    assert isinstance(cls, ast.ClassDef)
     docs = {}
-    for stmt, nxt in itertools.pairwise(body):
-        if isinstance(stmt, ast.Assign) and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
-            docs[State[stmt.targets[0].id]] = nxt.value.value
+    for stmt, nxt in itertools.pairwise(cls.body):
+        if (
+            isinstance(stmt, ast.Assign)
+            and isinstance(name := stmt.targets[0], ast.Name)
+            and isinstance(nxt, ast.Expr)
+            and isinstance(nxt.value, ast.Constant)
+            and isinstance(doc := nxt.value.value, str)
+        ):
+            docs[State[name.id]] = doc
     return docs
 
 

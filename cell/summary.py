@@ -5,9 +5,12 @@ be checked against each other (a summary that disagrees with its log is a bug).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 from cell.wording import plural
 
+# picked: per class; every other key a number.
+Counts = dict[str, int | dict[str, int]]
 COUNT_KEYS = ("picked", "misses", "retries", "failed", "unreachable", "rehearsed", "attempts", "unknown_left")
 
 
@@ -45,10 +48,10 @@ class Summary:
     def motion_s_per_pick(self) -> float:
         return (self.motion_sim_s or self.arm_s) / max(self.attempts, 1)
 
-    def counts(self) -> dict:
+    def counts(self) -> Counts:
         return {k: getattr(self, k) for k in COUNT_KEYS}
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d.update(
             software_ms_per_pick=round(self.software_ms_per_pick, 3),
@@ -81,10 +84,10 @@ class Summary:
         return out
 
 
-def counts_from_log(events: list[dict]) -> dict:
+def counts_from_log(events: list[dict[str, Any]]) -> Counts:
     """The summary's counts, recomputed from the log's pick events alone."""
-    c = {k: 0 for k in COUNT_KEYS}
-    c["picked"] = {}
+    c = dict.fromkeys(COUNT_KEYS, 0)
+    picked: dict[str, int] = {}
     for e in events:
         kind = e["kind"]
         if kind == "target":
@@ -92,7 +95,7 @@ def counts_from_log(events: list[dict]) -> dict:
             c["retries"] += e["attempt"] > 1
         elif kind == "verify":
             if e["result"] == "picked":
-                c["picked"][e["cls"]] = c["picked"].get(e["cls"], 0) + 1
+                picked[e["cls"]] = picked.get(e["cls"], 0) + 1
             elif e["result"] == "missed":
                 c["misses"] += 1
             elif e["result"] == "rehearsed":
@@ -104,4 +107,4 @@ def counts_from_log(events: list[dict]) -> dict:
     frames = [e for e in events if e["kind"] == "frame"]
     if frames:
         c["unknown_left"] = sum(1 for d in frames[-1]["detections"] if not d["pick"])
-    return c
+    return {**c, "picked": picked}

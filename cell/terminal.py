@@ -58,7 +58,7 @@ class StdoutGuard:
 def guarded_stdout() -> Iterator[StdoutGuard]:
     """sys.stdout guarded for a block; `lost` on the guard says whether output was cut short."""
     guard = StdoutGuard(sys.stdout)
-    sys.stdout = guard  # type: ignore[assignment]
+    sys.stdout = guard
     try:
         yield guard
     finally:

@@ -58,7 +58,7 @@ class Tracker:
         if best is None:
             best = Track(next(self._ids), part.cls, part.table_mm)
             self.tracks.append(best)
-        best.table_mm = tuple(part.table_mm)
+        best.table_mm = (part.table_mm[0], part.table_mm[1])
         return best
 
     def near(self, track: Track, objects: list[LocatedPart]) -> list[LocatedPart]:

@@ -96,7 +96,8 @@ def cmd_jog(args: argparse.Namespace) -> int:
         raise InputError("--angle goes with --to X Y Z")
     with arm_only(_config(args), getattr(args, "arm", None), getattr(args, "port", None)) as arm:
         if args.to is not None:
-            arm.check_target(*args.to, args.angle)  # refuse before connecting, let alone moving
+            x_mm, y_mm, z_mm = args.to
+            arm.check_target(x_mm, y_mm, z_mm, args.angle)  # refuse before connecting, let alone moving
         with arm:  # the port is ours alone before anything is sent on it
             jog(arm, tuple(args.to) if args.to else None, args.angle, args.gripper)
             print(_describe(arm))

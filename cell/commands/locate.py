@@ -47,6 +47,7 @@ def cmd_locate(args: argparse.Namespace) -> int:
     parts = config.parts
     if args.preset:
         parts = parts.model_copy(update={"preset": args.preset})
+    mapper: Calibration | PixelScale
     if args.calibration is not None:
         mapper = Calibration.load(args.calibration)
     else:

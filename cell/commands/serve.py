@@ -13,7 +13,7 @@ import signal
 import socket
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import get_args
+from typing import Protocol, get_args
 
 from cell.assembly import Overrides, assemble, attach_consumers, cell_config
 from cell.config import CellConfig
@@ -148,6 +148,22 @@ def _check_port_free(host: str, port: int, option: str) -> None:
             ) from None
 
 
+class ServiceInterface(Protocol):
+    """What `_serve` starts and stops: OPC UA, the screen."""
+
+    @property
+    def starting_text(self) -> str:
+        """What is being started, said before start()."""
+
+    @property
+    def ready_text(self) -> str:
+        """Where it listens, once started."""
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+
 def toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
     command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
@@ -174,7 +190,11 @@ async def _serve(config: CellConfig, service: LineService) -> int:
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
     throttle = LoginThrottle(config.service.login)  # one login throttle for both interfaces
-    interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
+    interfaces: list[ServiceInterface] = [
+        OpcUaServer(service, config, throttle),
+        ScreenInterface(service, config, throttle),
+    ]
+    started: list[ServiceInterface] = []
     safe = True
     try:
         for interface in interfaces:
