@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPO))
 import httpx  # noqa: E402
 from asyncua import Client, ua  # noqa: E402
 
+from cell.service.ua_values import node_id  # noqa: E402
 from tests.probes import (  # noqa: E402
     Credentials,
     ProbeServer,
@@ -65,7 +66,7 @@ async def opcua_reads(url: str, seconds: float, credentials: Credentials | None 
     await client.connect()
     try:
         ns = await client.get_namespace_index("urn:pick-cell")
-        node = client.get_node(ua.NodeId("Heartbeat", ns))
+        node = client.get_node(node_id("Heartbeat", ns))
         out, end = [], time.monotonic() + seconds
         while time.monotonic() < end:
             t0 = time.monotonic()

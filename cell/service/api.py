@@ -207,7 +207,7 @@ class JobRequest:
     meas_id: str = ""
     parameters: tuple[tuple[str, str], ...] = ()
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: v for k, v in self.__dict__.items() if v and k != "parameters"}
         if self.parameters:
             out["parameters"] = dict(self.parameters)
@@ -221,7 +221,7 @@ class RecipeRequest:
     recipe_id: str
     content: str = ""
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         return {"recipe_id": self.recipe_id, **({"content_bytes": len(self.content)} if self.content else {})}
 
 
@@ -301,7 +301,7 @@ class Snapshot:
     recipe: str = ""  # the prepared recipe's id
     simulated: bool = False  # a dry run: the simulated cell, or a mock arm over a real table
     shift: str = ""  # the shift the counters count (e.g. 2026-12-01 early)
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

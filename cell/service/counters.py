@@ -4,22 +4,23 @@ cell.summary.counts_from_log, so reading the shift's log back after a restart gi
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 from cell.service.api import Counters
 
 
 class ShiftCounts:
-    def __init__(self):
+    def __init__(self) -> None:
         self.picked: dict[str, int] = {}
         self.misses = self.retries = self.failed = self.unreachable = self.unknown_left = self.attempts = 0
 
-    def apply(self, e: dict) -> bool:
+    def apply(self, e: dict[str, Any]) -> bool:
         """Count one audit event; True when a counter changed."""
         kind = e.get("kind")
         if kind == "target":
             self.attempts += 1
             self.retries += e["attempt"] > 1
-            return e["attempt"] > 1
+            return bool(e["attempt"] > 1)
         if kind == "verify":
             if e["result"] == "picked":
                 self.picked[e["cls"]] = self.picked.get(e["cls"], 0) + 1
@@ -35,7 +36,7 @@ class ShiftCounts:
         return False
 
     @classmethod
-    def from_events(cls, events: Iterable[dict]) -> ShiftCounts:
+    def from_events(cls, events: Iterable[dict[str, Any]]) -> ShiftCounts:
         counts = cls()
         for e in events:
             counts.apply(e)

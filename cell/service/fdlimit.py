@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import logging
 import resource
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from cell.service.config import ServiceConfig
 
 log = logging.getLogger(__name__)
 
@@ -21,12 +24,12 @@ ACCEPTED_AT_ONCE = 32 + 100  # sockets asyncio accepts in one go before their ca
 COMFORTABLE = 8192  # what the soft limit is raised to when it can (LimitNOFILE in configs/pick-cell.service)
 
 
-def needed_descriptors(service: Any) -> int:
+def needed_descriptors(service: ServiceConfig) -> int:
     """What the service may hold at most: its clients' caps, what is accepted before a cap applies, the cell's own."""
     return service.web.max_connections + service.opcua_limits.max_connections + ACCEPTED_AT_ONCE + BASE_DESCRIPTORS
 
 
-def check_open_files(service: Any) -> str | None:
+def check_open_files(service: ServiceConfig) -> str | None:
     """Raise the soft limit if it is below what the service needs and the hard limit allows;
     a warning (logged, and returned) if it stays below."""
     needed = needed_descriptors(service)

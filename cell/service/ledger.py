@@ -12,6 +12,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
+from typing import Any
 
 from cell.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
 from cell.service.api import Counters, PickRecord
@@ -45,7 +46,7 @@ class PickRecords:
 
 
 class Ledger:
-    def __init__(self, history: Iterable[dict] = (), on_change: Callable[[str], None] = lambda what: None):
+    def __init__(self, history: Iterable[dict[str, Any]] = (), on_change: Callable[[str], None] = lambda what: None):
         self._lock = threading.Lock()
         self._counts = ShiftCounts.from_events(history)
         self._day = _utc_day(datetime.now(UTC))
@@ -83,7 +84,7 @@ class Ledger:
         with self._lock:
             return self._counts.counters()
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, int]:
         return dict(self.counters().__dict__)
 
     def last_picks(self) -> tuple[PickRecord, ...]:

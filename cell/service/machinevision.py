@@ -40,9 +40,11 @@ from typing import Any
 
 from asyncua import Node, Server, ua
 from asyncua.common.instantiate_util import instantiate
+from asyncua.server.event_generator import EventGenerator
 from asyncua.server.internal_session import InternalSession
 
 from cell.config import CellConfig
+from cell.eventbus import Subscription
 from cell.events import (
     AlarmCleared,
     AlarmRaised,
@@ -82,6 +84,7 @@ from cell.service.results import (
     ResultStore,
     VisionResult,
 )
+from cell.service.ua_values import mv_struct, node_id, status
 
 log = logging.getLogger(__name__)
 
@@ -155,10 +158,10 @@ EVENT_KINDS = (
 )
 _RECIPE_COMMANDS = {Command.ADD_RECIPE, Command.REMOVE_RECIPE, Command.PREPARE_RECIPE, Command.UNPREPARE_RECIPE}
 _CHILD_REFS = {
-    ua.NodeId(i) for i in (ua.ObjectIds.HasComponent, ua.ObjectIds.HasProperty, ua.ObjectIds.HasOrderedComponent)
+    node_id(i) for i in (ua.ObjectIds.HasComponent, ua.ObjectIds.HasProperty, ua.ObjectIds.HasOrderedComponent)
 }
-_STATE_TYPES = {ua.NodeId(ua.ObjectIds.StateType), ua.NodeId(ua.ObjectIds.InitialStateType)}
-_TRANSITION_TYPE = ua.NodeId(ua.ObjectIds.TransitionType)
+_STATE_TYPES = {node_id(ua.ObjectIds.StateType), node_id(ua.ObjectIds.InitialStateType)}
+_TRANSITION_TYPE = node_id(ua.ObjectIds.TransitionType)
 _HANDLES_KEPT = 1000  # result and recipe handles a client has not released; the oldest go first
 _RESULT_WAIT_MAX_S = 10.0  # the longest GetResultById waits for a result still being made
 _FILE_MAX_BYTES = 64 * 1024  # a recipe written through a Handle
@@ -206,8 +209,8 @@ def _remember_caller() -> None:
         finally:
             _caller.reset(token)
 
-    call._pick_cell = True  # type: ignore[attr-defined]
-    InternalSession.call = call  # type: ignore[method-assign]
+    call._pick_cell = True  # type: ignore[attr-defined]  # a mark on the function: patched once
+    InternalSession.call = call  # type: ignore[method-assign]  # asyncua's method, wrapped on purpose
 
 
 def _version() -> str:
@@ -262,8 +265,8 @@ class MachineVisionServer:
         self._place = ("", "")
         self._queue: deque[Event | VisionResult] = deque(maxlen=10000)
         self._wake: asyncio.Event | None = None
-        self._task: asyncio.Task | None = None
-        self._subscription: Any = None
+        self._task: asyncio.Task[None] | None = None
+        self._subscription: Subscription | None = None
         self._last_command: Command | None = None
         self._failing: set[str] = set()
         self._tries = 0
@@ -272,8 +275,8 @@ class MachineVisionServer:
         self._transfers: dict[ua.NodeId, _Transfer] = {}
         self._safety = (False, "")
         self._ns: dict[str, int] = {}
-        self._generators: dict[str, Any] = {}
-        self._background: set[asyncio.Task] = set()
+        self._generators: dict[str, EventGenerator] = {}
+        self._background: set[asyncio.Task[None]] = set()
 
     # ---- start and stop ---------------------------------------------------------------
     async def start(self) -> None:
@@ -323,11 +326,11 @@ class MachineVisionServer:
 
     async def _build_nodes(self) -> None:
         mv, app = self._ns["mv"], self._ns["app"]
-        vs_type = self.server.get_node(ua.NodeId(1003, mv))  # VisionSystemType
+        vs_type = self.server.get_node(node_id(1003, mv))  # VisionSystemType
         if (await vs_type.read_browse_name()).Name != "VisionSystemType":
             raise RuntimeError("the Machine Vision NodeSet is not loaded (mv_addressspace.init_server_with_models)")
         self.node = await self.server.nodes.objects.add_object(
-            ua.NodeId("VisionSystem", app),
+            node_id("VisionSystem", app),
             ua.QualifiedName("VisionSystem", app),
             vs_type.nodeid,
             instantiate_optional=True,
@@ -351,11 +354,14 @@ class MachineVisionServer:
             await self._state_variables(key)
         await self._read_type_states()
         await self._identification()
-        transition = ua.NodeId(ua.ObjectIds.TransitionEventType)
+        transition = node_id(ua.ObjectIds.TransitionEventType)
+        assert self.node is not None  # built by _build_nodes
         self._generators = {
-            "vsm": await self.server.get_event_generator(transition, self._n["vsm"]),
-            "auto": await self.server.get_event_generator(transition, self._n["auto"]),
-            "result": await self.server.get_event_generator(ua.NodeId(1024, mv), self.node),  # ResultReadyEventType
+            "vsm": await self.server.get_event_generator(transition, self._n["vsm"].nodeid),
+            "auto": await self.server.get_event_generator(transition, self._n["auto"].nodeid),
+            "result": await self.server.get_event_generator(
+                node_id(1024, mv), self.node.nodeid
+            ),  # ResultReadyEventType
         }
         await self._n["diagnostic_level"].write_value(ua.Variant(0, _T.UInt16))
         await self._read_only()
@@ -366,11 +372,15 @@ class MachineVisionServer:
         """No client writes any variable (the NodeSet declares some writable): state is the cell's,
         changed only through the methods and their command table."""
         aspace, app = self.server.iserver.aspace, self._ns["app"]
-        read = ua.DataValue(ua.Variant(ua.AccessLevel.CurrentRead.mask, _T.Byte))
+        mask = ua.AccessLevel.CurrentRead.mask
+        read = ua.DataValue(ua.Variant(mask, _T.Byte))
         for nid in [n for n in aspace.keys() if n.NamespaceIndex == app]:
             attrs = aspace[nid].attributes
             for attr in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
-                if attr in attrs and attrs[attr].value.Value.Value != read.Value.Value:
+                if attr not in attrs:
+                    continue
+                now = attrs[attr].value
+                if now is None or now.Value is None or now.Value.Value != mask:  # no value yet: read-only too
                     await self.server.write_attribute_value(nid, read, attr)
 
     async def _prune(self, roots: list[Node]) -> None:
@@ -399,14 +409,14 @@ class MachineVisionServer:
         current = await machine.get_child(["0:CurrentState"])
         if not await _has_child(current, "0:Number"):
             await current.add_property(
-                ua.NodeId(f"{base}.CurrentState.Number", app), ua.QualifiedName("Number", 0), ua.Variant(0, _T.UInt32)
+                node_id(f"{base}.CurrentState.Number", app), ua.QualifiedName("Number", 0), ua.Variant(0, _T.UInt32)
             )
         if not await _has_child(machine, "0:LastTransition"):
-            transition_type = self.server.get_node(ua.NodeId(ua.ObjectIds.FiniteTransitionVariableType))
+            transition_type = self.server.get_node(node_id(ua.ObjectIds.FiniteTransitionVariableType))
             await instantiate(
                 machine,
                 transition_type,
-                nodeid=ua.NodeId(f"{base}.LastTransition", app),
+                nodeid=node_id(f"{base}.LastTransition", app),
                 bname=ua.QualifiedName("LastTransition", 0),
                 instantiate_optional=True,
             )
@@ -425,9 +435,7 @@ class MachineVisionServer:
         """The specification's states and transitions (nodes of the types) by BrowseName, with their numbers."""
         mv = self._ns["mv"]
         for type_id in (1017, 1021):  # VisionStateMachineType, VisionAutomaticModeStateMachineType
-            for child in await self.server.get_node(ua.NodeId(type_id, mv)).get_children(
-                refs=ua.ObjectIds.HasComponent
-            ):
+            for child in await self.server.get_node(node_id(type_id, mv)).get_children(refs=ua.ObjectIds.HasComponent):
                 tdef = await child.read_type_definition()
                 if tdef not in _STATE_TYPES and tdef != _TRANSITION_TYPE:
                     continue
@@ -441,13 +449,13 @@ class MachineVisionServer:
         di = self._ns["di"]
         assert self.node is not None
         ident = await self.node.add_object(
-            ua.NodeId("VisionSystem.Identification", self._ns["app"]),
+            node_id("VisionSystem.Identification", self._ns["app"]),
             ua.QualifiedName("Identification", di),
-            ua.NodeId(1005, di),  # FunctionalGroupType
+            node_id(1005, di),  # FunctionalGroupType
             instantiate_optional=False,
         )
         for interface in (15035, 15048):  # IVendorNameplateType, ITagNameplateType
-            await ident.add_reference(ua.NodeId(interface, di), ua.ObjectIds.HasInterface)
+            await ident.add_reference(node_id(interface, di), ua.ObjectIds.HasInterface)
         mv = self.mv
         serial = mv.serial_number
         props: list[tuple[str, Any, ua.VariantType]] = [
@@ -462,7 +470,7 @@ class MachineVisionServer:
         ]
         for name, value, vtype in props:
             await ident.add_property(
-                ua.NodeId(f"VisionSystem.Identification.{name}", self._ns["app"]),
+                node_id(f"VisionSystem.Identification.{name}", self._ns["app"]),
                 ua.QualifiedName(name, di),
                 ua.Variant(value, vtype),
             )
@@ -479,16 +487,16 @@ class MachineVisionServer:
                 return await handler(*values)
             except MethodError as e:
                 log.info("OPC UA %s refused: %s", name, e)
-                return ua.StatusCode(e.status)
+                return status(e.status)
             except CommandRefused as e:
-                status = next(
+                code = next(
                     (s for cls, s in REFUSAL_STATUS.items() if isinstance(e, cls)), ua.StatusCodes.BadInvalidState
                 )
                 log.info("OPC UA %s refused (%s): %s", name, e.reason.value, e)
-                return ua.StatusCode(status)
+                return status(code)
             except (TypeError, ValueError, AttributeError) as e:  # arguments of the wrong number or type
                 log.warning("OPC UA %s: arguments not understood: %s: %s", name, type(e).__name__, e)
-                return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+                return status(ua.StatusCodes.BadInvalidArgument)
 
         return call
 
@@ -537,7 +545,7 @@ class MachineVisionServer:
         if request.recipe_id and not _valid_id(request.recipe_id):
             _bad(f"RecipeId {request.recipe_id!r}")
         job_id = self._command(command, request) or ""
-        return [ua.Variant(ua.JobIdDataType(Id=job_id), _T.ExtensionObject), ua.Variant(0, _T.Int32)]
+        return [ua.Variant(mv_struct("JobIdDataType")(Id=job_id), _T.ExtensionObject), ua.Variant(0, _T.Int32)]
 
     async def _start_single(self, *args: Any) -> list[ua.Variant]:
         return await self._start(Command.START_SINGLE, list(args))
@@ -663,13 +671,13 @@ class MachineVisionServer:
     async def _recipe_node(self, recipe_id: str, pending: bool = False) -> Node:
         """The RecipeType object for `recipe_id` in Recipes, made if missing, with its Handle bound."""
         folder, app = self._n["recipe_folder"], self._ns["app"]
-        nid = ua.NodeId(f"VisionSystem.Recipes.{recipe_id}", app)
+        nid = node_id(f"VisionSystem.Recipes.{recipe_id}", app)
         node = self.server.get_node(nid)
         with contextlib.suppress(ua.UaStatusCodeError):
             await node.read_browse_name()
             return node
         node = await folder.add_object(
-            nid, ua.QualifiedName(recipe_id, app), ua.NodeId(1002, self._ns["mv"]), instantiate_optional=True
+            nid, ua.QualifiedName(recipe_id, app), node_id(1002, self._ns["mv"]), instantiate_optional=True
         )
         for name in ("LinkProduct", "UnlinkProduct", "LinkedProducts"):
             with contextlib.suppress(ua.UaStatusCodeError):
@@ -694,7 +702,7 @@ class MachineVisionServer:
         self.server.link_method(await node.get_child([f"{mv}:Prepare"]), self._wrap("Prepare", prepare))
         self.server.link_method(await node.get_child([f"{mv}:Unprepare"]), self._wrap("Unprepare", unprepare))
         handle = await node.get_child([f"{mv}:Handle"])
-        file_methods = {
+        file_methods: dict[str, Callable[..., Awaitable[list[ua.Variant]]]] = {
             "Open": self._file_open,
             "Write": self._file_write,
             "Read": self._file_read,
@@ -971,7 +979,9 @@ class MachineVisionServer:
             description = f"{description}: {s.alarm.reason}"
         elif s.hold:
             description = f"{description}: {s.hold}"
-        value = ua.SystemStateDescriptionDataType(State=ua.SystemStateDataType(state), StateDescription=description)
+        value = mv_struct("SystemStateDescriptionDataType")(
+            State=mv_struct("SystemStateDataType")(state), StateDescription=description
+        )
         if self._written.get("system_state") != (state, description):
             await self._n["system_state"].write_value(ua.Variant(value, _T.ExtensionObject))
             self._written["system_state"] = (state, description)
@@ -1010,7 +1020,8 @@ class MachineVisionServer:
                 sub0 = "Initialized"
         if top1 == "Operational" and sub1 and sub0 != sub1:
             if sub0 in ("SingleExecution", "ContinuousExecution") and sub1 == "Ready":
-                kind = {Command.STOP: "Stop", Command.ABORT: "Abort"}.get(method, "Auto")  # type: ignore[arg-type]
+                kinds: dict[Command | None, str] = {Command.STOP: "Stop", Command.ABORT: "Abort"}
+                kind = kinds.get(method, "Auto")
                 name = f"{sub0}ToReady{kind}"
             else:
                 starts = {"SingleExecution": Command.START_SINGLE, "ContinuousExecution": Command.START_CONTINUOUS}
@@ -1058,7 +1069,7 @@ class MachineVisionServer:
         ev.Message = ua.LocalizedText(f"{source} -> {target} ({name})")
         ev.Severity = 100
         state_id = self._states.get
-        for field, value, vtype in (
+        for field, field_value, vtype in (
             ("Transition", ua.LocalizedText(name), _T.LocalizedText),
             ("Transition/Id", nid, _T.NodeId),
             ("FromState", ua.LocalizedText(source), _T.LocalizedText),
@@ -1066,7 +1077,7 @@ class MachineVisionServer:
             ("ToState", ua.LocalizedText(target), _T.LocalizedText),
             ("ToState/Id", state_id(target, (ua.NodeId(), 0))[0], _T.NodeId),
         ):
-            ev.add_property(field, value, vtype)  # the value and its type: asyncua wraps it in a Variant
+            ev.add_property(field, field_value, vtype)  # the value and its type: asyncua wraps it in a Variant
         await gen.trigger(now)
 
     async def _fire_result(self, r: VisionResult) -> None:

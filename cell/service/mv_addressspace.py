@@ -41,11 +41,12 @@ from typing import Any
 
 import asyncua
 from asyncua import Server, ua
-from asyncua.server.address_space import AttributeValue
+from asyncua.server.address_space import AddressSpace, AttributeValue, NodeData
 
 from cell.atomicfile import write_bytes_atomic
 from cell.errors import OutputError
 from cell.service.mv_config import MachineVisionConfig
+from cell.service.ua_values import node_id
 
 log = logging.getLogger(__name__)
 
@@ -175,15 +176,15 @@ def _forget_aliases(server: Server) -> None:
             ua.extension_objects_by_datatype.pop(nid, None)
 
 
-def _parent(ndata: Any) -> ua.NodeId | None:
+def _parent(ndata: NodeData) -> ua.NodeId | None:
     return next((r.NodeId for r in ndata.references if r.ReferenceTypeId == _HAS_SUBTYPE and not r.IsForward), None)
 
 
-def _structure_base(aspace: Any, parent: ua.NodeId | None) -> ua.StructureDefinition | None:
+def _structure_base(aspace: AddressSpace, parent: ua.NodeId | None) -> ua.StructureDefinition | None:
     """The parent's definition if the parent is a structure (Structure itself: an empty one)."""
     if parent is None:
         return None
-    if parent == ua.NodeId(ua.ObjectIds.Structure):
+    if parent == node_id(ua.ObjectIds.Structure):
         return ua.StructureDefinition(BaseDataType=parent, StructureType=ua.StructureType.Structure, Fields=[])
     if parent not in aspace:
         return None
@@ -191,19 +192,20 @@ def _structure_base(aspace: Any, parent: ua.NodeId | None) -> ua.StructureDefini
     return sdef if isinstance(sdef, ua.StructureDefinition) else None
 
 
-def _default_encoding(aspace: Any, ndata: Any) -> ua.NodeId:
+def _default_encoding(aspace: AddressSpace, ndata: NodeData) -> ua.NodeId:
     for r in ndata.references:
-        if r.ReferenceTypeId == _HAS_ENCODING and r.IsForward and r.NodeId in aspace:
-            if _attr(aspace[r.NodeId], ua.AttributeIds.BrowseName).Name == "Default Binary":
-                return r.NodeId
+        target: ua.NodeId = r.NodeId  # an ExpandedNodeId; asyncua's annotation of the field reads as Any
+        if r.ReferenceTypeId == _HAS_ENCODING and r.IsForward and target in aspace:
+            if _attr(aspace[target], ua.AttributeIds.BrowseName).Name == "Default Binary":
+                return target
     return ua.NodeId()
 
 
-_HAS_ENCODING = ua.NodeId(ua.ObjectIds.HasEncoding)
-_HAS_SUBTYPE = ua.NodeId(ua.ObjectIds.HasSubtype)
+_HAS_ENCODING = node_id(ua.ObjectIds.HasEncoding)
+_HAS_SUBTYPE = node_id(ua.ObjectIds.HasSubtype)
 
 
-def _attr(ndata: Any, attr: ua.AttributeIds) -> Any:
+def _attr(ndata: NodeData, attr: ua.AttributeIds) -> Any:
     a = ndata.attributes.get(attr)
     return None if a is None or a.value is None or a.value.Value is None else a.value.Value.Value
 
@@ -258,7 +260,7 @@ def _holds_generated(value: Any) -> bool:
 
 
 @contextlib.contextmanager
-def _values_swapped(aspace: Any) -> Iterator[None]:
+def _values_swapped(aspace: AddressSpace) -> Iterator[None]:
     """While inside: the address space's values of generated classes are placeholders, and no
     method has its callback (asyncua's own dump drops them too; they are bound again at start)."""
     swapped: list[tuple[Any, Any]] = []
@@ -337,7 +339,7 @@ def _write_cache(server: Server, path: Path, namespaces: dict[str, int]) -> None
     log.info("address space cache written: %s (%d kB)", path, len(payload) // 1024)
 
 
-def read_cache(path: Path) -> dict:
+def read_cache(path: Path) -> dict[str, Any]:
     """The cache's content, checked; ValueError (or an unpickling error) when it is not one:
     `init_server_with_models` then rebuilds it."""
     data = path.read_bytes()
@@ -348,11 +350,11 @@ def read_cache(path: Path) -> dict:
         raise ValueError("checksum mismatch (truncated or corrupt)")
     with _gc_paused():
         content = _Unpickler(io.BytesIO(payload)).load()
-    _check_shape(content)
-    return content
+    return _check_shape(content)
 
 
-def _check_shape(content: Any) -> None:
+def _check_shape(content: object) -> dict[str, Any]:
+    """The cache's content, once it has the expected shape; ValueError if not."""
     if not isinstance(content, dict) or set(content) != {"namespaces", "nodes"}:
         raise ValueError("unexpected content")
     namespaces, nodes = content["namespaces"], content["nodes"]
@@ -360,10 +362,11 @@ def _check_shape(content: Any) -> None:
         raise ValueError(f"model namespaces {namespaces}, expected {EXPECTED_NAMESPACES}")
     if not isinstance(nodes, dict) or not nodes:
         raise ValueError("no nodes")
-    vision_system_type = ua.NodeId(1003, namespaces[MV_URI])
-    for nid in (ua.NodeId(ua.ObjectIds.ObjectsFolder), ua.NodeId(ua.ObjectIds.Server), vision_system_type):
+    vision_system_type = node_id(1003, namespaces[MV_URI])
+    for nid in (node_id(ua.ObjectIds.ObjectsFolder), node_id(ua.ObjectIds.Server), vision_system_type):
         if nid not in nodes:
             raise ValueError(f"node {nid.to_string()} missing")
+    return content
 
 
 @contextlib.contextmanager
@@ -400,7 +403,7 @@ class _WarmLoad:
                 return
             await original(shelf_file)
 
-        iserver.load_standard_address_space = load  # type: ignore[method-assign]
+        iserver.load_standard_address_space = load  # type: ignore[method-assign]  # asyncua's loader, replaced on purpose
 
     def _load(self) -> bool:
         if self.path is None:

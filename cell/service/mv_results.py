@@ -15,6 +15,7 @@ from asyncua import ua
 from cell.events import CalibrationInstalled, ConfigLoaded, Event, JobEnded, JobStarted, PickVerified, TargetChosen
 from cell.recipes import RecipeBook, RecipeError
 from cell.service.results import JOB_STATES, PICK_STATES, ResultStore, VisionResult
+from cell.service.ua_values import mv_struct
 
 _T = ua.VariantType
 
@@ -24,7 +25,7 @@ class _Job:
     job_id: str
     start: datetime
     recipe_id: str
-    request: dict
+    request: dict[str, Any]
 
 
 class ResultMaker:
@@ -59,7 +60,7 @@ class ResultMaker:
         self.store.add(result)
         return result
 
-    def _common(self, job_id: str, end: datetime, start: datetime | None) -> dict:
+    def _common(self, job_id: str, end: datetime, start: datetime | None) -> dict[str, Any]:
         job = self.jobs.get(job_id)
         request = job.request if job else {}
         recipe = job.recipe_id if job else ""
@@ -107,7 +108,7 @@ class ResultMaker:
 
     def _job_end(self, e: JobEnded) -> VisionResult:
         job = self.jobs.get(e.job_id or "")
-        content = {"Mode": e.mode, "Outcome": e.outcome, "Reason": e.reason}
+        content: dict[str, Any] = {"Mode": e.mode, "Outcome": e.outcome, "Reason": e.reason}
         content.update({_camel(k): int(v) for k, v in e.counts.items() if isinstance(v, int | float)})
         common = self._common(e.job_id or "", e.time_utc, job.start if job else None)
         self.jobs.pop(e.job_id or "", None)
@@ -121,7 +122,7 @@ def _camel(name: str) -> str:
 
 
 def internal_id(recipe_id: str, sha256_hex: str) -> Any:
-    return ua.RecipeIdInternalDataType(
+    return mv_struct("RecipeIdInternalDataType")(
         Id=recipe_id,
         Hash=bytes.fromhex(sha256_hex) if sha256_hex else None,
         HashAlgorithm="SHA-256" if sha256_hex else None,
@@ -129,7 +130,7 @@ def internal_id(recipe_id: str, sha256_hex: str) -> Any:
 
 
 def external_id(recipe_id: str, sha256_hex: str) -> Any:
-    return ua.RecipeIdExternalDataType(
+    return mv_struct("RecipeIdExternalDataType")(
         Id=recipe_id,
         Hash=bytes.fromhex(sha256_hex) if sha256_hex else None,
         HashAlgorithm="SHA-256" if sha256_hex else None,
@@ -137,12 +138,12 @@ def external_id(recipe_id: str, sha256_hex: str) -> Any:
 
 
 def _configuration_id(calibration_id: str) -> Any:
-    return ua.ConfigurationIdDataType(
+    return mv_struct("ConfigurationIdDataType")(
         Id=calibration_id or "none", Description=ua.LocalizedText("the calibration in use")
     )
 
 
-def _content(content: dict) -> list[ua.Variant]:
+def _content(content: dict[str, Any]) -> list[ua.Variant]:
     """ResultContent: one KeyValuePair per field (Key in the application namespace's words)."""
     out = []
     for key, value in content.items():
@@ -162,21 +163,21 @@ def _content(content: dict) -> list[ua.Variant]:
 
 def result_data(r: VisionResult) -> Any:
     """The result as OPC 40100-1's ResultDataType."""
-    times = ua.ProcessingTimesDataType(
+    times = mv_struct("ProcessingTimesDataType")(
         StartTime=r.start_time, EndTime=r.creation_time, ProcessingDuration=float(r.processing_ms)
     )
-    return ua.ResultDataType(
-        ResultId=ua.ResultIdDataType(Id=r.result_id),
+    return mv_struct("ResultDataType")(
+        ResultId=mv_struct("ResultIdDataType")(Id=r.result_id),
         IsPartial=False,
         IsSimulated=r.is_simulated,
         ResultState=r.result_state,
-        MeasId=ua.MeasIdDataType(Id=r.meas_id) if r.meas_id else None,
-        PartId=ua.PartIdDataType(Id=r.part_id) if r.part_id else None,
+        MeasId=mv_struct("MeasIdDataType")(Id=r.meas_id) if r.meas_id else None,
+        PartId=mv_struct("PartIdDataType")(Id=r.part_id) if r.part_id else None,
         ExternalRecipeId=external_id(r.recipe_id, r.recipe_sha256) if r.recipe_id else None,
         InternalRecipeId=internal_id(r.recipe_id, r.recipe_sha256),
-        ProductId=ua.ProductIdDataType(Id=r.product_id) if r.product_id else None,
+        ProductId=mv_struct("ProductIdDataType")(Id=r.product_id) if r.product_id else None,
         InternalConfigurationId=_configuration_id(r.configuration_id),
-        JobId=ua.JobIdDataType(Id=r.job_id),
+        JobId=mv_struct("JobIdDataType")(Id=r.job_id),
         CreationTime=r.creation_time,
         ProcessingTimes=times,
         ResultContent=_content(r.content),

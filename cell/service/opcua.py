@@ -15,12 +15,16 @@ import logging
 import math
 import time
 from collections import deque
+from collections.abc import Awaitable, Callable
 from datetime import UTC, datetime
+from typing import Any
 
 from asyncua import ua
+from asyncua.server.event_generator import EventGenerator
 
 from cell.config import CellConfig
 from cell.errors import ConfigError
+from cell.eventbus import Subscription
 from cell.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
 from cell.service.api import STATE_COMMANDS, Command, CommandRefused, LineServiceAPI, PickRecord, Refusal, Snapshot
 from cell.service.ledger import PickRecords
@@ -29,6 +33,7 @@ from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
 from cell.service.security import credentials_configured
 from cell.service.throttle import LoginThrottle
+from cell.service.ua_values import data_value, node_id, status
 from cell.service.users import Authenticator
 
 log = logging.getLogger(__name__)
@@ -70,7 +75,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
 }
 
 
-def _values(s: Snapshot) -> dict:
+def _values(s: Snapshot) -> dict[str, Any]:
     c, last, cal = s.counters, (s.last_picks[-1] if s.last_picks else None), s.calibration
     alarm = "" if s.alarm is None else f"{s.alarm.reason} (hint: {s.alarm.hint})"
     return {
@@ -145,9 +150,9 @@ class OpcUaServer:
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_QUEUED)
-        self._pick_events = None
-        self._task: asyncio.Task | None = None
-        self._subscription = None
+        self._pick_events: EventGenerator | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._subscription: Subscription | None = None
         self._records = PickRecords()
         self._last_failure_log = -_RETRY_LOG_S
         self._publishing = asyncio.Lock()
@@ -174,20 +179,20 @@ class OpcUaServer:
             s.set_security_policy([ua.SecurityPolicyType.NoSecurity])
             s.set_identity_tokens([ua.AnonymousIdentityToken])
         ns = await s.register_namespace(NAMESPACE)
-        cell = await s.nodes.objects.add_object(ua.NodeId("Cell", ns), ua.QualifiedName("Cell", ns))
+        cell = await s.nodes.objects.add_object(node_id("Cell", ns), ua.QualifiedName("Cell", ns))
         values = _values(self.service.snapshot())
         for name, (vtype, array) in VARIABLES.items():
             var = await cell.add_variable(
-                ua.NodeId(name, ns), ua.QualifiedName(name, ns), ua.Variant(values[name], vtype, is_array=array or None)
+                node_id(name, ns), ua.QualifiedName(name, ns), ua.Variant(values[name], vtype, is_array=array or None)
             )
             self.nodes[name] = var.nodeid
             self._written[name] = values[name]
         for command in STATE_COMMANDS:
             await cell.add_method(
-                ua.NodeId(command.value, ns), ua.QualifiedName(command.value, ns), self._method(command), [], []
+                node_id(command.value, ns), ua.QualifiedName(command.value, ns), self._method(command), [], []
             )
         etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
-        self._pick_events = await s.get_event_generator(etype, cell)
+        self._pick_events = await s.get_event_generator(etype, cell.nodeid)
         loop = asyncio.get_running_loop()
         self._subscription = self.service.subscribe(
             "opcua",
@@ -219,23 +224,23 @@ class OpcUaServer:
     async def _secure(self) -> None:
         await self.server.secure()  # certificate, configured policies only, user name tokens, trust list
 
-    def _method(self, command: Command):
-        async def call(parent, *args):
+    def _method(self, command: Command) -> Callable[..., Awaitable[ua.StatusCode | list[ua.Variant]]]:
+        async def call(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode | list[ua.Variant]:
             if args:
                 log.warning("OPC UA %s called with %d arguments: refused", command.value, len(args))
-                return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+                return status(ua.StatusCodes.BadTooManyArguments)
             try:
                 self.service.command(command, self._origin(parent))
             except CommandRefused as e:
                 log.info("OPC UA %s refused: %s", command.value, e)
-                return ua.StatusCode(_STATUS[e.reason])
+                return status(_STATUS[e.reason])
             await self._publish_now()  # the caller reads the state its command made
             return []
 
         return call
 
     @staticmethod
-    def _origin(parent) -> Origin:
+    def _origin(parent: ua.NodeId) -> Origin:
         """Who called: the session's user and role (loopback with no users: anonymous, with every right).
         Issue 21: cell.service.opcua_security.caller_origin, from the request being handled."""
         return caller_origin()
@@ -290,14 +295,15 @@ class OpcUaServer:
             if self._written.get(name) != value:
                 vtype, array = VARIABLES[name]
                 variant = ua.Variant(value, vtype, is_array=array or None)
-                await self.server.write_attribute_value(
-                    self.nodes[name], ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now)
-                )
+                await self.server.write_attribute_value(self.nodes[name], data_value(variant, now))
                 self._written[name] = value
 
     async def _fire(self, p: PickRecord) -> None:
         """One pick as a PickEventType event from Cell."""
-        ev = self._pick_events.event
+        events = self._pick_events
+        if events is None:
+            raise RuntimeError("OPC UA: a pick event before the server started")
+        ev = events.event
         ev.Message = ua.LocalizedText(
             f"part {p.track_id} {p.cls} {p.outcome} at table ({p.table_mm[0]:.1f}, {p.table_mm[1]:.1f}) mm"
         )
@@ -305,7 +311,7 @@ class OpcUaServer:
         ev.TrackId, ev.PartClass, ev.Outcome = ua.Variant(p.track_id, _T.UInt32), p.cls, p.outcome
         ev.TableMm, ev.RobotMm = [float(v) for v in p.table_mm], [float(v) for v in p.robot_mm]
         ev.AngleDeg = float(p.angle_deg) if p.angle_deg is not None else 0.0
-        await self._pick_events.trigger(p.time_utc)
+        await events.trigger(p.time_utc)
 
     async def stop(self) -> None:
         if self._subscription is not None:

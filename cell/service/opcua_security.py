@@ -41,7 +41,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from asyncua import Server, ua
 from asyncua.common.utils import Buffer
@@ -51,6 +51,7 @@ from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
 from asyncua.server.internal_session import InternalSession, SessionState
 from asyncua.server.uaprocessor import UaProcessor
+from asyncua.server.user_managers import UserManager
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, uatcp_to_binary
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
@@ -59,6 +60,7 @@ from cell.atomicfile import write_bytes_atomic
 from cell.events import Interface, Origin, Role
 from cell.logratelimit import Tally
 from cell.service.throttle import LoginThrottle
+from cell.service.ua_values import node_id, status
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +72,7 @@ HASH_CHECKS_AT_ONCE = 2  # password hashes computed at once (2 cores: the cell k
 
 
 def _request(name: str) -> ua.NodeId:
-    return ua.NodeId(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary"))
+    return node_id(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary"))
 
 
 _CREATE_SESSION, _ACTIVATE_SESSION, _CREATE_SUBSCRIPTION = (
@@ -117,7 +119,7 @@ def caller_origin() -> Origin:
     return Origin(Interface.OPCUA, "", Role.ADMIN, caller.address)
 
 
-class CellUserManager:
+class CellUserManager(UserManager):
     """asyncua user manager: answers from the login GuardedProcessor verified off the event loop."""
 
     def get_user(
@@ -277,9 +279,14 @@ class GuardSettings:
 
 
 def _allowed(types: list[ua.SecurityPolicyType]) -> frozenset[tuple[str, ua.MessageSecurityMode]]:
-    from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP
+    from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP, SecurityPolicy
 
-    return frozenset((SECURITY_POLICY_TYPE_MAP[t][0].URI, SECURITY_POLICY_TYPE_MAP[t][1]) for t in types)
+    allowed = set()
+    for t in types:
+        # asyncua's map holds [policy class, mode, number] lists, which type-check as list[object]
+        policy, mode = cast(type[SecurityPolicy], SECURITY_POLICY_TYPE_MAP[t][0]), SECURITY_POLICY_TYPE_MAP[t][1]
+        allowed.add((policy.URI, cast(ua.MessageSecurityMode, mode)))
+    return frozenset(allowed)
 
 
 # ---- the guard ------------------------------------------------------------------------------
@@ -334,8 +341,8 @@ class Guard:
 
 def _fault(processor: UaProcessor, requesthdr: Any, seqhdr: Any, code: int) -> bool:
     response = ua.ServiceFault()
-    response.ResponseHeader.ServiceResult = ua.StatusCode(code)
-    processor.send_response(requesthdr.RequestHandle, seqhdr, response)
+    response.ResponseHeader.ServiceResult = status(code)
+    processor.send_response(requesthdr.RequestHandle, seqhdr, response)  # type: ignore[no-untyped-call]  # untyped in asyncua
     return True
 
 
@@ -352,7 +359,7 @@ class GuardedProcessor(UaProcessor):
             if refused is not None:
                 return self._error(refused)
         try:
-            kept = await super().process(header, body)
+            kept = bool(await super().process(header, body))  # type: ignore[no-untyped-call]  # asyncua's UaProcessor is untyped
         except Exception as e:  # asyncua would log it and keep a channel in an unknown state: close it
             if isinstance(e, ua.UaError) and "No matching policy" in str(e):  # asyncua's words for a mode not offered
                 self.guard.tally.note("refused: a security mode not offered", self.address)
@@ -375,8 +382,9 @@ class GuardedProcessor(UaProcessor):
 
     def _error(self, code: int) -> bool:
         """Tell the client why (an ERR message, as the spec asks) and have the connection closed."""
-        err = ua.ErrorMessage(ua.StatusCode(code), ua.StatusCode(code).name)
-        self._transport.write(uatcp_to_binary(ua.MessageType.Error, err))
+        err = ua.ErrorMessage(status(code), ua.String(status(code).name))
+        # asyncua annotates the message type as the MessageType class; its values are that class's bytes
+        self._transport.write(uatcp_to_binary(ua.MessageType.Error, err))  # type: ignore[arg-type]
         return False
 
     async def process_message(self, seqhdr: Any, body: Buffer) -> bool:
@@ -403,7 +411,7 @@ class GuardedProcessor(UaProcessor):
             ):
                 self.guard.tally.note("refused: too many subscriptions in one session", self.address)
                 return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadTooManySubscriptions)
-            return await super().process_message(seqhdr, body)
+            return bool(await super().process_message(seqhdr, body))  # type: ignore[no-untyped-call]  # untyped in asyncua
         finally:
             _CALLER.reset(caller)
 
@@ -425,7 +433,7 @@ class GuardedProcessor(UaProcessor):
         if not same:
             self.guard.tally.note("refused: the session's certificate is not the channel's", self.address)
             return ua.StatusCodes.BadCertificateInvalid
-        problem = check_client_certificate(first_der(channel), params.ClientDescription.ApplicationUri)
+        problem = check_client_certificate(first_der(channel or b""), params.ClientDescription.ApplicationUri)
         if problem:
             self.guard.tally.note(f"refused: {problem}", self.address)
             return ua.StatusCodes.BadCertificateUriInvalid
@@ -437,7 +445,7 @@ class GuardedProcessor(UaProcessor):
         token = params.UserIdentityToken
         session = self.session or self.iserver.lookup_external_session(requesthdr.AuthenticationToken)
         if session is None or not isinstance(token, ua.UserNameIdentityToken):
-            return await super().process_message(seqhdr, body)  # asyncua refuses these itself
+            return bool(await super().process_message(seqhdr, body))  # type: ignore[no-untyped-call]  # untyped in asyncua, which refuses these itself
         if not token.EncryptionAlgorithm and self._connection.security_policy.Mode != _ENCRYPTED:
             self.guard.tally.note("refused: a password sent unencrypted", self.address)
             return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadIdentityTokenRejected)
@@ -458,7 +466,7 @@ class GuardedProcessor(UaProcessor):
                 throttle.succeeded(user, self.address)
         verified = _VERIFIED.set((name or "", password or "", role))
         try:
-            return await super().process_message(seqhdr, body)
+            return bool(await super().process_message(seqhdr, body))  # type: ignore[no-untyped-call]  # untyped in asyncua
         finally:
             _VERIFIED.reset(verified)
 
@@ -484,6 +492,8 @@ class GuardedProtocol(OPCUAProtocol):
     guard: Guard
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        if not isinstance(transport, asyncio.Transport):  # what asyncio's TCP server hands a protocol
+            raise TypeError(f"OPC UA: a {type(transport).__name__} is not a stream transport")
         peer = transport.get_extra_info("peername")
         address = str(peer[0]) if peer else "?"
         self.address: str | None = None
@@ -498,13 +508,13 @@ class GuardedProtocol(OPCUAProtocol):
             )
         if refused is not None:
             self.guard.tally.note(refused, address)
-            transport.abort()  # type: ignore[attr-defined]
+            transport.abort()
             return
         self.address = address
         self.guard.per_address[address] += 1
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = transport
         self.processor = GuardedProcessor(self.guard, address, self.iserver, self.transport, self.limits)
-        self.processor.set_policies(self.policies)
+        self.processor.set_policies(self.policies)  # type: ignore[no-untyped-call]  # untyped in asyncua
         self.iserver.asyncio_transports.append(transport)
         self.clients.append(self)
         self._task = asyncio.create_task(self._process_received_message_loop())

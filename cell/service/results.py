@@ -12,7 +12,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Protocol
+from typing import Any, Protocol
 
 # OPC 40100-1 ResultStateDataType (an Int32; negative values are the application's own).
 RESULT_COMPLETED = 1
@@ -42,7 +42,9 @@ class VisionResult:
     meas_id: str = ""
     part_id: str = ""
     product_id: str = ""
-    content: dict = field(default_factory=dict)  # what ResultContent carries (see docs/opcua-machinevision.md)
+    content: dict[str, Any] = field(
+        default_factory=dict
+    )  # what ResultContent carries (see docs/opcua-machinevision.md)
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,9 @@ from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.signals import Controls
 from cell.statemachine import State
+from cell.summary import Counts
 from cell.vision.locate import locate
+from cell.vision.types import LocateResult
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
@@ -580,7 +582,7 @@ class LineService:
             self._end_job(job, outcome, reason, counts)
         self._changed("alarm" if outcome == "fault" else "state")
 
-    def _end_job(self, job: _Job, outcome: str, reason: str, counts: dict | None = None) -> None:
+    def _end_job(self, job: _Job, outcome: str, reason: str, counts: Counts | None = None) -> None:
         """Under the lock: the job's end recorded, the outward state set, a fault's alarm raised."""
         self._job = None
         source = "job"
@@ -666,7 +668,7 @@ class _Perception:
         self.recipe = service._recipe_id
         self.bound: Vision = service._vision
 
-    def locate(self, frame: np.ndarray):
+    def locate(self, frame: np.ndarray) -> LocateResult:
         self.bound = self.service._vision  # one reference read: the pair swapped together
         result = locate(frame, self.bound.calibration, self.config)
         if self.classes is not None:
@@ -702,6 +704,6 @@ class _Locked(Camera):
     def is_connected(self) -> bool:
         return self.inner.is_connected
 
-    def _grab(self):
+    def _grab(self) -> np.ndarray:
         with self.lock:
             return self.inner.capture()

@@ -18,6 +18,7 @@ import threading
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from cell.audit import AuditLog, AuditWriteFailed
 from cell.events import Event
@@ -37,7 +38,15 @@ def shift_files(log_dir: Path, day: str) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
-def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict]:
+def _file_number(path: Path) -> int:
+    """The count in an audit file's name (cell-YYYYMMDD-NNN.jsonl)."""
+    m = _NAME.match(path.name)
+    if m is None:
+        raise ValueError(f"{path.name} is not an audit file's name")
+    return int(m.group(2))
+
+
+def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict[str, Any]]:
     """Every complete event of the day's files, in order, one at a time (a day may hold gigabytes);
     a torn line (a writer killed mid-line) is skipped."""
     for path in shift_files(log_dir, day or _today()):
@@ -49,7 +58,7 @@ def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict]:
                     log.warning("%s: skipping a torn line: %.60s", path, line)
 
 
-def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
+def read_shift(log_dir: Path, day: str | None = None) -> list[dict[str, Any]]:
     return list(iter_shift(log_dir, day))
 
 
@@ -88,7 +97,7 @@ class ShiftLog:
             current.close()
             self._log = None
         files = shift_files(self.log_dir, day)  # audit logs are created, never reopened: a restart takes the next
-        n = int(_NAME.match(files[-1].name).group(2)) + 1 if files else 0  # type: ignore[union-attr]
+        n = _file_number(files[-1]) + 1 if files else 0
         try:
             self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl")
         except OSError as e:
@@ -100,7 +109,7 @@ class ShiftLog:
         log.info("audit log: %s", self._log.path)
         return self._log
 
-    def record(self, event: Event) -> dict | None:
+    def record(self, event: Event) -> dict[str, Any] | None:
         """Write one event (raises AuditWriteFailed when it cannot, unless best_effort)."""
         if not event.audited:
             return None

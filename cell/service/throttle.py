@@ -22,6 +22,10 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from cell.service.config import LoginConfig
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +58,7 @@ class _Record:
 class LoginThrottle:
     def __init__(
         self,
-        cfg,
+        cfg: LoginConfig,
         on_lockout: Callable[[Lockout], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         max_entries: int = 10_000,
@@ -125,7 +129,8 @@ class LoginThrottle:
         return ("user", user), ("address", address)
 
     def _limit(self, kind: str) -> int:
-        return self.cfg.max_failures_per_user if kind == "user" else self.cfg.max_failures_per_address
+        limit: int = self.cfg.max_failures_per_user if kind == "user" else self.cfg.max_failures_per_address
+        return limit
 
     def _fresh(self, key: tuple[str, str], now: float) -> _Record:
         """The key's record, started over when its lockout has run out or its failures are old."""

@@ -27,10 +27,14 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
 
 from cell.atomicfile import write_atomic
 from cell.errors import ConfigError
 from cell.events import Role
+
+if TYPE_CHECKING:
+    from cell.service.config import ServiceConfig
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +102,7 @@ class UserEntry:
     password_hash: str
     changed_utc: str = ""
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, str]:
         return {
             "name": self.name,
             "role": self.role.value,
@@ -149,7 +153,7 @@ def write_users(path: Path, users: Iterable[UserEntry]) -> None:
     body = {"format": FORMAT, "users": [u.as_json() for u in sorted(users, key=lambda u: u.name)]}
     data = (json.dumps(body, indent=2) + "\n").encode()
 
-    def write(f) -> None:
+    def write(f: BinaryIO) -> None:
         os.fchmod(f.fileno(), 0o600)
         f.write(data)
 
@@ -171,7 +175,7 @@ class _Known:
 class Authenticator:
     """`authenticate(user, password) -> Role | None` for every interface; thread-safe."""
 
-    def __init__(self, cfg) -> None:
+    def __init__(self, cfg: ServiceConfig) -> None:
         """`cfg`: the ServiceConfig (users_file, and the legacy user, password_hash, password_env)."""
         self.users_file: Path | None = cfg.users_file
         self._legacy_name: str | None = cfg.user
