@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
@@ -148,6 +149,20 @@ def _check_port_free(host: str, port: int, option: str) -> None:
             ) from None
 
 
+def lockout_alarm(service: LineService, lockout) -> None:
+    """A login lockout (screen or OPC UA) as a warning alarm, cleared when the lockout ends."""
+    key = f"lockout:{lockout.kind}:{lockout.key}"
+    service.raise_warning(
+        key,
+        f"{lockout.failures} failed logins for {lockout.kind} {lockout.key}: locked out for {lockout.lockout_s:g} s",
+        "if these were not your own attempts, someone is guessing passwords: tell the plant's IT",
+        "login",
+    )
+    timer = threading.Timer(lockout.lockout_s, service.clear_warning, (key,))
+    timer.daemon = True
+    timer.start()
+
+
 def toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
     command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
@@ -173,7 +188,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
-    throttle = LoginThrottle(config.service.login)  # one login throttle for both interfaces
+    throttle = LoginThrottle(config.service.login, on_lockout=lambda lockout: lockout_alarm(service, lockout))
     interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
     safe = True
     try:
