@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Protocol, get_args
@@ -26,7 +27,7 @@ from cell.service.fdlimit import check_open_files
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
-from cell.service.throttle import LoginThrottle
+from cell.service.throttle import Lockout, LoginThrottle
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
 
@@ -164,6 +165,20 @@ class ServiceInterface(Protocol):
     async def stop(self) -> None: ...
 
 
+def lockout_alarm(service: LineService, lockout: Lockout) -> None:
+    """A login lockout (screen or OPC UA) as a warning alarm, cleared when the lockout ends."""
+    key = f"lockout:{lockout.kind}:{lockout.key}"
+    service.raise_warning(
+        key,
+        f"{lockout.failures} failed logins for {lockout.kind} {lockout.key}: locked out for {lockout.lockout_s:g} s",
+        "if these were not your own attempts, someone is guessing passwords: tell the plant's IT",
+        "login",
+    )
+    timer = threading.Timer(lockout.lockout_s, service.clear_warning, (key,))
+    timer.daemon = True
+    timer.start()
+
+
 def toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
     command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
@@ -189,7 +204,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
-    throttle = LoginThrottle(config.service.login)  # one login throttle for both interfaces
+    throttle = LoginThrottle(config.service.login, on_lockout=lambda lockout: lockout_alarm(service, lockout))
     interfaces: list[ServiceInterface] = [
         OpcUaServer(service, config, throttle),
         ScreenInterface(service, config, throttle),
