@@ -25,7 +25,7 @@ from cell.events import Event, FrameLocated
 
 log = logging.getLogger(__name__)
 
-Handler = Callable[[Event], None]
+Handler = Callable[[Event], object]  # its return value is not used
 _LOG_EVERY_S = 60.0  # a failing or overflowing subscriber is logged at most this often
 
 

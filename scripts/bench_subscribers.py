@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.commands.serve import open_service  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from cell.events import JobEnded, JobStarted, PickVerified  # noqa: E402
+from cell.events import Event, JobEnded, JobStarted, PickVerified  # noqa: E402
 from cell.service.api import Command, VisionState  # noqa: E402
 
 
@@ -69,7 +69,7 @@ def one_job(setup: str, work: Path) -> tuple[float, int]:
     cfg = config(work / setup / str(time.monotonic_ns()))
     stop = threading.Event()
     times: dict[str, float] = {}
-    picks = []
+    picks: list[Event] = []
     with contextlib.ExitStack() as stack:
         service = open_service(cfg, True, stack)
         service.start()
@@ -98,7 +98,7 @@ def one_job(setup: str, work: Path) -> tuple[float, int]:
             if time.monotonic() > deadline:
                 raise SystemExit(f"{setup}: the job did not end within 600 s")
             time.sleep(0.05)
-        made = sum(p.result == "picked" for p in picks)
+        made = sum(isinstance(p, PickVerified) and p.result == "picked" for p in picks)
         wall_s = times["job_end"] - times["job_start"]
     return 60.0 * made / wall_s, made
 

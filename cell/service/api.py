@@ -329,7 +329,7 @@ class LineServiceAPI(Protocol):
     def subscribe(
         self,
         name: str,
-        handler: Callable[[Event], None],
+        handler: Callable[[Event], object],
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,

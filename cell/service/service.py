@@ -483,7 +483,7 @@ class LineService:
     def subscribe(
         self,
         name: str,
-        handler: Callable[[Event], None],
+        handler: Callable[[Event], object],
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
