@@ -8,22 +8,25 @@ import contextlib
 import json
 import logging
 import threading
+from collections.abc import AsyncIterator, Callable
 from importlib import resources
+from typing import Any
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
 from cell.events import Origin
-from cell.service.api import CommandRefused, LineServiceAPI, Refusal
+from cell.service.api import CommandRefused, LineServiceAPI, Refusal, Snapshot
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
-from cell.web.hub import Hub
-from cell.web.recalibration import Busy, RecalibrationDesk
+from cell.web.hub import Hub, Screen
+from cell.web.recalibration import Busy, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
 
@@ -56,17 +59,17 @@ KEEPALIVE_S = 1.0
 PICTURES = {"plate.jpg": "image/jpeg", "deviation.png": "image/png"}
 
 
-def _error(status: int, message: str, **extra) -> JSONResponse:
+def _error(status: int, message: str, **extra: object) -> JSONResponse:
     return JSONResponse({"error": message, **extra}, status_code=status)
 
 
 class Guard:
     """Pure-ASGI middleware: Host check (DNS rebinding) and the security headers on every reply."""
 
-    def __init__(self, app, access: Access):
-        self.app, self.access = app, access
+    def __init__(self, app: ASGIApp, screen: ScreenApp):
+        self.app, self.screen, self.access = app, screen, screen.access
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
@@ -76,8 +79,8 @@ class Guard:
         return await self.app(scope, receive, self._secure(send))
 
     @staticmethod
-    def _secure(send):
-        async def wrapped(message):
+    def _secure(send: Send) -> Send:
+        async def wrapped(message: Message) -> None:
             if message["type"] == "http.response.start":
                 message = {**message, "headers": list(message.get("headers", [])) + SECURITY_HEADERS}
             await send(message)
@@ -190,7 +193,7 @@ class ScreenApp:
         return reply
 
     # ---- state and frames ------------------------------------------------------------
-    def _state(self, snapshot=None) -> dict:
+    def _state(self, snapshot: Snapshot | None = None) -> dict[str, Any]:
         snapshot = snapshot or self.service.snapshot()
         return snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
 
@@ -216,7 +219,7 @@ class ScreenApp:
             self._stream(screen), media_type="text/event-stream", headers={"x-accel-buffering": "no"}
         )
 
-    async def _stream(self, screen):
+    async def _stream(self, screen: Screen) -> AsyncIterator[str]:
         try:
             sent_seq = -1
             while not screen.closed:
@@ -266,7 +269,7 @@ class ScreenApp:
         finally:
             watcher.cancel()
 
-    async def _recal(self, make, *args) -> Response:
+    async def _recal(self, make: Callable[..., Report], *args: object) -> Response:
         if not may_recalibrate(self.service.snapshot()):
             return _error(409, "recalibrate only while stopped (Ready), paused, halted or after a fault")
         try:
@@ -362,16 +365,16 @@ class ScreenApp:
         ]
 
 
-def _sse(event: str, data: dict) -> str:
+def _sse(event: str, data: dict[str, Any]) -> str:
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
 
 
-def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
+def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access) -> Guard:
     """The screen as an ASGI app: Starlette routes behind the Host check and security headers."""
     screen = ScreenApp(service, config, web, access)
 
     @contextlib.asynccontextmanager
-    async def lifespan(app):
+    async def lifespan(app: Starlette) -> AsyncIterator[None]:
         screen.hub.start(asyncio.get_running_loop())
         try:
             yield
@@ -379,6 +382,4 @@ def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, acces
             screen.hub.close()
 
     app = Starlette(routes=screen.routes(), lifespan=lifespan)
-    guard = Guard(app, screen.access)
-    guard.screen = screen
-    return guard
+    return Guard(app, screen)

@@ -151,7 +151,9 @@ class Access:
 
     def csrf_ok(self, sid: str | None, token: str | None) -> bool:
         want = self.csrf_for(sid)
-        return bool(want and token) and hmac.compare_digest(want.encode(), token.encode())
+        if not want or not token:
+            return False
+        return hmac.compare_digest(want.encode(), token.encode())
 
     def host_ok(self, host_header: str) -> bool:
         """On a loopback bind, only loopback Host names (a rebound DNS name is refused)."""

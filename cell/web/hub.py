@@ -15,10 +15,13 @@ import base64
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 
+from cell.eventbus import Subscription
 from cell.events import Event, FrameLocated, FrameRef, PickOrderChosen, RunEnded, SnapshotChanged, StateChanged
 from cell.service.api import FrameView, LineServiceAPI, Snapshot
 from cell.vision.annotate import annotate
@@ -35,7 +38,7 @@ class EncodedFrame:
     encode_ms: float
     encoded_wall_ms: float  # when the JPEG was ready: capture -> encoded is the service's share of the latency
 
-    def event_json(self) -> dict:
+    def event_json(self) -> dict[str, Any]:
         return {
             "seq": self.seq,
             "capture_wall_ms": round(self.capture_wall_ms, 1),
@@ -79,7 +82,7 @@ class Hub:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._held: FrameRef | None = None  # located, waiting for PLAN to number its parts
         self._seq = 0
-        self._subs: list = []
+        self._subs: list[Subscription] = []
         self._lock = threading.Lock()
 
     # ---- life ----------------------------------------------------------------------
@@ -145,7 +148,7 @@ class Hub:
         self.latest_view = view
         self._to_loop(self._publish_frame, encoded)
 
-    def _to_loop(self, fn, *args) -> None:
+    def _to_loop(self, fn: Callable[..., object], *args: object) -> None:
         loop = self._loop
         if loop is not None and not loop.is_closed():
             try:

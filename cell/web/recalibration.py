@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
 
 import cv2
 import numpy as np
@@ -44,7 +45,7 @@ class Report:
     deviation_png: bytes
     gate_failure: str | None
 
-    def summary_json(self) -> dict:
+    def summary_json(self) -> dict[str, Any]:
         r, cv, fit = self.result, self.result.chosen.cv, self.result.chosen.fit
         return {
             "id": self.id,

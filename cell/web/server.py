@@ -59,7 +59,7 @@ class ScreenInterface:
 
     @property
     def ready_text(self) -> str:
-        return f"screen {self.server.url}"
+        return "screen (not started)" if self.server is None else f"screen {self.server.url}"
 
     @property
     def starting_text(self) -> str:

@@ -14,10 +14,9 @@ from __future__ import annotations
 import asyncio
 import threading
 from collections import Counter
-from collections.abc import Awaitable, Callable
-from typing import Any
 
 from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from cell.web.transport import THIS_PC
 
@@ -27,7 +26,7 @@ STREAM_PATHS = frozenset({"/api/events"})
 class Shield:
     def __init__(
         self,
-        app: Any,
+        app: ASGIApp,
         *,
         https: bool,
         hsts_max_age_s: int = 31_536_000,
@@ -40,7 +39,7 @@ class Shield:
         self.stream_paths = stream_paths
         self.streams: Counter[str] = Counter()  # open streams per address (the server's loop only)
 
-    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         if self.https:
@@ -65,8 +64,8 @@ class Shield:
             if self.streams[address] <= 0:
                 del self.streams[address]
 
-    def _secure(self, send: Any) -> Any:
-        async def wrapped(message: dict) -> None:
+    def _secure(self, send: Send) -> Send:
+        async def wrapped(message: Message) -> None:
             if message["type"] == "http.response.start":
                 headers = [
                     (k, _secure_cookie(v) if k.lower() == b"set-cookie" else v) for k, v in message.get("headers", [])
@@ -84,7 +83,7 @@ def _secure_cookie(value: bytes) -> bytes:
     return value if b"secure" in attributes else value + b"; Secure"
 
 
-async def set_on_disconnect(receive: Callable[[], Awaitable[dict]], event: threading.Event) -> None:
+async def set_on_disconnect(receive: Receive, event: threading.Event) -> None:
     """Set `event` when the client goes away (for work in a thread or process to stop): run it as a task
     once the request's body has been read, and cancel the task when the reply is ready."""
     while True:

@@ -15,6 +15,7 @@ import os
 import socket
 import ssl
 from pathlib import Path
+from typing import BinaryIO
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
@@ -86,7 +87,7 @@ def ensure_self_signed(cert_dir: Path, host: str) -> tuple[Path, Path]:
         serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
     )
 
-    def write_key(f) -> None:
+    def write_key(f: BinaryIO) -> None:
         os.fchmod(f.fileno(), 0o600)
         f.write(key_pem)
 

@@ -33,6 +33,7 @@ import socket
 import ssl
 import threading
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -139,7 +140,7 @@ class LimitedH11Protocol(H11Protocol):
         self._body_timer: asyncio.TimerHandle | None = None
         self._stall_timer: asyncio.TimerHandle | None = None
 
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]  # as uvicorn's own
         super().connection_made(transport)
         transport.set_write_buffer_limits(high=self.limits.send_buffer_bytes)
         self._header_timer = self.loop.call_at(self._first_deadline, self._cut, "cut: request headers too slow")
@@ -219,17 +220,19 @@ class Gate(asyncio.Protocol):
         self.ticket: Ticket | None = None
         self._early: list[bytes] = []
         self._early_bytes = 0
-        self._task: asyncio.Task | None = None
+        self._task: asyncio.Task[None] | None = None
         self._handed_over = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        if not isinstance(transport, asyncio.Transport):  # what asyncio's TCP server hands a protocol
+            raise TypeError(f"screen: a {type(transport).__name__} is not a stream transport")
         peer = transport.get_extra_info("peername")
         address = str(peer[0]) if peer else "?"
         if not self.server.make_room(address):
-            transport.abort()  # type: ignore[attr-defined]
+            transport.abort()
             return
         self.server.admission.admit(address)
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = transport
         self.ticket = Ticket(self.server.admission, address)
         self.server.waiting.add(self)
         self.deadline = self.loop.time() + self.server.limits.header_timeout_s
@@ -238,17 +241,17 @@ class Gate(asyncio.Protocol):
             with contextlib.suppress(OSError):  # what the kernel queues counts toward "not reading" too
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.server.limits.send_buffer_bytes // 2)
         if self.server.ssl_context is None:
-            self._hand_over(self.transport)
+            self._hand_over(transport)
         else:
-            self._task = self.loop.create_task(self._start_tls())
+            self._task = self.loop.create_task(self._start_tls(self.server.ssl_context))
 
-    async def _start_tls(self) -> None:
+    async def _start_tls(self, context: ssl.SSLContext) -> None:
         assert self.transport is not None and self.ticket is not None
         try:
             tls = await self.loop.start_tls(
                 self.transport,
                 self,
-                self.server.ssl_context,
+                context,
                 server_side=True,
                 ssl_handshake_timeout=max(0.1, self.deadline - self.loop.time()),
             )
@@ -331,7 +334,7 @@ class Waiting:
     def __len__(self) -> int:
         return sum(len(m) for m in self._by_address.values())
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Any]:
         return iter([c for m in self._by_address.values() for c in m])
 
 
@@ -410,7 +413,7 @@ def uvicorn_config(app: Any, limits: TransportLimits) -> uvicorn.Config:
         access_log=False,
         lifespan="on",
         timeout_graceful_shutdown=2,
-        timeout_keep_alive=limits.keepalive_timeout_s,  # type: ignore[arg-type]
+        timeout_keep_alive=limits.keepalive_timeout_s,  # type: ignore[arg-type]  # uvicorn says int; call_later takes a float
     )
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import asdict
 from datetime import datetime
+from typing import Any
 
 from cell.service.api import STATE_COMMANDS, PickRecord, Snapshot, VisionState
 
@@ -35,11 +37,11 @@ def _time(t: datetime | None) -> str | None:
     return None if t is None else t.isoformat(timespec="seconds")
 
 
-def _round(values, digits: int = 1) -> list[float]:
+def _round(values: Iterable[float], digits: int = 1) -> list[float]:
     return [round(float(v), digits) for v in values]
 
 
-def pick_json(p: PickRecord) -> dict:
+def pick_json(p: PickRecord) -> dict[str, Any]:
     return {
         "time": _time(p.time_utc),
         "part": p.track_id,
@@ -51,7 +53,7 @@ def pick_json(p: PickRecord) -> dict:
     }
 
 
-def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pictures: bool = False) -> dict:
+def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pictures: bool = False) -> dict[str, Any]:
     key, label = display_state(s)
     cal = s.calibration
     return {
