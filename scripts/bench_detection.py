@@ -55,13 +55,20 @@ PHOTO_SIZES = [(640, 480), (1280, 960), (1920, 1440), (4000, 3000)]
 RENDER_SIZES = [(640, 480), (1280, 720), (1920, 1080), (4000, 3000)]
 
 
-def scaled_detector(area_scale: float):
+def scaled_detector(area_scale: float) -> cv2.SimpleBlobDetector:
     """findCirclesGrid's default blob detector with its area limits scaled to the image."""
-    p = cv2.SimpleBlobDetector_Params()
+    p = cv2.SimpleBlobDetector.Params()
     p.minArea *= area_scale
     p.maxArea *= area_scale
     p.minDistBetweenBlobs *= area_scale**0.5
-    return cv2.SimpleBlobDetector_create(p)
+    return cv2.SimpleBlobDetector.create(p)
+
+
+def read_gray(path: Path) -> np.ndarray:
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise SystemExit(f"{path}: not a readable image")
+    return gray
 
 
 def run_ours(gray, config):
@@ -79,8 +86,8 @@ def run_cv(gray, size, detector=None):
 
 def interleaved(fns, repeat: int):
     """Run the functions alternately; (last results, median ms of each)."""
-    times = [[] for _ in fns]
-    out = [None] * len(fns)
+    times: list[list[float]] = [[] for _ in fns]
+    out: list[object] = [None] * len(fns)
     for _ in range(repeat):
         for k, fn in enumerate(fns):
             t = time.process_time()
@@ -125,7 +132,7 @@ def variants_table(config: CellConfig) -> None:
     print(f"\n{'photo':<18}{'variant':<18}{'cv grid':>8}{'ours':>6}{'max px':>8}{'ours moved':>12}{'cv moved':>10}")
     worst = []
     for path in sorted(PHOTOS.glob("opencv_circles*.png")):
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        gray = read_gray(path)
         clean_cv, clean_ours = run_cv(gray, (7, 7)), run_ours(gray, config)
         for kind in VARIANTS:
             img = variant(kind, gray, seed=int(path.stem[-2:]) - 1)
@@ -160,7 +167,7 @@ def main() -> int:
     if PHOTOS.exists():
         config = CellConfig(plate=PHOTO_PLATE)
         for path in sorted(PHOTOS.glob("opencv_circles*.png")):
-            gray0 = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            gray0 = read_gray(path)
             for w, h in PHOTO_SIZES:
                 s = w / gray0.shape[1]
                 gray = gray0 if s == 1 else cv2.resize(gray0, (w, h), interpolation=cv2.INTER_CUBIC)

@@ -67,6 +67,8 @@ def quiet_frames(n: int, seed: int = 1) -> tuple[int, float, float, float]:
     config = CellConfig()
     with contextlib.ExitStack() as stack:
         sim = assemble(config, True, stack).sim
+        if sim is None:
+            raise SystemExit("the built-in config assembled no simulated cell")
         model, calibration = sim.camera.model, sim.calibration
         watch = DriftWatch(calibration, config.drift.model_copy(update={"marks_mm": sim.marks_mm}))
         opacity = circles_coverage(model, np.array(sim.marks_mm), config.drift.mark_diameter_mm / 2)

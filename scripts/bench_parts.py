@@ -27,6 +27,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -38,10 +39,11 @@ from cell.calibration.pipeline import calibrate  # noqa: E402
 from cell.calibration.store import Calibration  # noqa: E402
 from cell.camera_model import CameraModel  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from cell.sim.parts import random_scene, render_scene  # noqa: E402
+from cell.sim.parts import PartSpec, random_scene, render_scene  # noqa: E402
 from cell.sim.render import render_plate  # noqa: E402
 from cell.vision.config import PartsConfig  # noqa: E402
 from cell.vision.locate import locate  # noqa: E402
+from cell.vision.types import LocateResult  # noqa: E402
 
 # (label, width, height, mm/px, k1, k2, tilt_deg, tilt_azimuth_deg, roll_deg); hfov 70:
 # the 1080p cameras are 330-370 mm above the table, the 720p ones (0.3 mm/px) about 270 mm.
@@ -63,10 +65,17 @@ def camera_for(spec) -> CameraModel:
     )
 
 
-def score(result, parts) -> dict:
+def score(result: LocateResult, parts: list[PartSpec]) -> dict[str, Any]:
     """Match each located object to the nearest true footprint; count and measure."""
     truth = np.array([p.footprint_centre_mm for p in parts])
-    out = {"confusion": Counter(), "centre": [], "angle": [], "head": [], "wrong": [], "found": len(result.objects)}
+    out: dict[str, Any] = {
+        "confusion": Counter(),
+        "centre": [],
+        "angle": [],
+        "head": [],
+        "wrong": [],
+        "found": len(result.objects),
+    }
     for obj in result.objects:
         d = np.hypot(*(truth - np.array(obj.table_mm)).T)
         part = parts[int(d.argmin())]
@@ -78,16 +87,18 @@ def score(result, parts) -> dict:
         if obj.pick:
             out["centre"].append(float(d.min()))
         if part.kind == "bolt":
-            out["angle"].append(abs((obj.angle_deg - part.axis_angle_deg + 90.0) % 180.0 - 90.0))
+            axis_deg, head_mm = part.axis_angle_deg, part.head_centre_mm
+            if obj.angle_deg is None or obj.head_mm is None or axis_deg is None or head_mm is None:
+                out["wrong"].append(f"bolt {part.size}: no axis or head reported")
+                continue
+            out["angle"].append(abs((obj.angle_deg - axis_deg + 90.0) % 180.0 - 90.0))
             # The head end is right when the reported head is nearer the true head than the tip.
-            tip = 2 * np.array(part.footprint_centre_mm) - np.array(part.head_centre_mm)
-            out["head"].append(
-                np.hypot(*(np.array(obj.head_mm) - part.head_centre_mm)) < np.hypot(*(np.array(obj.head_mm) - tip))
-            )
+            tip = 2 * np.array(part.footprint_centre_mm) - np.array(head_mm)
+            out["head"].append(np.hypot(*(np.array(obj.head_mm) - head_mm)) < np.hypot(*(np.array(obj.head_mm) - tip)))
     return out
 
 
-def report(size: str, n_scenes: int, n_cameras: int, totals: dict, times_ms: list[float]) -> None:
+def report(size: str, n_scenes: int, n_cameras: int, totals: dict[str, dict[str, Any]], times_ms: list[float]) -> None:
     """Classes, centre and angle errors per pipeline, and locate time, for one frame size."""
     print(f"\n=== {size}: {n_scenes} scenes, {n_cameras} cameras, each calibrated on its own plate image ===")
     kinds = ["nut", "bolt", "washer"]
@@ -133,12 +144,12 @@ def main() -> int:
         "perfect cal.": PartsConfig(),
     }
     sizes = list(dict.fromkeys(f"{w} x {h}" for _, w, h, *_ in CAMERAS))
-    totals = {
+    totals: dict[str, dict[str, dict[str, Any]]] = {
         size: {run: {"confusion": Counter(), "centre": [], "angle": [], "head": [], "wrong": []} for run in RUNS}
         for size in sizes
     }
     times_ms: dict[str, list[float]] = {size: [] for size in sizes}
-    n_scenes = Counter()
+    n_scenes: Counter[str] = Counter()
     t_start = time.perf_counter()
     print(f"{'camera':<32}{'seed':>5}{'parts':>6}  " + "".join(f"{run + ' mean/max mm':>30}" for run in RUNS))
     for spec in CAMERAS:

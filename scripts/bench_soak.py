@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from asyncua import Client
 
@@ -63,7 +64,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
+async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, Any]:
     async with Client(url, timeout=10) as client:
         ns = await client.get_namespace_index("urn:pick-cell")
         cell = await client.nodes.objects.get_child(f"{ns}:Cell")
@@ -74,7 +75,7 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
         async def total():
             return await read("PickedBolts") + await read("PickedNuts")
 
-        out = {"start": proc_figures(pid)}
+        out: dict[str, Any] = {"start": proc_figures(pid)}
         t0 = time.monotonic()
         await cell.call_method(f"{ns}:StartContinuous")
         states, last_print, samples = set(), 0, []  # (picks, RSS MB) four times a second
@@ -120,8 +121,8 @@ def main() -> int:
     ap.add_argument("--picks", type=int, default=2000)
     ap.add_argument("--timeout-s", type=float, default=1800.0)
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory(prefix="soak-") as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
+        tmp = Path(tmp_name)
         (tmp / "shift.toml").write_text(SHIFT_TOML)
         port = free_port()
         cmd = [
@@ -147,12 +148,14 @@ def main() -> int:
             text=True,
             env={**os.environ, "PYTHONPATH": str(REPO)},
         )
+        out = proc.stdout
+        assert out is not None  # stdout=PIPE
         try:
             line = ""
             while not line.startswith("ready:"):
-                if not select.select([proc.stdout], [], [], 120)[0] or proc.poll() is not None:
+                if not select.select([out], [], [], 120)[0] or proc.poll() is not None:
                     raise SystemExit(f"serve did not start: {line}")
-                line = proc.stdout.readline()
+                line = out.readline()
             print(line.strip())
             r = asyncio.run(drive(f"opc.tcp://127.0.0.1:{port}/cell", proc.pid, args.picks, args.timeout_s))
         finally:

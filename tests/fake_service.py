@@ -252,7 +252,7 @@ class FakeLineService:
         image = np.full((h, w, 3), 235, np.uint8)
         x = 60 + (seq * 23) % (w - 120)
         cv2.circle(image, (x, h // 2), 30, (40, 40, 40), -1)
-        outline = cv2.ellipse2Poly((x, h // 2), (30, 30), 0, 0, 360, 10).reshape(-1, 1, 2).astype(np.int32)
+        outline = np.asarray(cv2.ellipse2Poly((x, h // 2), (30, 30), 0, 0, 360, 10)).reshape(-1, 1, 2).astype(np.int32)
         part = LocatedPart(1, "nut", "hexagonal", (float(x), float(h // 2)), (10.0 + seq, 20.0), None, True)
         part.outline_px = outline
         return image, LocateResult([part], (w, h), 1.0)

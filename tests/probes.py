@@ -65,6 +65,7 @@ class ProbeServer:
     def _wait_ready(self, timeout_s: float) -> tuple[str, str]:
         timer = threading.Timer(timeout_s, self.proc.kill)
         timer.start()
+        assert self.proc.stdout is not None  # stdout=PIPE
         try:
             for line in self.proc.stdout:
                 self.lines.append(line.rstrip())
@@ -76,6 +77,7 @@ class ProbeServer:
         raise RuntimeError(f"probe server ended (exit {self.proc.returncode}):\n" + "\n".join(self.lines[-30:]))
 
     def _read_rest(self) -> None:
+        assert self.proc.stdout is not None  # stdout=PIPE
         for line in self.proc.stdout:
             self.lines.append(line.rstrip())
 
@@ -92,7 +94,8 @@ class ProbeServer:
                 self.proc.kill()
                 self.proc.wait(timeout=10)
         self._drain.join(timeout=5)
-        self.proc.stdout.close()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
         return self.proc.returncode
 
 
@@ -166,7 +169,8 @@ async def secure_client(
     key, cert, server_cert = await credentials.load()
     client = Client(url, timeout=timeout_s)
     client.application_uri = credentials.uri
-    client.security_policy = SecurityPolicyBasic256Sha256(server_cert, cert, key, getattr(ua.MessageSecurityMode, mode))
+    policy = SecurityPolicyBasic256Sha256(server_cert, cert, key, getattr(ua.MessageSecurityMode, mode))
+    client.security_policy = policy  # type: ignore[assignment]  # asyncua types it as its default, SecurityPolicyNone
     client.uaclient.set_security(client.security_policy)
     client.set_user(user)
     client.set_password(password)

@@ -64,6 +64,7 @@ class ServeProcess:
     def _wait_ready(self, timeout_s: float) -> str:
         timer = threading.Timer(timeout_s, self.proc.kill)
         timer.start()
+        assert self.proc.stdout is not None  # stdout=PIPE
         try:
             for line in self.proc.stdout:
                 self.lines.append(line.rstrip())
@@ -77,6 +78,7 @@ class ServeProcess:
         )
 
     def _read_rest(self) -> None:
+        assert self.proc.stdout is not None  # stdout=PIPE
         for line in self.proc.stdout:
             self.lines.append(line.rstrip())
 
@@ -89,5 +91,6 @@ class ServeProcess:
                 self.proc.kill()
                 self.proc.wait(timeout=10)
         self._drain.join(timeout=5)
-        self.proc.stdout.close()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
         return self.proc.returncode
