@@ -63,13 +63,14 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
     levels = [gray]
     while min(levels[-1].shape) >= 2 * _MIN_SIDE:
         levels.append(cv2.pyrDown(levels[-1]))
-    found, seen = [], []
+    found: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # centre, d, level, depth
+    seen: list[tuple[np.ndarray, np.ndarray, float]] = []  # a level's labels, the dots kept, its scale
     for k, img in enumerate(levels):
         if k < _FIRST_LEVEL and min(gray.shape) >= 4 * _MIN_SIDE:
             continue
         scale = float(2**k)
         bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
-        here = []
+        here: list[tuple[np.ndarray, np.ndarray, float]] = []
         for fraction in dark_fractions:
             labels, stats, centroids, keep = _level_blobs(
                 img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN

@@ -127,7 +127,8 @@ def number_lattice(
     # Steps of one or two pitches stay within a point's 24 nearest neighbours.
     neighbours = _neighbours(points, 25)
     size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64).tolist()
-    best, covered = {}, set()
+    best: dict[int, tuple[int, int]] = {}
+    covered: set[int] = set()
     for s in seeds:
         if int(s) in covered:
             continue  # a seed on a lattice already grown would grow the same one again

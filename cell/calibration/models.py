@@ -8,11 +8,20 @@ stored float64 coefficients lose nothing (ERRATA.md: Eq. 5's rounding alone cost
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
 from cell.camera_model import CameraModel
+
+
+class PixelMap(Protocol):
+    """A fitted model: pixels (N, 2) -> table mm (N, 2), and its coefficients for the calibration file."""
+
+    def __call__(self, pixels: np.ndarray) -> np.ndarray: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
 
 
 @dataclass(frozen=True)
@@ -36,7 +45,8 @@ class Normaliser:
 
     @classmethod
     def from_dict(cls, d: dict) -> Normaliser:
-        return cls(tuple(map(float, d["centre_px"])), float(d["scale_px"]))
+        x, y = (float(v) for v in d["centre_px"])
+        return cls((x, y), float(d["scale_px"]))
 
 
 IDENTITY = Normaliser((0.0, 0.0), 1.0)
@@ -190,7 +200,7 @@ def fit_model(name: str, pixels: np.ndarray, table_mm: np.ndarray, image_size: t
     raise ValueError(f"unknown model {name!r}")
 
 
-def model_from_dict(name: str, d: dict):
+def model_from_dict(name: str, d: dict[str, Any]) -> PixelMap:
     if name in ("quadratic", "polynomial"):
         return PolynomialMap.from_dict(d)
     if name == "homography":

@@ -153,7 +153,9 @@ def _size_groups(
     logd = np.log(diameter_px)
     width = np.log(spread)
     counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
-    groups, centres, used = [], [], np.zeros(len(logd), bool)
+    groups: list[np.ndarray] = []
+    centres: list[float] = []
+    used = np.zeros(len(logd), bool)
     for i in np.argsort(-counts, kind="stable"):
         if used[i] or len(groups) == tries:
             continue

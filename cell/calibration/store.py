@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from cell.atomicfile import write_text_atomic
-from cell.calibration.models import model_from_dict
+from cell.calibration.models import PixelMap, model_from_dict
 from cell.camera_model import CameraModel
 from cell.errors import InputError
 
@@ -30,7 +30,7 @@ class Calibration:
     """Maps pixels to table millimetres (the plate frame: point 1 at (0, 0))."""
 
     model_name: str
-    model: object  # a callable pixels (N, 2) -> table mm (N, 2); see models.py
+    model: PixelMap  # pixels (N, 2) -> table mm (N, 2)
     image_size: tuple[int, int]
     camera: CameraModel | None
     pattern: dict = field(default_factory=dict)

@@ -73,7 +73,9 @@ class SimCell:
 
     def motion_time_s(self) -> float:
         """Motion time so far: the emulator's motion model, or SimArm's distance / speed estimate."""
-        return self.emulated.motion_time_s() if self.emulated else self.arm.motion_time_s
+        if self.emulated is not None:
+            return self.emulated.motion_time_s()
+        return self.arm.motion_time_s if isinstance(self.arm, SimArm) else 0.0
 
 
 def outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
@@ -136,6 +138,8 @@ def _square_to_base(bolt: PartSpec, base_mm: tuple[float, float], room) -> PartS
     ux, uy = dx / rho, dy / rho
     bearing = math.degrees(math.atan2(uy, ux))
     middle = bolt.shaft_middle_offset_mm
+    if middle is None:
+        raise ValueError(f"a {bolt.kind} is not a bolt")
     candidates = []
     for shift_mm in range(-12, 13, 2):
         for a in (bearing + 90.0, bearing - 90.0):

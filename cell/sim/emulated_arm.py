@@ -66,6 +66,7 @@ def emulated_arm(
     limit) on its next move, or the Dynamixel gripper servo overloads; "restart": the controller
     restarts at once (GRBL's banner, its position counted from zero; every servo's supply dips).
     """
+    emulator: GrblEmulator | DxlBusEmulator
     if cfg.kind == "serial":
         emulator, name = GrblEmulator(speed_scale=speed_scale, rotary_axis=True), "ttyGRBL"
     elif cfg.kind == "dynamixel":

@@ -119,10 +119,17 @@ class PartSpec:
         return tuple(self._to_table(np.array([[u, 0.0]]))[0])
 
     @property
+    def shaft_length_mm(self) -> float:
+        """Bolts: the shaft length under the head; ValueError for any other part."""
+        if self.length_mm is None:
+            raise ValueError(f"a {self.kind} has no shaft length")
+        return self.length_mm
+
+    @property
     def shaft_middle_offset_mm(self) -> float | None:
         """Bolts: how far the middle of the shaft (where the cell grips) lies from the footprint
         centre, along the axis towards the tip; else None."""
-        return self._bolt_axis_offset_mm() + self.length_mm / 2 if self.kind == "bolt" else None
+        return self._bolt_axis_offset_mm() + self.shaft_length_mm / 2 if self.kind == "bolt" else None
 
     def _dir(self) -> np.ndarray:
         a = math.radians(self.angle_deg)
@@ -138,7 +145,7 @@ class PartSpec:
         """u of the head's underside relative to the footprint centre (centre at u = 0)."""
         d = self.dims
         k, e = d["head_height"], d["across_flats"] * 2 / math.sqrt(3)
-        L, ds = self.length_mm, d["shaft"]
+        L, ds = self.shaft_length_mm, d["shaft"]
         u_c = (k * e * (-k / 2) + L * ds * (L / 2)) / (k * e + L * ds)
         return -u_c
 
@@ -152,7 +159,7 @@ class PartSpec:
         if self.kind == "bolt":
             u0 = self._bolt_axis_offset_mm()
             k, e = d["head_height"], d["across_flats"] * 2 / math.sqrt(3)
-            L, r = self.length_mm, d["shaft"] / 2
+            L, r = self.shaft_length_mm, d["shaft"] / 2
             uv = np.array(
                 [
                     [u0 - k, -e / 2],
@@ -197,7 +204,7 @@ class PartSpec:
             rim = c + ring * d["inner"] / 2
             return [disc], [(at(rim, 0.0), at(rim, t))]
         # Bolt on its side: axis along u at height s / 2, head on a flat.
-        s, k, L = d["across_flats"], d["head_height"], self.length_mm
+        s, k, L = d["across_flats"], d["head_height"], self.shaft_length_mm
         z_axis = s / 2
         u0 = self._bolt_axis_offset_mm()
         R = s / math.sqrt(3)
@@ -344,9 +351,9 @@ def random_scene(
                 continue
             if outline[:, 1].min() < y0 or outline[:, 1].max() > y1:
                 continue
-            cells = np.zeros_like(grid)
-            cv2.fillPoly(cells, [np.rint((outline - (x0, y0)) / res).astype(np.int32)], 1)
-            cells = cv2.dilate(cells, kernel)
+            filled = np.zeros_like(grid)
+            cv2.fillPoly(filled, [np.rint((outline - (x0, y0)) / res).astype(np.int32)], 1)
+            cells = np.asarray(cv2.dilate(filled, kernel), dtype=np.uint8)
             if np.any(cells & grid):
                 continue
             grid |= cells

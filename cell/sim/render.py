@@ -9,6 +9,7 @@ keeps sub-pixel truth without supersampling the whole frame.
 from __future__ import annotations
 
 import functools
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -91,7 +92,7 @@ def circles_coverage(
     return coverage
 
 
-def plate_centres_mm(plate: PlateGeometry, omit: set[tuple[int, int]] = frozenset()) -> np.ndarray:
+def plate_centres_mm(plate: PlateGeometry, omit: AbstractSet[tuple[int, int]] = frozenset()) -> np.ndarray:
     """Circle centres in table mm, row by row, (column, row) zero-based, minus `omit`."""
     pts = [
         (c * plate.pitch_x_mm, r * plate.pitch_y_mm)
@@ -144,7 +145,7 @@ def render_plate(
     plate: PlateGeometry,
     optics: Optics = Optics(),
     seed: int = 0,
-    omit: set[tuple[int, int]] = frozenset(),
+    omit: AbstractSet[tuple[int, int]] = frozenset(),
     extra_opacity: np.ndarray | None = None,
     exposure: float = 1.0,
 ) -> np.ndarray:

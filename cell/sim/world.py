@@ -114,6 +114,7 @@ class World:
         tol = self.tolerance
         if spec.kind == "bolt":
             axis = spec.axis_angle_deg
+            assert axis is not None  # a bolt's
             angle_err = abs((jaw_deg - (axis + 90.0) + 90.0) % 180.0 - 90.0)
             if angle_err > tol.bolt_angle_deg:
                 return False, f"jaws {angle_err:.1f} deg off across the axis (tolerance {tol.bolt_angle_deg:g})"
@@ -122,7 +123,7 @@ class World:
             d = math.cos(math.radians(spec.angle_deg)), math.sin(math.radians(spec.angle_deg))
             u = ex * d[0] + ey * d[1]  # along the axis, head -> tip, from the footprint centre
             head_end = spec._bolt_axis_offset_mm() - spec.dims["head_height"]
-            tip_end = spec._bolt_axis_offset_mm() + spec.length_mm
+            tip_end = spec._bolt_axis_offset_mm() + spec.shaft_length_mm
             if not head_end + tol.bolt_end_margin_mm <= u <= tip_end - tol.bolt_end_margin_mm:
                 return False, (
                     f"jaws {u:+.1f} mm along the axis, off the body "

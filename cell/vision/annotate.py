@@ -181,7 +181,7 @@ def _free(candidates: np.ndarray, obstacles: list[Box]) -> np.ndarray:
     o = np.asarray(obstacles)[None, :, :]
     c = candidates[:, None, :]
     hit = (c[..., 0] < o[..., 2]) & (o[..., 0] < c[..., 2]) & (c[..., 1] < o[..., 3]) & (o[..., 1] < c[..., 3])
-    return ~hit.any(axis=1)
+    return np.asarray(~hit.any(axis=1))
 
 
 def _around(box: Box, lw: int, lh: int, gap: int, size: tuple[int, int]) -> np.ndarray:
@@ -257,7 +257,7 @@ def _box(row: Sequence[float] | np.ndarray) -> Box:
 
 def _legend_entries(result: LocateResult, order: Sequence[int] | None) -> list[tuple[str, str]]:
     present = {p.cls for p in result.objects}
-    entries = [
+    entries: list[tuple[str, str]] = [
         (cls, text) for cls, text in (("bolt", "bolt"), ("nut", "nut"), ("unknown", "not picked")) if cls in present
     ]
     if order is None and result.objects:
@@ -312,11 +312,11 @@ def _draw_part(out: np.ndarray, p: LocatedPart, style: Style) -> None:
     colour = COLOURS_BGR[p.cls]
     if p.outline_px is not None and len(p.outline_px):
         outline = np.asarray(p.outline_px).reshape(-1, 1, 2).astype(np.int32)
-        outline = cv2.approxPolyDP(outline, 0.35 * style.thick + 0.35, True)  # 5x fewer segments to draw, unseen
+        drawn = cv2.approxPolyDP(outline, 0.35 * style.thick + 0.35, True)  # 5x fewer segments to draw, unseen
         if p.cls == "unknown":
-            _dashed(out, outline, colour, style.thick, 2 * style.text_px // 3)
+            _dashed(out, drawn, colour, style.thick, 2 * style.text_px // 3)
         else:
-            cv2.drawContours(out, [outline], -1, colour, style.thick, cv2.LINE_AA)
+            cv2.drawContours(out, [drawn], -1, colour, style.thick, cv2.LINE_AA)
     if p.cls == "unknown":
         return
     x, y = (int(round(v)) for v in p.pixel)
@@ -380,6 +380,8 @@ def _draw_label(out: np.ndarray, label: PlacedLabel, style: Style) -> None:
 
 
 def _draw_legend(out: np.ndarray, plan: Layout, style: Style) -> None:
+    if plan.legend_box is None:
+        return
     x0, y0, x1, y1 = plan.legend_box
     roi = out[y0:y1, x0:x1]
     cv2.addWeighted(roi, 0.3, np.full_like(roi, 30), 0.7, 0, dst=roi)  # dark, the table faintly through

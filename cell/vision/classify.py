@@ -15,8 +15,11 @@ import numpy as np
 
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, Profile, width_profile
+from cell.vision.types import PartClass
 
-UNKNOWN, NUT, BOLT = "unknown", "nut", "bolt"
+UNKNOWN: PartClass = "unknown"
+NUT: PartClass = "nut"
+BOLT: PartClass = "bolt"
 # Area / minimum enclosing circle: a disc about 0.95 (blur, noise), a regular hexagon 0.83.
 _ROUND = 0.9
 _ROUND_WITH_HOLE = 0.85  # a ring's inner edge lets blur and glare eat more of it
@@ -25,7 +28,7 @@ _HEXAGON_ROUNDNESS = 0.75
 
 @dataclass
 class Verdict:
-    cls: str
+    cls: PartClass
     reason: str
     size_mm: dict[str, float] = field(default_factory=dict)
     profile: Profile | None = None  # bolts: width along the axis, head first

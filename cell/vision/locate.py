@@ -147,22 +147,28 @@ def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
 
 
 def _place(
-    feat: Features, verdict: Verdict, scale: float, mapper, cfg: PartsConfig, correct: bool, seen: tuple
+    feat: Features,
+    verdict: Verdict,
+    scale: float,
+    mapper,
+    cfg: PartsConfig,
+    correct: bool,
+    seen: tuple[np.ndarray, np.ndarray],
 ) -> LocatedPart:
     """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
     world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
-    prof = verdict.profile
-    if verdict.cls == BOLT and verdict.head_width_px is not None:
+    prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
+    if verdict.cls == BOLT and prof is not None and head_px is not None and shaft_px is not None:
         fine = subpixel_outline(*seen, cfg.segment.threshold_fraction)
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
             prof,
-            verdict.head_width_px,
-            verdict.shaft_width_px,
+            head_px,
+            shaft_px,
             mapper,
             height,
             scale,
@@ -170,7 +176,7 @@ def _place(
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
-    elif verdict.cls == BOLT:  # paper preset: the centroid, and the axis end to end
+    elif verdict.cls == BOLT and prof is not None:  # paper preset: the centroid, and the axis end to end
         ends_px = np.array([prof.origin_px, prof.origin_px + prof.length_px * prof.axis_px])
         ends = mapper.pixel_to_table_mm(ends_px, height_mm=height)
         d = ends[1] - ends[0]

@@ -112,7 +112,7 @@ def _clear_edge_lines(mask: np.ndarray) -> tuple[int, int, int, int]:
             depth[side] = i + 1
     if any(depth):
         log.debug("cleared dark edge lines (left, top, right, bottom) = %s", depth)
-    return tuple(depth)
+    return depth[0], depth[1], depth[2], depth[3]
 
 
 def _blobs(

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
+
 PartClass = Literal["bolt", "nut", "unknown"]
 
 
@@ -23,7 +25,7 @@ class LocatedPart:
     jaw_opening_mm: float | None = None  # jaw opening needed to close on the part
     head_mm: tuple[float, float] | None = None  # bolts: head end, table mm
     features: dict = field(default_factory=dict)  # area_mm2, elongation, hexagonality, holes...
-    outline_px: object = field(default=None, repr=False, compare=False)  # (N, 1, 2) int32, for drawing
+    outline_px: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N, 1, 2) int32, for drawing
 
 
 @dataclass
