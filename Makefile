@@ -1,6 +1,6 @@
 # Two commands for a newcomer: `make demo` and `make test`. Each builds .venv itself.
 # `make test` runs everything (what CI runs) on both cores; `make check` leaves out the slow
-# end-to-end runs for the inner loop; `make lint` is ruff's check and format check.
+# end-to-end runs for the inner loop; `make lint` is ruff's check and format check, then mypy.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -28,6 +28,7 @@ check: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 bench: $(STAMP)
 	$(PY) scripts/bench_detection.py
@@ -37,4 +38,4 @@ bench: $(STAMP)
 	$(PY) scripts/bench_annotate.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info .mypy_cache
