@@ -327,8 +327,7 @@ class Runner:
     def _settle_released(self, state: State) -> None:
         """A part let go over its bin just before the job ended is verified on one more frame (the arm
         is parked out of view by now); where no frame can be had, it is recorded as placed, unverified."""
-        track, target = self.track, self.target
-        if track is None or not self.released:
+        if self.track is None or not self.released:
             return
         if state is not S.FAULT and self.expect_motion and self.camera.is_connected:
             try:
@@ -340,6 +339,9 @@ class Runner:
                 log.warning("the part released before the end could not be verified: %s", e)
             except Exception:
                 log.exception("verifying the part released before the end")
+        track, target = self.track, self.target
+        if track is None:  # the verification took it before it failed
+            return
         self.track = None
         if target is not None:
             self._emit(
