@@ -64,7 +64,7 @@ def free_port() -> int:
 
 
 async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
-    async with Client(url, timeout=10) as client:
+    async with Client(url, timeout=10, watchdog_intervall=15) as client:
         ns = await client.get_namespace_index("urn:pick-cell")
         cell = await client.nodes.objects.get_child(f"{ns}:Cell")
 
