@@ -29,6 +29,8 @@ COMMAND_MODULES = [
     "cell.commands.camera",
     "cell.commands.run",
     "cell.commands.serve",
+    "cell.commands.history",
+    "cell.commands.report",
 ]
 
 log = logging.getLogger(__name__)
