@@ -157,7 +157,7 @@ class HistoryStore:
         self._wake_forwarder = threading.Event()
         self.unreachable = ""
         if self.remote_url:
-            self._connect_remote(first=True)
+            self._connect_remote()
             self._forwarder = threading.Thread(target=self._forward_loop, name="history-forwarder", daemon=True)
             self._forwarder.start()
 
@@ -178,7 +178,7 @@ class HistoryStore:
             raise HistoryError(f"history cannot be written: {db.where}: {describe(e)}") from None
         return db
 
-    def _connect_remote(self, first: bool = False) -> bool:
+    def _connect_remote(self) -> bool:
         try:
             db = open_postgresql(self.remote_url, self.config.connect_timeout_s)
             migrate(db)
@@ -269,10 +269,9 @@ class HistoryStore:
                     self._cond.notify_all()
                 self._write_failed(e)
                 with self._cond:
-                    if not self._closing:
-                        self._cond.wait(self.config.retry_s)
-                    elif self._closing:
-                        return
+                    if self._closing:
+                        return  # close() says how many rows were left
+                    self._cond.wait(self.config.retry_s)
                 continue
             n = sum(len(ops) for ops, _ in batch)
             with self._cond:
