@@ -13,6 +13,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from datetime import datetime
 
 from cell.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
@@ -25,21 +26,29 @@ RATE_WINDOW = 20  # picks the parts-per-minute figure is taken over
 
 
 class PickRecords:
-    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place)."""
+    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place).
+
+    Only the records of parts missed and not yet picked or given up are kept (small records, never
+    the events: those carry frames, and a continuous job's parts never end)."""
 
     def __init__(self) -> None:
-        self._last: dict[tuple[str, int], PickVerified] = {}
+        self._missed: dict[tuple[str, int], PickRecord] = {}
 
     def of(self, event: Event) -> PickRecord | None:
         if isinstance(event, JobStarted):
-            self._last.clear()
+            self._missed.clear()
         elif isinstance(event, PickVerified):
-            self._last[(event.job_id or "", event.track)] = event
-            return _record(event, event.result)
+            record = _record(event, event.result)
+            key = (event.job_id or "", event.track)
+            if event.result == "missed":
+                self._missed[key] = record  # it may yet be given up
+            else:
+                self._missed.pop(key, None)
+            return record
         elif isinstance(event, PartFailed):
-            last = self._last.pop((event.job_id or "", event.track), None)
+            last = self._missed.pop((event.job_id or "", event.track), None)
             if last is not None:
-                return _record(last, "failed")
+                return replace(last, outcome="failed")
         return None
 
 
