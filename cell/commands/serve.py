@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
@@ -22,9 +23,11 @@ from cell.eventbus import EventBus
 from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
 from cell.service.api import Command, CommandRefused
+from cell.service.fdlimit import check_open_files
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
+from cell.service.throttle import LoginThrottle
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
 
@@ -149,6 +152,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             if type(h) is logging.StreamHandler:
                 h.setLevel(logging.WARNING)
     log_to_file(config.run.log_dir / f"serve-{stamp}.log")
+    check_open_files(config.service)  # issue 21: raise the soft limit, or warn (stderr and log), before clients come
     with contextlib.ExitStack() as resources:
         service = open_service(config, args.dry_run, resources, progress=say)
         service.start()
@@ -167,6 +171,20 @@ def _check_port_free(host: str, port: int, option: str) -> None:
                 hint=f"another program holds the port, or the address is not this machine's: "
                 f"choose another with {option} or service.host",
             ) from None
+
+
+def lockout_alarm(service: LineService, lockout) -> None:
+    """A login lockout (screen or OPC UA) as a warning alarm, cleared when the lockout ends."""
+    key = f"lockout:{lockout.kind}:{lockout.key}"
+    service.raise_warning(
+        key,
+        f"{lockout.failures} failed logins for {lockout.kind} {lockout.key}: locked out for {lockout.lockout_s:g} s",
+        "if these were not your own attempts, someone is guessing passwords: tell the plant's IT",
+        "login",
+    )
+    timer = threading.Timer(lockout.lockout_s, service.clear_warning, (key,))
+    timer.daemon = True
+    timer.start()
 
 
 def toggle_pause(service: LineService) -> None:
@@ -194,7 +212,8 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
-    interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
+    throttle = LoginThrottle(config.service.login, on_lockout=lambda lockout: lockout_alarm(service, lockout))
+    interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
     safe = True
     try:
         for interface in interfaces:
