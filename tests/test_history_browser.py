@@ -27,6 +27,15 @@ ARTIFACTS = REPO / "test-artifacts"
 TIMEOUT_MS = 15_000
 
 
+def _wait_js(page, expression: str, timeout_s: float = TIMEOUT_MS / 1000) -> None:
+    """Until the JS expression is true, polled from here (wait_for_function would eval in the page,
+    which its Content-Security-Policy forbids)."""
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        assert time.monotonic() < deadline, f"not true within {timeout_s} s: {expression}"
+        time.sleep(0.05)
+
+
 def _wait_state(url: str, want: str, timeout_s: float = 90.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while (state := httpx.get(url + "api/state").json())["vision_state"] != want:
@@ -57,8 +66,8 @@ def test_history_page_filters_pages_opens_images_and_lists_alarms(tmp_path):
             page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
             page.goto(url)
             page.click("#history-link")
-            page.wait_for_function("window.historyStats && window.historyStats.picksLoads > 0", timeout=TIMEOUT_MS)
-            page.wait_for_function("window.historyStats.alarmsLoads > 0", timeout=TIMEOUT_MS)
+            _wait_js(page, "window.historyStats && window.historyStats.picksLoads > 0")
+            _wait_js(page, "window.historyStats.alarmsLoads > 0")
             rows = page.locator("#history-body tr")
             assert rows.count() == 8
             assert page.locator("#picks-status").inner_text() == "8 picks"
@@ -69,15 +78,16 @@ def test_history_page_filters_pages_opens_images_and_lists_alarms(tmp_path):
             page.screenshot(path=str(ARTIFACTS / "history.png"), full_page=True)
             page.select_option("#f-outcome", "picked")
             page.click("#f-apply")
-            page.wait_for_function("window.historyStats.lastPicks.picks.every(p => p.outcome === 'picked')")
+            _wait_js(page, "window.historyStats.lastPicks.picks.every(p => p.outcome === 'picked')")
             page.select_option("#f-outcome", "missed")
             page.click("#f-apply")
-            page.wait_for_function(
+            _wait_js(
+                page,
                 "window.historyStats.lastPicks.picks.length > 0 && "
-                "window.historyStats.lastPicks.picks.every(p => p.outcome === 'missed')"
+                "window.historyStats.lastPicks.picks.every(p => p.outcome === 'missed')",
             )
             page.locator("#history-body button.image-open").first.click()
-            page.wait_for_function("window.historyStats.imagesShown > 0", timeout=TIMEOUT_MS)
+            _wait_js(page, "window.historyStats.imagesShown > 0")
             size = page.evaluate(
                 "[$('image-full').naturalWidth, $('image-full').naturalHeight]".replace("$", "document.getElementById")
             )
@@ -85,13 +95,13 @@ def test_history_page_filters_pages_opens_images_and_lists_alarms(tmp_path):
             page.screenshot(path=str(ARTIFACTS / "history-image.png"))
             page.click("#image-close")
             page.locator("#alarms-history-body button.image-open").first.click()
-            page.wait_for_function("window.historyStats.imagesShown > 1", timeout=TIMEOUT_MS)
+            _wait_js(page, "window.historyStats.imagesShown > 1")
             assert not errors, errors
             if os.environ.get("CELL_DOCS_SCREENSHOTS"):
                 page.click("#image-close")
                 page.select_option("#f-outcome", "")
                 page.click("#f-apply")
-                page.wait_for_function("window.historyStats.lastPicks.picks.length === 8")
+                _wait_js(page, "window.historyStats.lastPicks.picks.length === 8")
                 page.screenshot(path=str(REPO / "docs" / "history.png"), full_page=True)
             browser.close()
     finally:
