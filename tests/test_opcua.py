@@ -29,6 +29,7 @@ VARIABLES = [
     "VisionState",
     "CellState",
     *COUNTERS,
+    "Shift",
     "LastPickClass",
     "LastPickTableMm",
     "LastPickRobotMm",

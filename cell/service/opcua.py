@@ -68,6 +68,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "CalibrationTime": (_T.DateTime, False),
     "JobId": (_T.String, False),
     "DroppedEvents": (_T.UInt32, False),
+    "Shift": (_T.String, False),
 }
 
 
@@ -103,6 +104,7 @@ def _values(s: Snapshot) -> dict:
         "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
         "JobId": s.job_id,
         "DroppedEvents": sum(x.dropped + x.failed for x in s.subscribers),
+        "Shift": s.shift,
     }
 
 
