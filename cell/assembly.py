@@ -242,7 +242,9 @@ def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.Ex
         store = HistoryStore(config.history, config.run.log_dir, hooks)
         resources.callback(store.close)
         # a large queue: the subscriber only turns events into rows (fast); it must lose none
-        sub = bus.subscribe("history", store.handle, kinds=EVENT_TYPES, maxsize=200_000)
+        sub = bus.subscribe(
+            "history", store.handle, kinds=EVENT_TYPES, maxsize=200_000, frames=HistoryStore.wants_frame
+        )
         resources.callback(bus.unsubscribe, sub)  # first: the queued events are handed over, then the store closes
         consumers.history = store
     return consumers

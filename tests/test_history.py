@@ -189,11 +189,19 @@ def test_a_full_image_queue_drops_and_counts_never_holds(tmp_path, monkeypatch):
 
     import cell.history.images as images
 
-    gate, real = threading.Event(), images.write_bytes_atomic
-    monkeypatch.setattr(images, "write_bytes_atomic", lambda path, data: (gate.wait(30), real(path, data)))
+    gate, stuck, real = threading.Event(), threading.Event(), images.write_bytes_atomic
+
+    def stuck_write(path, data):
+        stuck.set()
+        gate.wait(30)
+        return real(path, data)
+
+    monkeypatch.setattr(images, "write_bytes_atomic", stuck_write)
     cfg = history_config(tmp_path, images_queue=1)
     store = HistoryStore(cfg.history, cfg.run.log_dir, Hooks())
-    for n in range(1, 30):  # the saver is stuck on the first image: one waits, the rest are dropped
+    store.handle(verify(1, "missed", track=1, ref=frame(1)))
+    assert stuck.wait(30)  # the saver has taken the first image and is stuck writing it
+    for n in range(2, 30):  # one waits in the queue, the rest are dropped
         store.handle(verify(n, "missed", track=n, ref=frame(n)))
     s = store.stats()
     assert s.images_dropped == 27

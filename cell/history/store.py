@@ -117,6 +117,19 @@ def _decode(text: str) -> Op:
     return Op(key, tuple(parse_time(p["t"]) if isinstance(p, dict) else p for p in params))
 
 
+def image_kind(event: Event) -> str:
+    """What went wrong that an image is kept for: miss, failed, fault, unknown (parts left); else ""."""
+    if isinstance(event, PickVerified) and event.result == "missed":
+        return "miss"
+    if isinstance(event, PartFailed):
+        return "failed"
+    if isinstance(event, FaultRaised):
+        return "fault"
+    if isinstance(event, RunEnded) and event.unknown_left > 0 and event.outcome != "fault":
+        return "unknown"
+    return ""
+
+
 class HistoryStore:
     """Open with `HistoryStore.open(config, log_dir, hooks)`; `handle` is the bus subscriber."""
 
@@ -202,6 +215,12 @@ class HistoryStore:
             "history",
         )
 
+    @staticmethod
+    def wants_frame(event: Event) -> bool:
+        """For the bus: the history keeps the frames of what went wrong only (so its queue never holds
+        the frames of good picks)."""
+        return bool(image_kind(event))
+
     # ---- the subscriber (the bus's thread) ----------------------------------------------------
     def handle(self, event: Event) -> None:
         record = {"kind": event.kind, "time": event.time_utc, "job": event.job_id or "", **event.record()}
@@ -216,15 +235,7 @@ class HistoryStore:
         ref: FrameRef | None = getattr(event, "ref", None)
         if ref is None or not event.job_id:
             return None
-        kind = ""
-        if isinstance(event, PickVerified) and event.result == "missed":
-            kind = "miss"
-        elif isinstance(event, PartFailed):
-            kind = "failed"
-        elif isinstance(event, FaultRaised):
-            kind = "fault"
-        elif isinstance(event, RunEnded) and event.unknown_left > 0 and event.outcome != "fault":
-            kind = "unknown"
+        kind = image_kind(event)
         if not kind:
             return None
         wanted = ImageWanted(image_id(event.job_id, ref.frame_no), kind, event.job_id, getattr(event, "pick_id", ""))

@@ -493,7 +493,7 @@ class LineService:
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
-        frames: bool = False,
+        frames: bool | Callable[[Event], bool] = False,
     ) -> Subscription:
         return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
 
