@@ -127,6 +127,16 @@ class HistoryReader:
         rows = self.db.execute(f"SELECT {', '.join(PICK_COLUMNS)} FROM picks WHERE id = ?", (pick_id,))
         return pick_json(rows[0]) if rows else None
 
+    def get_job(self, job_id: str) -> dict | None:
+        """A job's row: who started it, its recipe and its start arguments (MeasId, PartId ...)."""
+        cols = ("id", "start_utc", "end_utc", "mode", "interface", "user_name", "recipe", "arguments", "outcome")
+        rows = self.db.execute(f"SELECT {', '.join(cols)} FROM jobs WHERE id = ?", (job_id,))
+        if not rows:
+            return None
+        d = dict(zip(cols, rows[0], strict=True))
+        d["arguments"] = dump_arguments(d["arguments"])
+        return d
+
     def list_picks(self, f: PickFilter = PickFilter(), limit: int | None = 1000, offset: int = 0) -> list[dict]:
         """Oldest first (limit None: all)."""
         where, params = f.where(self.cell)
