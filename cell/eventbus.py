@@ -58,7 +58,7 @@ class Subscription:
         kinds: frozenset[type[Event]] | None,
         maxsize: int,
         coalesce: frozenset[type[Event]],
-        frames: bool = False,
+        frames: bool | Callable[[Event], bool] = False,
     ):
         self.name, self.handler, self.kinds, self.maxsize, self.coalesce = name, handler, kinds, maxsize, coalesce
         self.frames = frames  # False: events reach it without their frame (`ref`), so its queue holds no images
@@ -76,7 +76,9 @@ class Subscription:
     def offer(self, event: Event) -> None:
         if self.kinds is not None and type(event) not in self.kinds:
             return
-        if not self.frames and getattr(event, "ref", None) is not None:
+        if getattr(event, "ref", None) is not None and not (
+            self.frames(event) if callable(self.frames) else self.frames
+        ):
             event = dataclasses.replace(event, ref=None)  # type: ignore[call-arg]
         with self._cond:
             if self._closing:
@@ -189,10 +191,11 @@ class EventBus:
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
         coalesce: Iterable[type[Event]] = (FrameLocated,),
-        frames: bool = False,
+        frames: bool | Callable[[Event], bool] = False,
     ) -> Subscription:
-        """`frames`: the subscriber uses the images events carry (the screen, the history store);
-        others get the events without them, so a queue that backs up never holds frames."""
+        """`frames`: the subscriber uses the images events carry (the screen), or those of the events
+        it names (the history store: failures only); the others get the events without them, so a
+        queue that backs up holds no frame it does not need."""
         kind_set = None if kinds is None else frozenset(kinds)
         sub = Subscription(name, handler, kind_set, maxsize, frozenset(coalesce), frames)
         with self._lock:

@@ -167,7 +167,7 @@ async def secure_client(
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
     key, cert, server_cert = await credentials.load()
-    client = Client(url, timeout=timeout_s)
+    client = Client(url, timeout=timeout_s, watchdog_intervall=15)  # a loaded machine answers the 1 s probe late
     client.application_uri = credentials.uri
     policy = SecurityPolicyBasic256Sha256(server_cert, cert, key, getattr(ua.MessageSecurityMode, mode))
     client.security_policy = policy  # type: ignore[assignment]  # asyncua types it as its default, SecurityPolicyNone

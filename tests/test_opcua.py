@@ -29,6 +29,7 @@ VARIABLES = [
     "VisionState",
     "CellState",
     *COUNTERS,
+    "Shift",
     "LastPickClass",
     "LastPickTableMm",
     "LastPickRobotMm",
@@ -136,7 +137,7 @@ class Cell:
 
 def with_cell(url: str, body, timeout_s: float = 60.0):
     async def go():
-        async with Client(url, timeout=10) as client:
+        async with Client(url, timeout=10, watchdog_intervall=15) as client:
             return await body(await Cell(client).open())
 
     return asyncio.run(asyncio.wait_for(go(), timeout_s))
@@ -339,7 +340,7 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
         assert (certs / "server-cert.der").is_file() and (certs / "server-key.pem").stat().st_mode & 0o077 == 0
 
         async def attempt(password: str | None, secure: bool = True):
-            client = Client(serve.url, timeout=10)
+            client = Client(serve.url, timeout=10, watchdog_intervall=15)
             client.application_uri = "urn:test-plc"  # as its certificate says (checked at CreateSession)
             if secure:
                 await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")

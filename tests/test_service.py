@@ -285,14 +285,15 @@ def test_after_shutdown_begins_commands_get_a_clear_refusal(tmp_path):
         assert service.snapshot().vision_state == V.READY
 
 
-def test_counters_start_again_with_the_next_days_shift():
-    ledger = Ledger()
-    today = datetime.now(UTC)
-    ledger.handle(PartUnreachable(track=1, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=today))
+def test_counters_start_again_with_the_next_shift():
+    ledger = Ledger()  # the default shifts: 06:00, 14:00, 22:00 UTC
+    now = datetime.now(UTC)
+    ledger.handle(PartUnreachable(track=1, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=now))
     assert ledger.counters().unreachable == 1
-    tomorrow = today + timedelta(days=1)
-    ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=tomorrow))
-    assert ledger.counters().unreachable == 1 and ledger.shift == tomorrow.date().isoformat()
+    nxt = ledger.current_shift.end_utc + timedelta(minutes=1)
+    ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=nxt))
+    assert ledger.counters().unreachable == 1 and ledger.shift == ledger.calendar.at(nxt).id
+    assert ledger.shift != ledger.calendar.at(now).id
 
 
 def test_a_fault_from_another_part_stops_the_job_safely_into_error(tmp_path):

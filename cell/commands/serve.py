@@ -18,7 +18,7 @@ from typing import Protocol, get_args
 
 from cell.assembly import Overrides, assemble, attach_consumers, cell_config
 from cell.config import CellConfig
-from cell.errors import ConfigError
+from cell.errors import REPORTED_ERRORS, ConfigError
 from cell.eventbus import EventBus
 from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
@@ -113,8 +113,32 @@ def open_service(
     resources.callback(consumers.close)  # after the service has closed: they record its last events
     service = LineService(cell, bus, record)
     resources.callback(service.close)
-    attach_consumers(config, bus, consumers, service)
+    attached = attach_consumers(config, bus, consumers, service)
+    service.history = attached.history
+    if attached.history is not None:
+        restore_ledger(service, config)
     return service
+
+
+def restore_ledger(service: LineService, config: CellConfig) -> None:
+    """The running shift's counters and the last picks from the history store (after a restart);
+    from the audit files where the store cannot be read (a PostgreSQL server away)."""
+    from cell.history.query import open_reader
+
+    shift = service.ledger.current_shift
+    try:
+        reader = open_reader(config)
+    except REPORTED_ERRORS as e:
+        log.warning("counters from the audit files: the history store cannot be read (%s)", e)
+        service.prime_ledger_from_audit()
+        return
+    try:
+        service.ledger.restore(reader.counters(shift.start_utc, shift.end_utc), reader.last_picks())
+    except Exception as e:
+        log.warning("counters from the audit files: the history store cannot be read (%s)", e)
+        service.prime_ledger_from_audit()
+    finally:
+        reader.close()
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

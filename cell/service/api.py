@@ -333,7 +333,7 @@ class LineServiceAPI(Protocol):
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
-        frames: bool = False,
+        frames: bool | Callable[[Event], bool] = False,
     ) -> Subscription:
         """`handler` gets every event (of `kinds`), on its own thread behind its own bounded queue;
         with `frames` the images events carry too (otherwise `ref` is None); `unsubscribe(subscription)`

@@ -25,6 +25,7 @@ from cell.events import Origin
 from cell.service.api import CommandRefused, LineServiceAPI, Refusal, Snapshot
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
+from cell.web.history import HistoryRoutes
 from cell.web.hub import Hub, Screen
 from cell.web.recalibration import Busy, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
@@ -98,6 +99,7 @@ class ScreenApp:
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
         self.max_upload = int(web.max_upload_mb * 1024 * 1024)
+        self.history = HistoryRoutes(self._view_refused, service, config)  # the History page and alarm list
 
     # ---- checks ----------------------------------------------------------------------
     @staticmethod
@@ -362,6 +364,7 @@ class ScreenApp:
             Route("/api/recalibration/{report_id}/{kind:str}", self.recal_picture),
             Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
             Route("/api/calibration/{kind}", self.calibration_picture),
+            *self.history.routes(),
         ]
 
 
