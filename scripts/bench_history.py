@@ -25,6 +25,7 @@ import tempfile
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -33,17 +34,32 @@ import numpy as np  # noqa: E402
 
 from cell.audit import AuditLog  # noqa: E402
 from cell.eventbus import EventBus  # noqa: E402
-from cell.events import ArmCommanded, FrameLocated, FrameRef, PickVerified, StateChanged, TargetChosen  # noqa: E402
+from cell.events import (  # noqa: E402
+    ArmCommanded,
+    Event,
+    FrameLocated,
+    FrameRef,
+    PickVerified,
+    StateChanged,
+    TargetChosen,
+)
 from cell.history.config import HistoryConfig  # noqa: E402
 from cell.history.store import EVENT_TYPES, HistoryStore  # noqa: E402
 
 JOB = "20261201-060000-beef"
 
 
-def pick_events(n: int, image: np.ndarray) -> list:
+def pick_events(n: int, image: np.ndarray) -> list[Event]:
     pid = f"{JOB}/{n}"
-    common = {"job_id": JOB, "track": n, "cls": "nut", "attempt": 1, "pixel": (100.0, 200.0), "table_mm": (10.0, 20.0)}
-    out = [
+    common: dict[str, Any] = {
+        "job_id": JOB,
+        "track": n,
+        "cls": "nut",
+        "attempt": 1,
+        "pixel": (100.0, 200.0),
+        "table_mm": (10.0, 20.0),
+    }
+    out: list[Event] = [
         StateChanged(job_id=JOB, source="plan", target="pick", reason="next"),
         TargetChosen(
             **common,
@@ -79,9 +95,10 @@ def pick_events(n: int, image: np.ndarray) -> list:
 
 def control_thread(rounds: int, picks: int) -> tuple[float, float]:
     image = np.zeros((540, 960, 3), np.uint8)
-    with_us, without_us = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with_us: list[float] = []
+    without_us: list[float] = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         for r in range(rounds):
             for history in (False, True):
                 bus = EventBus()

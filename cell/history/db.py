@@ -53,6 +53,14 @@ def parse_time(value: Any) -> datetime | None:
     return t if t.tzinfo else t.replace(tzinfo=UTC)
 
 
+def required_time(value: Any, what: str) -> datetime:
+    """The time a column that is never empty holds; HistoryError naming `what` if it holds none."""
+    t = parse_time(value)
+    if t is None:
+        raise HistoryError(f"history: {what} has no time")
+    return t
+
+
 def sqlite_path(url: str) -> Path:
     return Path(url[len("sqlite:///") :])
 

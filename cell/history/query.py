@@ -15,7 +15,15 @@ from pathlib import Path
 from typing import Any
 
 from cell.history.config import data_dir, database_url
-from cell.history.db import Database, HistoryError, open_postgresql, open_sqlite, parse_time, sqlite_path
+from cell.history.db import (
+    Database,
+    HistoryError,
+    open_postgresql,
+    open_sqlite,
+    parse_time,
+    required_time,
+    sqlite_path,
+)
 from cell.history.store import cell_name
 from cell.service.api import Counters, PickRecord
 
@@ -223,13 +231,14 @@ class HistoryReader:
         return out
 
 
-def pick_record(p: dict) -> PickRecord:
+def pick_record(p: dict[str, Any]) -> PickRecord:
+    x, y, z = (float(v or 0.0) for v in p["robot_mm"])
     return PickRecord(
-        parse_time(p["time_utc"]),  # type: ignore[arg-type]
+        required_time(p["time_utc"], "a pick"),
         int(p["track"]),
         p["class"],
         (float(p["table_mm"][0] or 0.0), float(p["table_mm"][1] or 0.0)),
-        tuple(float(v or 0.0) for v in p["robot_mm"]),  # type: ignore[arg-type]
+        (x, y, z),
         p["jaw_angle_deg"],
         p["outcome"],
         p["id"],

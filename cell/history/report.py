@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from cell.history.db import parse_time
+from cell.history.db import required_time
 from cell.history.query import HistoryReader
 
 UP_STATES = frozenset({"Ready", "SingleExecution", "ContinuousExecution"})
@@ -136,7 +136,7 @@ def build_report(reader: HistoryReader, title: str, start: datetime, end: dateti
     )
     r.faults = [
         {
-            "time_utc": parse_time(t).isoformat(timespec="seconds"),  # type: ignore[union-attr]
+            "time_utc": required_time(t, "an alarm").isoformat(timespec="seconds"),
             "reason": reason,
             "source": source,
             "cleared_by": f"{user or 'anonymous'} via {iface}" if iface else "",
@@ -149,7 +149,11 @@ def build_report(reader: HistoryReader, title: str, start: datetime, end: dateti
         base,
     )
     r.faults += [
-        {"time_utc": parse_time(t).isoformat(timespec="seconds") if t else "", "reason": why, "source": "job"}
+        {
+            "time_utc": required_time(t, "a job's end").isoformat(timespec="seconds") if t else "",
+            "reason": why,
+            "source": "job",
+        }
         for t, why in cli_faults
     ]
     top = db.execute(
@@ -175,10 +179,10 @@ def _states(reader: HistoryReader, r: Report, until: datetime) -> None:
     )
     state, since = (before[0][0] if before else None), r.start_utc
     for t, target in rows:
-        t = parse_time(t)
+        when = required_time(t, "a state change")
         if state is not None:
-            _add(r, state, (t - since).total_seconds())
-        state, since = target, t
+            _add(r, state, (when - since).total_seconds())
+        state, since = target, when
     if state is not None and until > since:
         _add(r, state, (until - since).total_seconds())
 

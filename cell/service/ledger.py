@@ -70,7 +70,7 @@ class Ledger:
         self._records = PickRecords()
         self._on_change = on_change
 
-    def _in_shift(self, e: dict) -> bool:
+    def _in_shift(self, e: dict[str, Any]) -> bool:
         t = e.get("t_utc")
         if not t:
             return True
@@ -79,7 +79,7 @@ class Ledger:
         except ValueError:
             return True
 
-    def prime(self, history: Iterable[dict]) -> None:
+    def prime(self, history: Iterable[dict[str, Any]]) -> None:
         """Count the running shift's audit events (a restart without a history store)."""
         with self._lock:
             self._counts = ShiftCounts.from_events(e for e in history if self._in_shift(e))

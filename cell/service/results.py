@@ -149,7 +149,7 @@ class HistoryBackedResults:
     def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
         return self.memory.query(where, start_index, max_results)
 
-    def _from_history(self, pick: dict, job: dict) -> VisionResult:
+    def _from_history(self, pick: dict[str, Any], job: dict[str, Any]) -> VisionResult:
         t = datetime.fromisoformat(pick["time_utc"])
         args = job.get("arguments") or {}
         return VisionResult(

@@ -10,17 +10,25 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from datetime import UTC, datetime
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import QueryParams
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS
+from cell.service.api import LineServiceAPI
+
+if TYPE_CHECKING:  # imported where used: the screen without a store never loads them
+    from cell.history.query import HistoryReader, PickFilter
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +50,7 @@ def _error(status: int, message: str) -> JSONResponse:
 class HistoryRoutes:
     """Routes bound to the screen (its view check, the service's snapshot) and the cell's config."""
 
-    def __init__(self, view_refused: Any, service: Any, config: CellConfig):
+    def __init__(self, view_refused: Callable[[Request], Response | None], service: LineServiceAPI, config: CellConfig):
         """`view_refused(request)`: the screen's view check (a response when refused, else None)."""
         self.view_refused, self.service, self.config = view_refused, service, config
         pkg = resources.files("cell.web") / "static"
@@ -60,15 +68,15 @@ class HistoryRoutes:
         body, kind = self.static[request.url.path]
         return Response(body, media_type=kind)
 
-    def _reader(self):
+    def _reader(self) -> HistoryReader:
         from cell.history.query import open_reader
 
         return open_reader(self.config)
 
-    async def _query(self, work):
+    async def _query(self, work: Callable[[HistoryReader], T]) -> T | Response:
         """Run `work(reader)` off the loop; a store that cannot be read is a 503 saying why."""
 
-        def run():
+        def run() -> T:
             reader = self._reader()
             try:
                 return work(reader)
@@ -92,7 +100,7 @@ class HistoryRoutes:
         except ValueError as e:
             return _error(400, str(e))
 
-        def work(reader):
+        def work(reader: HistoryReader) -> dict[str, Any]:
             return {
                 "shift": shift,
                 "since": f.since.isoformat() if f.since else None,
@@ -106,7 +114,7 @@ class HistoryRoutes:
         result = await self._query(work)
         return result if isinstance(result, Response) else JSONResponse(result)
 
-    def _filter(self, q) -> tuple[Any, int, int, str]:
+    def _filter(self, q: QueryParams) -> tuple[PickFilter, int, int, str]:
         from cell.history.query import PickFilter
         from cell.shifts import ShiftCalendar
 
