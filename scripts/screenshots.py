@@ -6,12 +6,13 @@ between jobs, a continuous run, the recalibration dialog and a picture full size
 with the simulated camera bumped 0.8 mm after calibration (`[sim] camera_bumped_mm`), so the
 drift watch raises its real alarm. Writes into --out (default docs/):
 
-    screen.png                      running, 1920 x 1080 (the README's picture)
+    screen.png                      running at the first size, 1920 x 1080 (the README's picture)
     screen-idle-WxH.png             Ready, the live camera view
-    screen-running-WxH.png          a continuous run with picks
+    screen-running-WxH.png          a continuous run with picks, at the other sizes
     screen-fault-WxH.png            the drift alarm in operator words
+    screen-camera-check-1280x720.png the camera check on the live view
     screen-recalibrate-1280x720.png the recalibration report
-    screen-picture-1280x720.png     its numbered plate at full size
+    screen-picture-1280x720.jpg     its numbered plate at full size
 
     .venv/bin/python scripts/screenshots.py [--out docs] [--sizes 1920x1080,1280x720,1024x600]
 
@@ -21,7 +22,6 @@ Needs the test extras (playwright) and the system Chromium (Debian package `chro
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import tempfile
 import time
@@ -58,7 +58,7 @@ def key_is(key: str) -> str:
 
 def shoot(page, path: Path) -> None:
     page.wait_for_timeout(300)  # the last frame decoded and drawn
-    page.screenshot(path=str(path))
+    page.screenshot(path=str(path), **({"quality": 80} if path.suffix == ".jpg" else {}))
     print(f"wrote {path}")
 
 
@@ -74,12 +74,16 @@ def shipped(browser, url: str, sizes: list[tuple[int, int]], out: Path) -> None:
         shoot(page, out / f"screen-idle-{w}x{h}.png")
         click(page, "Start continuous")
         poll(page, f"{key_is('running')} && screenStats.lastState.last_picks.length >= 3 && !screenStats.lastLive")
-        shoot(page, out / f"screen-running-{w}x{h}.png")
+        shoot(page, out / ("screen.png" if (w, h) == sizes[0] else f"screen-running-{w}x{h}.png"))
         click(page, "Stop")
         page.click("#confirm-yes")
         poll(page, key_is("stopped"))
         page.close()
     page = open_screen(browser, url, (1280, 720))
+    page.click("#check-toggle")
+    poll(page, "!document.getElementById('check-readings').hidden")
+    shoot(page, out / "screen-camera-check-1280x720.png")
+    page.click("#check-toggle")
     page.click("#recal-open")
     page.click("#recal-capture")
     poll(page, "!document.getElementById('recal-report').hidden", 120)
@@ -90,7 +94,7 @@ def shipped(browser, url: str, sizes: list[tuple[int, int]], out: Path) -> None:
     shoot(page, out / "screen-recalibrate-1280x720.png")
     page.click("#rep-plate")
     poll(page, "document.getElementById('picture').open && document.getElementById('picture-img').naturalWidth > 0")
-    shoot(page, out / "screen-picture-1280x720.png")
+    shoot(page, out / "screen-picture-1280x720.jpg")
     page.keyboard.press("Escape")
     page.click("#recal-reject")
     poll(page, "!document.getElementById('recal').open")
@@ -145,9 +149,6 @@ def main() -> int:
         finally:
             serve.stop()
         browser.close()
-    big = f"{sizes[0][0]}x{sizes[0][1]}"
-    shutil.copyfile(args.out / f"screen-running-{big}.png", args.out / "screen.png")
-    print(f"wrote {args.out / 'screen.png'} (= screen-running-{big}.png)")
     return 0
 
 

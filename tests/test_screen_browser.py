@@ -331,6 +331,23 @@ def test_the_active_recipe_is_shown_and_switched_in_ready_only(browser, fake_cel
     screen.close()
 
 
+def test_the_camera_check_shows_focus_exposure_plate_and_advice_in_place_of_the_picks(browser, fake_cell):
+    service, url = fake_cell
+    screen = Page(browser, url, (1024, 600))
+    screen.page.click("#check-toggle")
+    screen.wait("!document.getElementById('check').hidden && document.getElementById('picks').hidden")
+    screen.wait("!document.getElementById('check-readings').hidden", 30)
+    assert re.match(r"^\d+\.\d, best \d+\.\d \(\d+ %\)$", screen.text("#check-focus"))
+    assert screen.text("#check-exposure").startswith("mean ")
+    assert screen.js("document.querySelectorAll('#check-histogram i').length") == 16
+    assert screen.text("#check-plate").startswith("not found") and screen.text("#check-advice").startswith("plate:")
+    assert inside(screen.box("#check"), 1024, 600)
+    screen.page.click("#check-toggle")
+    screen.wait("document.getElementById('check').hidden && !document.getElementById('picks').hidden")
+    assert screen.errors == []
+    screen.close()
+
+
 # ---- the real service: the drift watch's alarm, followed from the screen --------------------
 @pytest.fixture(scope="module")
 def bumped_serve(tmp_path_factory):

@@ -114,6 +114,25 @@ def test_live_frames_between_jobs_and_the_jobs_own_frames_while_it_runs(service)
         srv.stop()
 
 
+def test_the_camera_check_reads_live_frames_while_it_is_on(service):
+    srv = WebServer(service, CellConfig(), WebConfig(live_interval_s=0.1), "127.0.0.1", 0)
+    srv.start()
+    try:
+        token = httpx.get(srv.url + "api/session").json()["csrf"]
+        assert httpx.post(srv.url + "api/camera-check", json={"on": True}).status_code == 403  # no CSRF token
+        r = httpx.post(srv.url + "api/camera-check", json={"on": True}, headers={"x-csrf-token": token})
+        assert r.json() == {"ok": True, "on": True} and httpx.get(srv.url + "api/state").json()["camera_check"]
+        checked = frames_until(srv.url, lambda f: len(f) >= 3 and "check" in f[-1])[-1]["check"]
+        assert checked["focus"] > 0 and checked["focus_best"] >= checked["focus"]
+        assert abs(sum(checked["exposure"]["histogram"]) - 1.0) < 1e-3
+        assert checked["plate"] is None and checked["advice"][0].startswith("plate: not in view")  # a table, no plate
+        httpx.post(srv.url + "api/camera-check", json={"on": False}, headers={"x-csrf-token": token})
+        assert not httpx.get(srv.url + "api/state").json()["camera_check"]
+        assert "check" not in frames_until(srv.url, lambda f: len(f) >= 2)[-1]
+    finally:
+        srv.stop()
+
+
 def test_stop_ends_streams_and_threads_and_unsubscribes(service):
     before = {t.name for t in threading.enumerate()}
     srv = WebServer(service, CellConfig(), WebConfig(), "127.0.0.1", 0)

@@ -22,6 +22,7 @@ from cell.events import Origin
 from cell.recipes import RecipeBook, RecipeError
 from cell.service.api import Command, CommandRefused, LineServiceAPI, RecipeRequest, Refusal
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
+from cell.web.camera_check import CameraCheck
 from cell.web.config import WebConfig
 from cell.web.hub import Hub
 from cell.web.recalibration import Busy, RecalibrationDesk
@@ -115,7 +116,10 @@ class ScreenApp:
 
     def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
         self.service, self.web, self.access = service, web, access
-        self.hub = Hub(service, web.frame_max_width_px, web.jpeg_quality, web.max_screens, web.live_interval_s)
+        self.check = CameraCheck(config)
+        self.hub = Hub(
+            service, web.frame_max_width_px, web.jpeg_quality, web.max_screens, web.live_interval_s, self.check
+        )
         self.desk = RecalibrationDesk(service, config)
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
@@ -217,7 +221,9 @@ class ScreenApp:
     # ---- state and frames ------------------------------------------------------------
     def _state(self, snapshot=None) -> dict:
         snapshot = snapshot or self.service.snapshot()
-        return snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+        state = snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+        state["camera_check"] = self.check.on and self.web.live_interval_s > 0
+        return state
 
     async def state(self, request: Request) -> Response:
         return self._view_refused(request) or JSONResponse(self._state())
@@ -358,6 +364,28 @@ class ScreenApp:
             return _error(404, "no report pictures for the calibration in use (not made on this screen since start)")
         return Response(self.desk.active_pictures[kind], media_type=PICTURES[kind])
 
+    async def camera_check(self, request: Request) -> Response:
+        """Switch the camera check on the live view on or off (`{"on": true}`)."""
+        if refused := self._control_refused(request):
+            return refused
+        body = await self._read_body(request, 256)
+        if isinstance(body, Response):
+            return body
+        try:
+            on = json.loads(body)["on"]
+            if not isinstance(on, bool):
+                raise TypeError("on must be true or false")
+        except (ValueError, KeyError, TypeError):
+            return _error(400, 'send JSON {"on": true} or {"on": false}')
+        if on and self.web.live_interval_s <= 0:
+            return _error(409, "the live view is off (service.web.live_interval_s = 0): no frames to check")
+        self.check.switch(on)
+        if on:
+            self.hub.live_now()
+        self.hub.publish_now()
+        log.info("screen: camera check %s", "on" if on else "off")
+        return JSONResponse({"ok": True, "on": on})
+
     # ---- recipes ---------------------------------------------------------------------
     async def recipes(self, request: Request) -> Response:
         """The recipe files and the prepared one (read-only)."""
@@ -415,6 +443,7 @@ class ScreenApp:
             Route("/api/frame.jpg", self.frame_jpeg),
             Route("/api/command/{name}", self.command, methods=["POST"]),
             Route("/api/recipes", self.recipes),
+            Route("/api/camera-check", self.camera_check, methods=["POST"]),
             Route("/api/recipe", self.recipe, methods=["POST"]),
             Route("/api/recalibration/capture", self.recal_capture, methods=["POST"]),
             Route("/api/recalibration/upload", self.recal_upload, methods=["POST"]),

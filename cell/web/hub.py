@@ -41,6 +41,7 @@ from cell.events import (
 )
 from cell.service.api import FrameView, LineServiceAPI, Snapshot
 from cell.vision.annotate import annotate
+from cell.web.camera_check import CameraCheck
 
 log = logging.getLogger(__name__)
 _HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits through these for its pick order
@@ -56,9 +57,11 @@ class EncodedFrame:
     encode_ms: float
     encoded_wall_ms: float  # when the JPEG was ready: capture -> encoded is the service's share of the latency
     live: bool = False  # a raw camera frame between jobs, not a job's annotated frame
+    check: dict | None = None  # the camera check's readings of a live frame, when it is on
 
     def event_json(self) -> dict:
         return {
+            **({"check": self.check} if self.check is not None else {}),
             "seq": self.seq,
             "live": self.live,
             "captured_utc": datetime.fromtimestamp(self.capture_wall_ms / 1e3, UTC).isoformat(timespec="milliseconds"),
@@ -69,7 +72,9 @@ class EncodedFrame:
         }
 
 
-def encode_frame(frame: FrameView, max_width_px: int, quality: int, live: bool = False) -> EncodedFrame:
+def encode_frame(
+    frame: FrameView, max_width_px: int, quality: int, live: bool = False, check: dict | None = None
+) -> EncodedFrame:
     t0 = time.monotonic()
     wall_ms = 1e3 * (time.time() - (t0 - frame.capture_monotonic_s))
     image = frame.image_bgr
@@ -80,7 +85,9 @@ def encode_frame(frame: FrameView, max_width_px: int, quality: int, live: bool =
     ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise ValueError(f"frame {frame.seq}: JPEG encoding failed ({w} x {h})")
-    return EncodedFrame(frame.seq, wall_ms, buf.tobytes(), 1e3 * (time.monotonic() - t0), 1e3 * time.time(), live)
+    return EncodedFrame(
+        frame.seq, wall_ms, buf.tobytes(), 1e3 * (time.monotonic() - t0), 1e3 * time.time(), live, check
+    )
 
 
 @dataclass(eq=False)
@@ -101,10 +108,12 @@ class Hub:
         jpeg_quality: int,
         max_screens: int,
         live_interval_s: float = 0.0,
+        check: CameraCheck | None = None,
     ):
         self.service = service
         self.max_width_px, self.jpeg_quality, self.max_screens = max_width_px, jpeg_quality, max_screens
         self.live_interval_s = live_interval_s  # 0: no live view
+        self.check = check  # the camera check, assessing live frames while it is on
         self.screens: set[Screen] = set()
         self.latest: EncodedFrame | None = None
         self.latest_view: FrameView | None = None
@@ -202,8 +211,9 @@ class Hub:
             live = self.service.preview_frame(LIVE_ORIGIN)
             if live is None:
                 return  # a job runs: its own frames are shown
+            check = self.check.read(live.image_bgr) if self.check is not None else None
             view = FrameView(next(self._seq), live.captured_monotonic_s, live.image_bgr)
-            encoded = encode_frame(view, self.max_width_px, self.jpeg_quality, live=True)
+            encoded = encode_frame(view, self.max_width_px, self.jpeg_quality, live=True, check=check)
         except (*REPORTED_ERRORS, ValueError, cv2.error) as e:
             now = time.monotonic()
             if now - self._live_error_logged_s >= _LIVE_ERROR_LOG_S:
@@ -211,6 +221,10 @@ class Hub:
                 log.warning("screen: no live frame: %s", e)
             return
         self._to_loop(self._publish_frame, encoded)
+
+    def live_now(self) -> None:
+        """Take a live frame now rather than at the next interval (e.g. the camera check was switched on)."""
+        self._live_wake.set()
 
     def _to_loop(self, fn, *args) -> None:
         loop = self._loop

@@ -97,6 +97,7 @@ function render(s) {
   renderAlarm(s.alarm);
   renderWarnings(s.warnings || []);
   renderRecipe(s);
+  renderCheckToggle(s);
   renderCalibration(s.calibration);
   renderPicks(s.last_picks);
 }
@@ -233,6 +234,52 @@ async function showFrame(f) {
   $("frame-seq").textContent = f.seq;
   $("frame-latency").textContent = Math.round(latency);
   $("frame-shown").hidden = !!f.live;  // a live frame waits for its screen: its latency says nothing
+  if (f.check) renderCheck(f.check);
+}
+
+// ---- the camera check (run-cell camera --live on the screen) ----------------------------
+function renderCheck(c) {
+  $("check-wait").hidden = true;
+  $("check-readings").hidden = false;
+  $("check-focus").textContent = `${c.focus.toFixed(1)}, best ${c.focus_best.toFixed(1)} (${c.focus_pct.toFixed(0)} %)`;
+  $("check-focus-meter").value = c.focus_pct;
+  const e = c.exposure;
+  $("check-exposure").textContent = `mean ${e.mean.toFixed(0)} of 255, black ${e.black_pct.toFixed(1)} %, white ${e.white_pct.toFixed(1)} %`;
+  const top = Math.max(...e.histogram, 1e-9);
+  $("check-histogram").replaceChildren(...e.histogram.map((share) => {
+    const bar = document.createElement("i");
+    bar.style.height = `${Math.max(1, Math.round(100 * share / top))}%`;
+    return bar;
+  }));
+  const p = c.plate;
+  $("check-plate").textContent = p
+    ? `${p.found} of ${p.expected} circles, ${p.coverage_pct.toFixed(0)} % of the view${p.in_view ? "" : " (not wholly in view)"}, ` +
+      `camera ${p.tilt_deg.toFixed(1)} deg from square${p.nearer ? ` (${p.nearer} nearer)` : ""}, turned ${p.turned_deg.toFixed(1)} deg`
+    : `not found (${c.plate_note})`;
+  const advice = c.advice.length ? c.advice : ["nothing"];
+  $("check-advice").replaceChildren(...advice.map((a) => { const li = document.createElement("li"); li.textContent = a; return li; }));
+}
+
+function renderCheckToggle(s) {
+  const on = !!s.camera_check;
+  $("check-toggle").setAttribute("aria-pressed", String(on));
+  $("check-toggle").classList.toggle("on", on);
+  $("check-toggle").disabled = !canControl;
+  if ($("check").hidden === on) {  // switched (here, on another screen, or timed out)
+    $("check").hidden = !on;
+    $("picks").hidden = on;
+    $("check-wait").hidden = false;
+    $("check-readings").hidden = true;
+  }
+}
+
+async function toggleCheck() {
+  const on = !(state && state.camera_check);
+  try {
+    await post("/api/camera-check", JSON.stringify({ on }), "application/json");
+  } catch (e) {
+    showMessage(`Camera check: ${e.message}`, true);
+  }
 }
 
 // ---- connection --------------------------------------------------------------------
@@ -468,5 +515,6 @@ document.addEventListener("DOMContentLoaded", () => {
     }
   }, RECIPES_REFRESH_MS);
   $("recipe-use").addEventListener("click", useRecipe);
+  $("check-toggle").addEventListener("click", toggleCheck);
   loadSession().catch(() => { linkDown(); retryLater(); });
 });
