@@ -262,7 +262,10 @@ def test_each_state_says_what_to_do_next_and_the_rate_is_a_dash_when_not_running
     assert "drift.limit_mm" in screen.text("#alarm-technical") and "run-cell check-calibration" in screen.text(
         "#alarm-technical"
     )
-    assert screen.page.is_enabled("#recal-open")  # the alarm's own advice can be followed from here
+    assert screen.page.is_enabled("#alarm-recal")  # the alarm's own advice, one press away and in view
+    assert inside(screen.box("#alarm-recal"), 1024, 600)
+    screen.page.click("#alarm-recal")
+    assert screen.js("document.getElementById('recal').open")
     assert screen.errors == []
     screen.close()
 
@@ -368,7 +371,7 @@ def test_the_drift_alarm_from_the_real_watch_is_followed_by_recalibrate_and_rese
     screen.key("fault")  # the first frame of the job: the marks have moved
     assert screen.text("#state-next").startswith("The camera has moved since calibration (by 0.8")
     assert screen.text("#state-next").endswith("Check it is fixed, then use Recalibrate, then press Reset.")
-    screen.page.click("#recal-open")
+    screen.page.click("#alarm-recal")
     screen.page.click("#recal-capture")
     screen.wait("!document.getElementById('recal-report').hidden", 120)
     assert screen.text("#rep-gate") == "passes"

@@ -109,6 +109,7 @@ function renderButtons(s) {
     button.disabled = !canControl || !s.allowed.includes(command) || blocked;
   }
   $("recal-open").disabled = !canControl || !(s.recalibration_allowed || s.recalibration_open);
+  $("alarm-recal").disabled = $("recal-open").disabled;
   const recipeOk = canControl && s.recipe_allowed;
   $("recipe-select").disabled = !recipeOk;
   $("recipe-use").disabled = !recipeOk || $("recipe-select").value === (s.recipe || "");
@@ -116,7 +117,10 @@ function renderButtons(s) {
 
 function renderAlarm(alarm) {
   $("alarm").hidden = !alarm;
+  document.querySelector("aside").classList.toggle("alarmed", !!alarm);  // the alarm card right under the buttons
   if (!alarm) return;
+  $("alarm-recal").hidden = !alarm.do.includes("Recalibrate");  // the alarm's advice, one press away
+
   $("alarm-reason").textContent = alarm.say;
   $("alarm-hint").textContent = alarm.do;
   $("alarm-details").hidden = !alarm.details;
@@ -221,9 +225,11 @@ async function showFrame(f) {
   const stats = window.screenStats;
   stats.frames += 1;
   stats.lastSeq = f.seq;
-  stats.latenciesMs.push(latency);
-  stats.serviceMs.push(f.encoded_wall_ms - f.capture_wall_ms);
-  if (stats.latenciesMs.length > 1000) { stats.latenciesMs.shift(); stats.serviceMs.shift(); }
+  if (!f.live) {  // a live frame waits for its interval and its screen: no latency to measure
+    stats.latenciesMs.push(latency);
+    stats.serviceMs.push(f.encoded_wall_ms - f.capture_wall_ms);
+    if (stats.latenciesMs.length > 1000) { stats.latenciesMs.shift(); stats.serviceMs.shift(); }
+  }
   stats.lastLive = !!f.live;
   stats.lastCaptured = f.captured_utc || null;
   if (f.live) stats.liveFrames += 1;
@@ -488,11 +494,13 @@ document.addEventListener("DOMContentLoaded", () => {
     try { await post("/api/logout"); } catch (e) { /* already logged out */ }
     window.location.reload();
   });
-  $("recal-open").addEventListener("click", () => {
+  const openRecal = () => {
     recalSay("");
     $("recal-capture").disabled = false;
     $("recal").showModal();
-  });
+  };
+  $("recal-open").addEventListener("click", openRecal);
+  $("alarm-recal").addEventListener("click", openRecal);
   $("recal-capture").addEventListener("click", () => recalibrate("/api/recalibration/capture"));
   $("recal-file").addEventListener("change", (e) => {
     const file = e.target.files[0];
