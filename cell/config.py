@@ -13,8 +13,10 @@ from typing import Literal
 from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
+from cell.history.config import HistoryConfig
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
+from cell.shifts import ShiftsConfig
 from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
 from drivers.cameras.config import CameraConfig
@@ -165,6 +167,8 @@ class CellConfig(Strict):
     sim: SimConfig = SimConfig()
     parts: PartsConfig = PartsConfig()
     service: ServiceConfig = ServiceConfig()
+    history: HistoryConfig = HistoryConfig()
+    shifts: ShiftsConfig = ShiftsConfig()
 
 
 def _format_errors(path: Path | str, err: ValidationError) -> str:

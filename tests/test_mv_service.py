@@ -1,7 +1,8 @@
 """The real line service (`run-cell serve --dry-run` in a subprocess) as an OPC 40100-1 Machine
 Vision system, driven by a client that knows only the specification: it prepares a recipe
 that picks bolts only, runs a single job with the specification's arguments, receives a
-ResultReadyEvent per pick, reads a result back by id, is refused a recipe switch while a job
+ResultReadyEvent per pick, reads an old result back by id (from the history store: the
+service keeps only the newest two in memory here), is refused a recipe switch while a job
 runs, and stops a continuous job."""
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ def serve(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory):
         "[sim.feeder]\nparts_per_minute = 0\n"
         "[service]\ncapture_interval_s = 0.2\n"
         f'[service.machine_vision]\nrecipes_dir = "{tmp_path / "recipes"}"\nmodel_cache_dir = "{cache}"\n'
-        'serial_number = "PC-0007"\n'
+        'serial_number = "PC-0007"\nresults_kept = 2\n'  # older results come from the history store
     )
     proc = ServeProcess(tmp_path, "--config", str(tmp_path / "cell.toml"), "--log-dir", str(tmp_path / "logs"))
     yield proc
@@ -60,7 +61,7 @@ def test_the_service_is_a_machine_vision_system_for_a_specification_only_client(
             assert end.ResultState == 1 and end.InternalRecipeId.Id == "bolts-only"
             picks = [e for e in handler.items if e.JobId.Id == job and not e.ResultId.Id.endswith("/end")]
             assert len(picks) == 9  # the built-in table's nine bolts; its nuts stay: the recipe picks bolts only
-            first = sorted(picks, key=lambda e: int(e.ResultId.Id.rsplit("/", 1)[1]))[0]
+            first = sorted(picks, key=lambda e: int(e.ResultId.Id.rsplit("/", 1)[1]))[0]  # long gone from memory
             handle, result, error = await s.call(
                 s.results, "GetResultById", ext(ua.ResultIdDataType(Id=first.ResultId.Id)), ua.Variant(1000, _T.Int32)
             )

@@ -16,6 +16,7 @@ import math
 import time
 from collections import deque
 from datetime import UTC, datetime
+from typing import Any
 
 from asyncua import ua
 
@@ -27,6 +28,7 @@ from cell.service.ledger import PickRecords
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
+from cell.service.results import HistoryBackedResults, MemoryResultStore, ResultStore
 from cell.service.security import credentials_configured
 from cell.service.throttle import LoginThrottle
 from cell.service.users import Authenticator
@@ -60,6 +62,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "LastPickOutcome": (_T.String, False),
     "LastPickTime": (_T.DateTime, False),
     "ActiveAlarm": (_T.String, False),
+    "ActiveWarnings": (_T.String, True),
     "Heartbeat": (_T.UInt32, False),
     "CalibrationModel": (_T.String, False),
     "CalibrationCvRmsMm": (_T.Double, False),
@@ -67,6 +70,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "CalibrationTime": (_T.DateTime, False),
     "JobId": (_T.String, False),
     "DroppedEvents": (_T.UInt32, False),
+    "Shift": (_T.String, False),
 }
 
 
@@ -94,6 +98,7 @@ def _values(s: Snapshot) -> dict:
         "LastPickOutcome": last.outcome if last else "",
         "LastPickTime": last.time_utc if last else _EPOCH,
         "ActiveAlarm": alarm,
+        "ActiveWarnings": [f"{w.reason} (hint: {w.hint})" for w in s.warnings],
         "Heartbeat": s.heartbeat,
         "CalibrationModel": cal.model if cal else "",
         "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
@@ -101,6 +106,7 @@ def _values(s: Snapshot) -> dict:
         "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
         "JobId": s.job_id,
         "DroppedEvents": sum(x.dropped + x.failed for x in s.subscribers),
+        "Shift": s.shift,
     }
 
 
@@ -132,6 +138,7 @@ class OpcUaServer:
     def __init__(self, service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None):
         self.service, self.cfg, self.config = service, config.service, config
         self.machine_vision: MachineVisionServer | None = None
+        self._reader: Any = None  # the history store, read for results older than memory holds
         self.secure = credentials_configured(self.cfg)
         self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
         # issue 21: policies, trust list, users with roles, throttle, limits (cell/service/opcua_security.py)
@@ -194,8 +201,9 @@ class OpcUaServer:
             lambda e: self._on_event(loop, e),
             kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted),
         )
+        simulated = self.service.snapshot().simulated
         self.machine_vision = MachineVisionServer(
-            s, self.service, self.config, dry_run=self.service.snapshot().simulated
+            s, self.service, self.config, results=self._results(simulated), dry_run=simulated
         )
         await self.machine_vision.start()
         quiet = logging.getLogger("asyncua.server.server")
@@ -215,6 +223,21 @@ class OpcUaServer:
             self.endpoint,
             "Basic256Sha256 SignAndEncrypt, user" if self.secure else "loopback, no security",
         )
+
+    def _results(self, simulated: bool) -> ResultStore:
+        """Results for OPC 40100-1's ResultManagement: the newest in memory, older picks from the
+        history store (a client that was away fetches what it missed), when there is one."""
+        memory = MemoryResultStore(self.config.service.machine_vision.results_kept)
+        if not self.config.history.enabled:
+            return memory
+        try:
+            from cell.history.query import open_reader
+
+            self._reader = open_reader(self.config)
+        except Exception as e:  # no store yet, or its server is away: the newest results still answer
+            log.warning("OPC UA results: the history store cannot be read (%s); only the newest results are kept", e)
+            return memory
+        return HistoryBackedResults(memory, self._reader, simulated)
 
     async def _secure(self) -> None:
         await self.server.secure()  # certificate, configured policies only, user name tokens, trust list
@@ -319,4 +342,7 @@ class OpcUaServer:
                 pass
         if self.machine_vision is not None:
             await self.machine_vision.stop()
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
         await self.server.stop()

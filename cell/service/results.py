@@ -8,15 +8,18 @@ Frames in names: `table_mm` the plate frame, `robot_mm` the arm's base frame.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from datetime import datetime
-from typing import Protocol
+from datetime import datetime, timedelta
+from typing import Any, Protocol
 
 # OPC 40100-1 ResultStateDataType (an Int32; negative values are the application's own).
 RESULT_COMPLETED = 1
 RESULT_PROCESSING = 2
+log = logging.getLogger(__name__)
+
 RESULT_ABORTED = 3
 RESULT_FAILED = 4
 
@@ -112,3 +115,64 @@ class MemoryResultStore:
     def __len__(self) -> int:
         with self._lock:
             return len(self._results)
+
+
+class HistoryBackedResults:
+    """The newest results in memory, and every older pick answered from the history store, so a
+    client that was away for longer than the memory holds can still fetch what it missed by id.
+
+    `reader` is a cell.history.query.HistoryReader (opened read-only for this cell); its job rows
+    give the recipe and the specification's ids (MeasId, PartId, ProductId) the job was started with."""
+
+    def __init__(self, memory: MemoryResultStore, reader: Any, simulated: bool):
+        self.memory, self.reader, self.simulated = memory, reader, simulated
+        self._lock = threading.Lock()  # one query at a time on the reader's connection
+
+    def add(self, result: VisionResult) -> None:
+        self.memory.add(result)
+
+    def get(self, result_id: str) -> VisionResult | None:
+        found = self.memory.get(result_id)
+        if found is not None or result_id.endswith("/end"):
+            return found
+        with self._lock:
+            try:
+                pick = self.reader.get_pick(result_id)
+                job = self.reader.get_job(pick["job_id"]) if pick else None
+            except Exception:  # the store is a fallback: its trouble is logged, the answer is "not found"
+                log.warning("results: the history store could not be read for %s", result_id, exc_info=True)
+                return None
+        return None if pick is None else self._from_history(pick, job or {})
+
+    def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
+        return self.memory.query(where, start_index, max_results)
+
+    def _from_history(self, pick: dict, job: dict) -> VisionResult:
+        t = datetime.fromisoformat(pick["time_utc"])
+        args = job.get("arguments") or {}
+        return VisionResult(
+            pick["id"],
+            pick["job_id"],
+            "pick",
+            PICK_STATES.get(pick["outcome"], RESULT_FAILED),
+            t,
+            t - timedelta(milliseconds=float(pick["cycle_ms"] or 0.0)),
+            float(pick["cycle_ms"] or 0.0),
+            self.simulated,
+            recipe_id=job.get("recipe") or "",
+            configuration_id=pick["calibration_id"] or "",
+            meas_id=str(args.get("meas_id", "")),
+            part_id=str(args.get("part_id", "")),
+            product_id=str(args.get("product_id", "")),
+            content={
+                "Class": pick["class"],
+                "Outcome": pick["outcome"],
+                "TableMm": [float(v or 0.0) for v in pick["table_mm"]],
+                "RobotMm": [float(v or 0.0) for v in pick["robot_mm"]],
+                "JawAngleDeg": float(pick["jaw_angle_deg"] or 0.0),
+                "PixelPx": [float(v or 0.0) for v in pick["pixel"]],
+                "Track": int(pick["track"]),
+                "Attempt": int(pick["attempt"]),
+                "CycleMs": float(pick["cycle_ms"] or 0.0),
+            },
+        )

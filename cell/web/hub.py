@@ -137,6 +137,7 @@ class Hub:
                 self._on_frame_event,
                 kinds=(FrameLocated, PickOrderChosen, StateChanged, RunEnded),
                 maxsize=256,
+                frames=True,
             ),
         ]
         if self.live_interval_s > 0:
