@@ -73,7 +73,11 @@ def shipped(browser, url: str, sizes: list[tuple[int, int]], out: Path) -> None:
         poll(page, "screenStats.lastLive && screenStats.liveFrames > 0")
         shoot(page, out / f"screen-idle-{w}x{h}.png")
         click(page, "Start continuous")
-        poll(page, f"{key_is('running')} && screenStats.lastState.last_picks.length >= 3 && !screenStats.lastLive")
+        poll(  # this job's picks: its rate is known from its second pick on
+            page,
+            f"{key_is('running')} && screenStats.lastState.parts_per_min !== null "
+            "&& screenStats.lastState.last_picks.length >= 3 && !screenStats.lastLive",
+        )
         shoot(page, out / ("screen.png" if (w, h) == sizes[0] else f"screen-running-{w}x{h}.png"))
         click(page, "Stop")
         page.click("#confirm-yes")

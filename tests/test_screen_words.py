@@ -204,3 +204,4 @@ def test_error_says_the_alarm_and_then_reset_and_rates_are_a_dash_when_not_runni
     assert state["parts_per_min"] is None and state["recalibration_allowed"]  # recalibrate, then Reset
     assert snapshot_json(snapshot(V.CONTINUOUS_EXECUTION))["parts_per_min"] == 12.0
     assert snapshot_json(snapshot(V.CONTINUOUS_EXECUTION, paused=True))["parts_per_min"] is None
+    assert snapshot_json(snapshot(V.CONTINUOUS_EXECUTION, parts_per_min=0.0))["parts_per_min"] is None  # not known yet

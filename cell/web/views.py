@@ -99,7 +99,7 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "dropped_events": {x.name: x.dropped + x.failed for x in s.subscribers if x.dropped or x.failed},
         "waiting_for_parts": s.waiting_for_parts,
         "counters": asdict(s.counters),
-        "parts_per_min": round(s.parts_per_min, 1) if s.vision_state in RUNNING and not s.paused else None,
+        "parts_per_min": _rate(s),
         "last_picks": [pick_json(p) for p in reversed(s.last_picks)],  # newest first
         "alarm": None if s.alarm is None else alarm_json(s.alarm),
         "warnings": [alarm_json(w) for w in s.warnings],
@@ -121,6 +121,14 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "recalibration_allowed": may_recalibrate(s),
         "recalibration_open": recalibration_open,
     }
+
+
+def _rate(s: Snapshot) -> float | None:
+    """Parts per minute while a job runs; None ("-") when none runs, it is paused, or its rate is not known
+    yet (the ledger's 0 before a job's second pick)."""
+    if s.vision_state not in RUNNING or s.paused or s.parts_per_min <= 0:
+        return None
+    return round(s.parts_per_min, 1)
 
 
 def may_recalibrate(s: Snapshot) -> bool:
