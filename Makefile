@@ -8,19 +8,38 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test check lint bench venv clean
 
+# pyproject.toml's dependencies as two lines, read by the system Python (3.11+: tomllib) before pip runs
+define LIST_DEPENDENCIES
+import re, tomllib
+project = tomllib.load(open("pyproject.toml", "rb"))["project"]
+names = lambda deps: ", ".join(re.split(r"[<>=~!\[ ;]", d, maxsplit=1)[0] for d in deps)
+print("      the cell:", names(project["dependencies"]))
+print("      the tests:", names(project["optional-dependencies"]["test"]))
+endef
+export LIST_DEPENDENCIES
+
+# The first run sets up .venv (about a minute): a line per step before it starts, pip's own output quiet.
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
-	touch $(STAMP)
+	@echo "setting up $(VENV), once: a Python environment with the cell and its dependencies (pyproject.toml)"
+	@echo "[1/3] creating $(VENV) with $(PYTHON)"
+	@$(PYTHON) -m venv $(VENV)
+	@echo "[2/3] updating pip in $(VENV)"
+	@$(PY) -m pip install --quiet --progress-bar off --upgrade pip
+	@echo "[3/3] installing the cell and what it needs (a minute or so; longer without pip's cache):"
+	@$(PYTHON) -c "$$LIST_DEPENDENCIES"
+	@$(PY) -m pip install --quiet --progress-bar off -e '.[test]'
+	@touch $(STAMP)
+	@echo "$(VENV) is ready"
 
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/run-cell --dry-run
+	@echo "make demo: run-cell --dry-run (the simulated cell clears a table; see README)"
+	@$(VENV)/bin/run-cell --dry-run
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2
+	@echo "make test: the whole suite on both cores (pytest -n 2)"
+	@$(PY) -m pytest -n 2
 
 check: $(STAMP)
 	$(PY) -m pytest -n 2 -m "not slow"

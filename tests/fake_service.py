@@ -11,6 +11,7 @@ import time
 from collections import deque
 from dataclasses import replace
 from datetime import UTC, datetime
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,15 +26,19 @@ from cell.events import (
     PickVerified,
     SnapshotChanged,
 )
+from cell.recipes import RecipeBook, RecipeError
 from cell.service.api import (
     AccessDenied,
     Alarm,
+    BadArgument,
     CalibrationInfo,
     Command,
     CommandResult,
     Counters,
     InvalidState,
+    LiveFrame,
     PickRecord,
+    RecipeRequest,
     Rest,
     Snapshot,
     VisionState,
@@ -70,8 +75,11 @@ def _now() -> datetime:
 
 
 class FakeLineService:
-    def __init__(self, frame_size=(960, 540), interval_s: float = 0.1, plate_size=(1920, 1080)):
+    def __init__(self, frame_size=(960, 540), interval_s: float = 0.1, plate_size=(1920, 1080), recipes_dir=None):
         self.frame_size, self.interval_s, self.plate_size = frame_size, interval_s, plate_size
+        self.recipes = RecipeBook(Path(recipes_dir or "/nonexistent/recipes"))
+        self.recipe = ""
+        self.previews = 0
         self._lock = threading.RLock()
         self.bus = EventBus()
         self.holds: dict[int, str] = {}
@@ -96,8 +104,11 @@ class FakeLineService:
             why = state_refusal(command, Rest(self.state, self.paused, self.paused), self._hold())
             if why is not None:
                 raise InvalidState(command, why, self.state)
+            recipe = self._prepared(request) if command is Command.PREPARE_RECIPE else ""
             self.commands.append(command)
-            if command in (Command.PAUSE, Command.RESUME):
+            if command in (Command.PREPARE_RECIPE, Command.UNPREPARE_RECIPE):
+                self.recipe = recipe
+            elif command in (Command.PAUSE, Command.RESUME):
                 self.paused = command is Command.PAUSE
             else:
                 self.state, self.paused = _NEXT[command], False
@@ -124,6 +135,7 @@ class FakeLineService:
                 pausing=False,
                 hold=self._hold(),
                 subscribers=self.bus.stats(),
+                recipe=self.recipe,
             )
 
     def subscribe(self, name, handler, *, kinds=None, maxsize=1024, frames=False):
@@ -149,6 +161,16 @@ class FakeLineService:
         self._check_recalibration("capture a plate image")
         return plate_image(self.plate_size)
 
+    def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
+        """The table as the camera sees it, at rest only (as the service's)."""
+        with self._lock:
+            if self.state in _RUNNING and not self.paused:
+                return None
+            self.previews += 1
+            image, _ = self._draw(self._seq)
+        cv2.putText(image, f"live {self.previews}", (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 0), 2)
+        return LiveFrame(image, time.monotonic(), _now())
+
     def install_calibration(self, calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
         self._check_recalibration("install a calibration")
         with self._lock:
@@ -173,6 +195,16 @@ class FakeLineService:
         return len(self.bus.stats())
 
     # ---- inside -----------------------------------------------------------------------
+    def _prepared(self, request) -> str:
+        """The recipe PrepareRecipe names, loaded and validated as the service does (BadArgument if not)."""
+        if not isinstance(request, RecipeRequest):
+            raise BadArgument(Command.PREPARE_RECIPE, "PrepareRecipe needs a recipe id", self.state)
+        try:
+            self.recipes.load(request.recipe_id)
+        except RecipeError as e:
+            raise BadArgument(Command.PREPARE_RECIPE, str(e), self.state) from None
+        return request.recipe_id
+
     def _check_recalibration(self, what: str) -> None:
         with self._lock:
             why = state_refusal(Command.CAPTURE_PLATE, Rest(self.state, self.paused, self.paused))

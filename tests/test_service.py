@@ -249,6 +249,32 @@ def test_plate_image_and_a_new_calibration_only_at_rest(tmp_path):
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
 
 
+def test_a_live_frame_only_at_rest_and_never_recorded(tmp_path):
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        camera = service.cell.camera
+        live = service.preview_frame()  # Ready: the camera opened for the frame, then closed again
+        assert live is not None and live.image_bgr.shape == (540, 960, 3) and not camera.is_connected
+        assert live.image_bgr.std() > 5  # the lit table with its parts, not a blank frame
+        assert abs(datetime.now(UTC) - live.time_utc) < timedelta(seconds=30)
+        service.command(Command.START_CONTINUOUS)
+        assert service.preview_frame() is None  # a job runs: its own frames are the view
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        assert service.preview_frame() is None
+        service.command(Command.PAUSE)
+        wait_for(lambda: service.snapshot().paused, what="paused at rest")
+        paused = service.preview_frame()
+        assert paused is not None and paused.image_bgr.shape == (540, 960, 3)
+        assert camera.is_connected  # the paused job's camera, left open for it
+        service.command(Command.RESUME)
+        wait_for(lambda: picked(service) >= 2, what="a pick after resuming")
+        service.command(Command.HALT)
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted")
+        assert service.preview_frame() is not None and not camera.is_connected
+    commands = [e["command"] for e in read_shift(tmp_path / "logs") if e["kind"] == "command"]
+    assert commands == ["StartContinuous", "Pause", "Resume", "Halt"]  # the live frames are not commands
+
+
 def test_a_held_service_refuses_starts_and_resumes_for_the_same_reason_to_everyone(tmp_path):
     with running(small_config(tmp_path)) as service:
         release = service.hold("a recalibration report is waiting for its answer")

@@ -133,10 +133,61 @@ def test_a_rebound_host_name_is_refused_on_loopback(client):
 def test_state_json_has_what_the_screen_shows(client, service):
     service.fault("arm not answering on /dev/ttyUSB0", "check the cable, then Reset")
     s = client.get("/api/state").json()
-    assert s["display"] == {"key": "fault", "label": "Fault"}
+    assert s["display"] == {"key": "fault", "label": "Fault", "next": s["alarm"]["say"] + " " + s["alarm"]["do"]}
     assert s["alarm"]["reason"].startswith("arm not answering") and s["alarm"]["hint"].endswith("Reset")
+    assert s["alarm"]["do"] == "Check the cable, then Reset."  # a hint in plain words is shown as it is
     assert s["allowed"] == ["Reset"]
     assert s["calibration"]["model"] == "polynomial"
+
+
+# ---- recipes -----------------------------------------------------------------------
+BOLTS_ONLY = (
+    'description = "bolts only"\n\n[pick.bolt]\npick_above_table_mm = 3.5\nbin_robot_mm = [-200.0, 60.0, 60.0]\n'
+)
+
+
+@pytest.fixture
+def recipe_client(tmp_path, config):
+    folder = tmp_path / "recipes"
+    folder.mkdir()
+    (folder / "bolts-only.toml").write_text(BOLTS_ONLY)
+    (folder / "broken.toml").write_text("pick = 3\n")
+    service = FakeLineService(recipes_dir=folder)
+    with make_client(service, config) as c:
+        c.headers["x-csrf-token"] = c.get("/api/session").json()["csrf"]
+        yield c, service
+    service.close()
+
+
+def test_recipes_are_listed_and_switched_through_the_command_table(recipe_client):
+    client, service = recipe_client
+    listed = client.get("/api/recipes").json()
+    assert listed["active"] == ""
+    by_id = {r["id"]: r for r in listed["recipes"]}
+    assert by_id["bolts-only"]["description"] == "bolts only" and by_id["bolts-only"]["error"] == ""
+    assert "pick" in by_id["broken"]["error"]  # listed, with why it cannot be used
+    r = client.post("/api/recipe", json={"recipe_id": "bolts-only"})
+    assert r.json() == {"ok": True, "command": "PrepareRecipe", "recipe": "bolts-only"}
+    assert client.get("/api/state").json()["recipe"] == "bolts-only"
+    assert client.get("/api/recipes").json()["active"] == "bolts-only"
+    r = client.post("/api/recipe", json={"recipe_id": "broken"})
+    assert r.status_code == 422 and r.json()["refusal"] == "bad_argument"
+    r = client.post("/api/recipe", json={"recipe_id": "nothing-here"})
+    assert r.status_code == 422 and "not found" in r.json()["error"]
+    assert client.post("/api/recipe", json={"recipe_id": ""}).json()["command"] == "UnprepareRecipe"
+    assert client.get("/api/state").json()["recipe"] == ""
+    assert service.commands == [Command.PREPARE_RECIPE, Command.UNPREPARE_RECIPE]
+
+
+def test_a_recipe_changes_only_in_ready_and_only_with_the_token(recipe_client):
+    client, service = recipe_client
+    assert client.post("/api/recipe", json={"recipe_id": "bolts-only"}, headers={"x-csrf-token": ""}).status_code == 403
+    assert client.post("/api/recipe", content=b"bolts-only").status_code == 400
+    client.post("/api/command/StartContinuous")
+    assert client.get("/api/state").json()["recipe_allowed"] is False
+    r = client.post("/api/recipe", json={"recipe_id": "bolts-only"})
+    assert r.status_code == 409 and "PrepareRecipe is not allowed in ContinuousExecution" in r.json()["error"]
+    assert service.recipe == "" and service.commands == [Command.START_CONTINUOUS]
 
 
 # ---- password ----------------------------------------------------------------------
@@ -273,6 +324,18 @@ def test_upload_of_the_wrong_size_and_without_a_plate(client, config):
     assert not config.calibration.active_path.exists()
 
 
+def test_a_refused_recalibration_says_what_to_do_with_the_technical_text_as_details(client, config):
+    blank = client.post("/api/recalibration/upload", content=png_bytes(np.full((1080, 1920, 3), 255, np.uint8)))
+    body = blank.json()
+    assert blank.status_code == 422 and body["say"] == "No plate in view."
+    assert body["do"].startswith("Put the calibration plate") and body["details"] == body["error"]
+    small = client.post("/api/recalibration/upload", content=png_bytes(np.zeros((480, 640, 3), np.uint8))).json()
+    assert small["say"] == "The picture is 640 x 480 pixels; this cell's camera takes 1920 x 1080."
+    client.post("/api/command/StartContinuous")
+    running = client.post("/api/recalibration/capture").json()
+    assert running["say"] == "The cell is running." and running["do"] == "Press Pause or Stop first, then Recalibrate."
+
+
 def test_oversized_upload_refused_before_it_is_read(service, config):
     with make_client(service, config, web=WebConfig(max_upload_mb=1)) as c:
         token = c.get("/api/session").json()["csrf"]
@@ -282,6 +345,7 @@ def test_oversized_upload_refused_before_it_is_read(service, config):
             headers={"x-csrf-token": token},
         )
         assert r.status_code == 413 and "at most 1024 KiB" in r.json()["error"]
+        assert r.json()["say"] == "The file is too large (at most 1 MB)."
     assert not config.calibration.active_path.exists()
 
 

@@ -8,6 +8,7 @@ import json
 import socket
 import threading
 import time
+from datetime import datetime
 
 import httpx
 import pytest
@@ -74,6 +75,62 @@ def test_two_screens_see_the_same_state_and_frames(server, service):
         frame = got["frame"][0]
         assert base64.b64decode(frame["jpeg_b64"])[:2] == b"\xff\xd8"
         assert abs(frame["capture_wall_ms"] - 1e3 * time.time()) < 10_000
+
+
+def frames_until(url: str, done, timeout_s: float = 15.0) -> list[dict]:
+    """The stream's frames, in order, until `done(frames)` holds."""
+    frames: list[dict] = []
+    deadline = time.monotonic() + timeout_s
+    with httpx.stream("GET", url + "api/events", timeout=timeout_s) as r:
+        kind = None
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("data: ") and kind == "frame":
+                frames.append(json.loads(line[6:]))
+                if done(frames):
+                    return frames
+            assert time.monotonic() < deadline, f"{len(frames)} frames within {timeout_s} s: not done"
+    return frames
+
+
+def test_live_frames_between_jobs_and_the_jobs_own_frames_while_it_runs(service):
+    srv = WebServer(service, CellConfig(), WebConfig(live_interval_s=0.1), "127.0.0.1", 0)
+    srv.start()
+    try:
+        idle = frames_until(srv.url, lambda f: len(f) >= 2)  # Ready: a live frame at once, then one per interval
+        assert all(f["live"] for f in idle) and idle[1]["seq"] > idle[0]["seq"]
+        assert datetime.fromisoformat(idle[1]["captured_utc"]) >= datetime.fromisoformat(idle[0]["captured_utc"])
+        assert base64.b64decode(idle[0]["jpeg_b64"])[:2] == b"\xff\xd8"
+        token = httpx.get(srv.url + "api/session").json()["csrf"]
+        httpx.post(srv.url + "api/command/StartContinuous", headers={"x-csrf-token": token})
+        running = frames_until(srv.url, lambda f: sum(not x["live"] for x in f) >= 5)
+        first_job = next(i for i, f in enumerate(running) if not f["live"])
+        assert not any(f["live"] for f in running[first_job:])  # while it runs, only the job's frames
+        httpx.post(srv.url + "api/command/Pause", headers={"x-csrf-token": token})
+        frames_until(srv.url, lambda f: f[-1]["live"])  # paused at rest: the live view again
+        assert service.previews >= 3
+    finally:
+        srv.stop()
+
+
+def test_the_camera_check_reads_live_frames_while_it_is_on(service):
+    srv = WebServer(service, CellConfig(), WebConfig(live_interval_s=0.1), "127.0.0.1", 0)
+    srv.start()
+    try:
+        token = httpx.get(srv.url + "api/session").json()["csrf"]
+        assert httpx.post(srv.url + "api/camera-check", json={"on": True}).status_code == 403  # no CSRF token
+        r = httpx.post(srv.url + "api/camera-check", json={"on": True}, headers={"x-csrf-token": token})
+        assert r.json() == {"ok": True, "on": True} and httpx.get(srv.url + "api/state").json()["camera_check"]
+        checked = frames_until(srv.url, lambda f: len(f) >= 3 and "check" in f[-1])[-1]["check"]
+        assert checked["focus"] > 0 and checked["focus_best"] >= checked["focus"]
+        assert abs(sum(checked["exposure"]["histogram"]) - 1.0) < 1e-3
+        assert checked["plate"] is None and checked["advice"][0].startswith("plate: not in view")  # a table, no plate
+        httpx.post(srv.url + "api/camera-check", json={"on": False}, headers={"x-csrf-token": token})
+        assert not httpx.get(srv.url + "api/state").json()["camera_check"]
+        assert "check" not in frames_until(srv.url, lambda f: len(f) >= 2)[-1]
+    finally:
+        srv.stop()
 
 
 def test_stop_ends_streams_and_threads_and_unsubscribes(service):

@@ -19,12 +19,15 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
 from enum import Enum
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from cell.eventbus import SubscriberStats, Subscription
 from cell.events import SERVICE_ORIGIN, Event, Origin, Role
+
+if TYPE_CHECKING:
+    from cell.recipes import RecipeBook
 
 
 class VisionState(Enum):
@@ -314,9 +317,20 @@ class FrameView:
     pick_order: tuple[int, ...] = ()  # the drawn order: part ids as PLAN chose them; empty if not planned
 
 
+@dataclass(frozen=True)
+class LiveFrame:
+    """A raw camera frame taken while the cell is at rest, for the screen's live view."""
+
+    image_bgr: np.ndarray
+    captured_monotonic_s: float  # time.monotonic() at capture
+    time_utc: datetime  # when it was taken
+
+
 class LineServiceAPI(Protocol):
     """What every interface may call. All methods are thread-safe and return quickly, except
-    `capture_plate_image` (a camera frame)."""
+    `capture_plate_image` and `preview_frame` (a camera frame)."""
+
+    recipes: RecipeBook  # the recipe files, for listing (changes go through PrepareRecipe / AddRecipe ...)
 
     def command(
         self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
@@ -350,6 +364,12 @@ class LineServiceAPI(Protocol):
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         """A frame from the cell's camera for recalibration; only at rest (Ready, Halted, or a job
         paused at a safe point), and Resume and Start wait until it is taken."""
+        ...
+
+    def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
+        """A frame from the cell's camera for a live view, taken only while the cell is at rest (Ready,
+        Halted, Error, or a job paused at a safe point) under the device lock; None otherwise (a job's
+        own frames are the view then). Not a command: nothing moves, nothing is recorded."""
         ...
 
     def install_calibration(self, calibration: Any, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:

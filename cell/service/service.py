@@ -70,6 +70,7 @@ from cell.service.api import (
     CommandResult,
     InvalidState,
     JobRequest,
+    LiveFrame,
     NotRecorded,
     RecipeRequest,
     Rest,
@@ -427,6 +428,23 @@ class LineService:
             with self._lock:
                 self._still_ops -= 1
 
+    def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
+        """A camera frame for a live view while the cell is at rest (Ready, Halted, Error or paused), else
+        None. Under the device lock, checked there: a job started meanwhile waits for the frame to be taken."""
+        with self._device_lock:
+            with self._lock:
+                if not self._at_rest():
+                    return None
+            camera = self.cell.camera
+            if camera.is_connected:  # a paused job holds it open
+                image = camera.capture()
+            else:
+                with camera:
+                    image = camera.capture()
+            taken = time.monotonic()
+        log.debug("live frame for %s", origin.describe())
+        return LiveFrame(image, taken, datetime.now(UTC))
+
     def install_calibration(
         self, calibration: Calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN
     ) -> None:
@@ -620,6 +638,12 @@ class LineService:
         runner = job.runner
         paused = pausing and runner is not None and runner.sm.state is State.PAUSED
         return Rest(self._vstate, pausing, paused)
+
+    def _at_rest(self) -> bool:
+        """Nothing moves and no job captures: Ready, Halted or Error between jobs, or a job paused."""
+        if self._job is None:
+            return self._vstate in (V.READY, V.HALTED, V.ERROR)
+        return self._rest().paused
 
     def _cell_state(self) -> str:
         job = self._job

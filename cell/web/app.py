@@ -22,14 +22,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
 from cell.events import Origin
-from cell.service.api import CommandRefused, LineServiceAPI, Refusal, Snapshot
+from cell.recipes import RecipeBook, RecipeError
+from cell.service.api import Command, CommandRefused, LineServiceAPI, RecipeRequest, Refusal, Snapshot
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
+from cell.web.camera_check import CameraCheck
 from cell.web.config import WebConfig
 from cell.web.history import HistoryRoutes
 from cell.web.hub import Hub, Screen
 from cell.web.recalibration import Busy, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
+from cell.web.words import calibration_words
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +40,7 @@ STATIC = {
     "/": ("index.html", "text/html; charset=utf-8"),
     "/static/screen.css": ("screen.css", "text/css; charset=utf-8"),
     "/static/screen.js": ("screen.js", "text/javascript; charset=utf-8"),
+    "/static/no-frame.svg": ("no-frame.svg", "image/svg+xml"),
 }
 SECURITY_HEADERS = [
     (
@@ -62,6 +66,28 @@ PICTURES = {"plate.jpg": "image/jpeg", "deviation.png": "image/png"}
 
 def _error(status: int, message: str, **extra: object) -> JSONResponse:
     return JSONResponse({"error": message, **extra}, status_code=status)
+
+
+def _refused(status: int, message: str, **extra: Any) -> JSONResponse:
+    """A refused recalibration: the technical message (`error`) and, for the page, operator words
+    (`say`, `do`) with that message as their `details`."""
+    return _error(status, message, **calibration_words(message).as_json(), **extra)
+
+
+def _recipe_list(book: RecipeBook | None) -> list[dict[str, Any]]:
+    """The recipe files as the page lists them (an invalid one with its error, never chosen)."""
+    listed = []
+    for info in book.list() if book is not None else []:
+        description, error = "", info.error
+        if not error:
+            try:
+                description = book.load(info.recipe_id).description  # type: ignore[union-attr]
+            except RecipeError as e:
+                error = str(e)
+        listed.append(
+            {"id": info.recipe_id, "description": description, "products": list(info.products), "error": error}
+        )
+    return listed
 
 
 class Guard:
@@ -94,7 +120,10 @@ class ScreenApp:
 
     def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig, access: Access):
         self.service, self.web, self.access = service, web, access
-        self.hub = Hub(service, web.frame_max_width_px, web.jpeg_quality, web.max_screens)
+        self.check = CameraCheck(config)
+        self.hub = Hub(
+            service, web.frame_max_width_px, web.jpeg_quality, web.max_screens, web.live_interval_s, self.check
+        )
         self.desk = RecalibrationDesk(service, config)
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
@@ -197,7 +226,9 @@ class ScreenApp:
     # ---- state and frames ------------------------------------------------------------
     def _state(self, snapshot: Snapshot | None = None) -> dict[str, Any]:
         snapshot = snapshot or self.service.snapshot()
-        return snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+        state = snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+        state["camera_check"] = self.check.on and self.web.live_interval_s > 0
+        return state
 
     async def state(self, request: Request) -> Response:
         return self._view_refused(request) or JSONResponse(self._state())
@@ -261,7 +292,7 @@ class ScreenApp:
     async def recal_upload(self, request: Request) -> Response:
         if refused := self._control_refused(request):
             return refused
-        body = await self._read_body(request, self.max_upload)
+        body = await self._read_body(request, self.max_upload, _refused)
         if isinstance(body, Response):
             return body
         gone = threading.Event()  # the decode stops when the client goes (issue 21)
@@ -273,17 +304,20 @@ class ScreenApp:
 
     async def _recal(self, make: Callable[..., Report], *args: object) -> Response:
         if not may_recalibrate(self.service.snapshot()):
-            return _error(409, "recalibrate only while stopped (Ready), paused, halted or after a fault")
+            return _refused(409, "recalibrate only while stopped (Ready), paused, halted or after a fault")
         try:
             report = await run_in_threadpool(make, *args)
         except CommandRefused as e:
-            return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
+            return _refused(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
         except Busy as e:
-            return _error(409, str(e))
+            return _refused(409, str(e))
         except REPORTED_ERRORS as e:  # no plate, bad image, or the camera failed
-            return _error(422, f"{e}; the active calibration is unchanged")
+            return _refused(422, f"{e}; the active calibration is unchanged")
         self.hub.publish_now()  # every screen: Start and Resume wait for the answer
-        return JSONResponse(report.summary_json())
+        summary = report.summary_json()
+        if report.gate_failure:
+            summary["gate_words"] = calibration_words(report.gate_failure).as_json()
+        return JSONResponse(summary)
 
     async def recal_picture(self, request: Request) -> Response:
         if refused := self._view_refused(request):
@@ -309,18 +343,18 @@ class ScreenApp:
                 self.hub.publish_now()
                 return JSONResponse({"ok": True, "accepted": False})
             if not may_recalibrate(self.service.snapshot()):
-                return _error(409, "the cell is running: pause or stop it before accepting a calibration")
+                return _refused(409, "the cell is running: pause or stop it before accepting a calibration")
             info = await run_in_threadpool(self.desk.accept, report_id, self._origin(request))
         except Busy as e:
-            return _error(409, str(e))
+            return _refused(409, str(e))
         except CalibrationRejected as e:
-            return _error(422, str(e))
+            return _refused(422, str(e))
         except CommandRefused as e:
-            return _error(
+            return _refused(
                 REFUSAL_STATUS[e.reason], f"{e}: the calibration file was written but the running cell did not take it"
             )
         except (*REPORTED_ERRORS, OSError) as e:
-            return _error(500, f"accepting failed: {e}")
+            return _refused(500, f"accepting failed: {e}")
         self.hub.publish_now()
         return JSONResponse({"ok": True, "accepted": True, "model": info.model})
 
@@ -335,17 +369,73 @@ class ScreenApp:
             return _error(404, "no report pictures for the calibration in use (not made on this screen since start)")
         return Response(self.desk.active_pictures[kind], media_type=PICTURES[kind])
 
+    async def camera_check(self, request: Request) -> Response:
+        """Switch the camera check on the live view on or off (`{"on": true}`)."""
+        if refused := self._control_refused(request):
+            return refused
+        body = await self._read_body(request, 256)
+        if isinstance(body, Response):
+            return body
+        try:
+            on = json.loads(body)["on"]
+            if not isinstance(on, bool):
+                raise TypeError("on must be true or false")
+        except (ValueError, KeyError, TypeError):
+            return _error(400, 'send JSON {"on": true} or {"on": false}')
+        if on and self.web.live_interval_s <= 0:
+            return _error(409, "the live view is off (service.web.live_interval_s = 0): no frames to check")
+        self.check.switch(on)
+        if on:
+            self.hub.live_now()
+        self.hub.publish_now()
+        log.info("screen: camera check %s", "on" if on else "off")
+        return JSONResponse({"ok": True, "on": on})
+
+    # ---- recipes ---------------------------------------------------------------------
+    async def recipes(self, request: Request) -> Response:
+        """The recipe files and the prepared one (read-only)."""
+        if refused := self._view_refused(request):
+            return refused
+        listed = await run_in_threadpool(_recipe_list, getattr(self.service, "recipes", None))
+        return JSONResponse({"active": self.service.snapshot().recipe, "recipes": listed})
+
+    async def recipe(self, request: Request) -> Response:
+        """Prepare a recipe (`{"recipe_id": "..."}`) or go back to the cell's own config (`""`), through the
+        command table (PrepareRecipe / UnprepareRecipe: Ready only, the engineer's role)."""
+        if refused := self._control_refused(request):
+            return refused
+        body = await self._read_body(request, 4096)
+        if isinstance(body, Response):
+            return body
+        try:
+            recipe_id = json.loads(body)["recipe_id"]
+            if not isinstance(recipe_id, str):
+                raise TypeError("recipe_id must be a string")
+        except (ValueError, KeyError, TypeError):
+            return _error(400, 'send JSON {"recipe_id": "..."} ("" for none)')
+        command = Command.PREPARE_RECIPE if recipe_id else Command.UNPREPARE_RECIPE
+        try:
+            await run_in_threadpool(
+                self.service.command, command, self._origin(request), RecipeRequest(recipe_id) if recipe_id else None
+            )
+        except CommandRefused as e:
+            return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
+        log.info("screen: %s %s accepted", command.value, recipe_id)
+        return JSONResponse({"ok": True, "command": command.value, "recipe": recipe_id})
+
     @staticmethod
-    async def _read_body(request: Request, limit: int) -> bytes | Response:
+    async def _read_body(
+        request: Request, limit: int, refuse: Callable[..., JSONResponse] = _error
+    ) -> bytes | Response:
         """The body up to `limit` bytes; longer (declared or sent) is refused without reading it all."""
         declared = request.headers.get("content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            return _error(413, f"upload too large: at most {limit // 1024} KiB")
+            return refuse(413, f"upload too large: at most {limit // 1024} KiB")
         chunks, size = [], 0
         async for chunk in request.stream():
             size += len(chunk)
             if size > limit:
-                return _error(413, f"upload too large: at most {limit // 1024} KiB")
+                return refuse(413, f"upload too large: at most {limit // 1024} KiB")
             chunks.append(chunk)
         return b"".join(chunks)
 
@@ -359,6 +449,9 @@ class ScreenApp:
             Route("/api/events", self.events),
             Route("/api/frame.jpg", self.frame_jpeg),
             Route("/api/command/{name}", self.command, methods=["POST"]),
+            Route("/api/recipes", self.recipes),
+            Route("/api/camera-check", self.camera_check, methods=["POST"]),
+            Route("/api/recipe", self.recipe, methods=["POST"]),
             Route("/api/recalibration/capture", self.recal_capture, methods=["POST"]),
             Route("/api/recalibration/upload", self.recal_upload, methods=["POST"]),
             Route("/api/recalibration/{report_id}/{kind:str}", self.recal_picture),

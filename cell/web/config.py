@@ -23,6 +23,12 @@ class WebConfig(Strict):
         1280, ge=160, le=8000, description="frames are scaled down to this width for the screen"
     )
     jpeg_quality: int = Field(80, ge=20, le=100)
+    live_interval_s: float = Field(
+        2.0,
+        ge=0,
+        le=60,
+        description="between jobs and while paused, a live camera frame this often while a screen is open (0: none)",
+    )
     max_screens: int = Field(16, ge=1, le=256, description="open screens at once (each holds one event stream)")
     # HTTPS (whenever users are configured; docs/security.md)
     tls_certificate: Path | None = Field(

@@ -6,28 +6,50 @@ numbered their parts (so the order drawn is the runner's own), then annotated an
 as a JPEG once, and handed to the loop. Each screen keeps only the newest state and frame:
 a slow screen skips frames, it never holds up the cell or the other screens, and a frame
 the subscriber has not drawn yet is replaced by the next (the bus coalesces frames).
+
+Between jobs (and while paused) a third thread asks the service for a live camera frame every
+`live_interval_s` while a screen is open (`preview_frame`: the service takes it under its device
+lock, only at rest), encoded the same way and marked live; a job's annotated frames take over as
+soon as it runs (the service then gives none).
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import itertools
 import logging
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import cv2
 
+from cell.errors import REPORTED_ERRORS
 from cell.eventbus import Subscription
-from cell.events import Event, FrameLocated, FrameRef, PickOrderChosen, RunEnded, SnapshotChanged, StateChanged
+from cell.events import (
+    Event,
+    FrameLocated,
+    FrameRef,
+    Interface,
+    Origin,
+    PickOrderChosen,
+    Role,
+    RunEnded,
+    SnapshotChanged,
+    StateChanged,
+)
 from cell.service.api import FrameView, LineServiceAPI, Snapshot
 from cell.vision.annotate import annotate
+from cell.web.camera_check import CameraCheck
 
 log = logging.getLogger(__name__)
 _HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits through these for its pick order
+LIVE_ORIGIN = Origin(Interface.SCREEN, "live view", Role.VIEWER)
+_LIVE_ERROR_LOG_S = 60.0  # a camera that keeps failing is logged once a minute, not every frame
 
 
 @dataclass(frozen=True)
@@ -37,10 +59,15 @@ class EncodedFrame:
     jpeg: bytes
     encode_ms: float
     encoded_wall_ms: float  # when the JPEG was ready: capture -> encoded is the service's share of the latency
+    live: bool = False  # a raw camera frame between jobs, not a job's annotated frame
+    check: dict[str, Any] | None = None  # the camera check's readings of a live frame, when it is on
 
     def event_json(self) -> dict[str, Any]:
         return {
+            **({"check": self.check} if self.check is not None else {}),
             "seq": self.seq,
+            "live": self.live,
+            "captured_utc": datetime.fromtimestamp(self.capture_wall_ms / 1e3, UTC).isoformat(timespec="milliseconds"),
             "capture_wall_ms": round(self.capture_wall_ms, 1),
             "encode_ms": round(self.encode_ms, 2),
             "encoded_wall_ms": round(self.encoded_wall_ms, 1),
@@ -48,7 +75,9 @@ class EncodedFrame:
         }
 
 
-def encode_frame(frame: FrameView, max_width_px: int, quality: int) -> EncodedFrame:
+def encode_frame(
+    frame: FrameView, max_width_px: int, quality: int, live: bool = False, check: dict[str, Any] | None = None
+) -> EncodedFrame:
     t0 = time.monotonic()
     wall_ms = 1e3 * (time.time() - (t0 - frame.capture_monotonic_s))
     image = frame.image_bgr
@@ -59,7 +88,9 @@ def encode_frame(frame: FrameView, max_width_px: int, quality: int) -> EncodedFr
     ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise ValueError(f"frame {frame.seq}: JPEG encoding failed ({w} x {h})")
-    return EncodedFrame(frame.seq, wall_ms, buf.tobytes(), 1e3 * (time.monotonic() - t0), 1e3 * time.time())
+    return EncodedFrame(
+        frame.seq, wall_ms, buf.tobytes(), 1e3 * (time.monotonic() - t0), 1e3 * time.time(), live, check
+    )
 
 
 @dataclass(eq=False)
@@ -73,17 +104,31 @@ class Screen:
 
 
 class Hub:
-    def __init__(self, service: LineServiceAPI, max_width_px: int, jpeg_quality: int, max_screens: int):
+    def __init__(
+        self,
+        service: LineServiceAPI,
+        max_width_px: int,
+        jpeg_quality: int,
+        max_screens: int,
+        live_interval_s: float = 0.0,
+        check: CameraCheck | None = None,
+    ):
         self.service = service
         self.max_width_px, self.jpeg_quality, self.max_screens = max_width_px, jpeg_quality, max_screens
+        self.live_interval_s = live_interval_s  # 0: no live view
+        self.check = check  # the camera check, assessing live frames while it is on
         self.screens: set[Screen] = set()
         self.latest: EncodedFrame | None = None
         self.latest_view: FrameView | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._held: FrameRef | None = None  # located, waiting for PLAN to number its parts
-        self._seq = 0
+        self._seq = itertools.count(1)  # frames of both kinds, in the order they were taken
         self._subs: list[Subscription] = []
         self._lock = threading.Lock()
+        self._live_wake = threading.Event()  # a screen opened: take a live frame now
+        self._live_stop = threading.Event()
+        self._live_thread: threading.Thread | None = None
+        self._live_error_logged_s = -1e9
 
     # ---- life ----------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -98,6 +143,9 @@ class Hub:
                 frames=True,
             ),
         ]
+        if self.live_interval_s > 0:
+            self._live_thread = threading.Thread(target=self._live_loop, name="screen-live", daemon=True)
+            self._live_thread.start()
 
     def close(self) -> None:
         """Unsubscribe and end every open stream (safe to call twice)."""
@@ -105,6 +153,10 @@ class Hub:
             subs, self._subs = self._subs, []
         for sub in subs:
             self.service.unsubscribe(sub)
+        self._live_stop.set()
+        self._live_wake.set()
+        if self._live_thread is not None:
+            self._live_thread.join(timeout=10)
         if self._loop is not None and not self._loop.is_closed():
             try:
                 self._loop.call_soon_threadsafe(self._close_screens)
@@ -138,16 +190,45 @@ class Hub:
         ref, self._held = self._held, None
         if ref is None:
             return
-        self._seq += 1
         try:
             image = annotate(ref.image, ref.result, order or ())
-            view = FrameView(self._seq, ref.captured_monotonic_s, image, tuple(order or ()))
+            view = FrameView(next(self._seq), ref.captured_monotonic_s, image, tuple(order or ()))
             encoded = encode_frame(view, self.max_width_px, self.jpeg_quality)
         except (ValueError, cv2.error) as e:
             log.warning("screen: frame not shown: %s", e)
             return
         self.latest_view = view
         self._to_loop(self._publish_frame, encoded)
+
+    def _live_loop(self) -> None:
+        """While a screen is open: a live frame now and then every live_interval_s (none while a job runs)."""
+        while not self._live_stop.is_set():
+            self._live_wake.wait(self.live_interval_s)
+            self._live_wake.clear()
+            if self._live_stop.is_set():
+                return
+            if self.screens:
+                self._take_live()
+
+    def _take_live(self) -> None:
+        try:
+            live = self.service.preview_frame(LIVE_ORIGIN)
+            if live is None:
+                return  # a job runs: its own frames are shown
+            check = self.check.read(live.image_bgr) if self.check is not None else None
+            view = FrameView(next(self._seq), live.captured_monotonic_s, live.image_bgr)
+            encoded = encode_frame(view, self.max_width_px, self.jpeg_quality, live=True, check=check)
+        except (*REPORTED_ERRORS, ValueError, cv2.error) as e:
+            now = time.monotonic()
+            if now - self._live_error_logged_s >= _LIVE_ERROR_LOG_S:
+                self._live_error_logged_s = now
+                log.warning("screen: no live frame: %s", e)
+            return
+        self._to_loop(self._publish_frame, encoded)
+
+    def live_now(self) -> None:
+        """Take a live frame now rather than at the next interval (e.g. the camera check was switched on)."""
+        self._live_wake.set()
 
     def _to_loop(self, fn: Callable[..., object], *args: object) -> None:
         loop = self._loop
@@ -168,6 +249,9 @@ class Hub:
         self._publish_state(self.service.snapshot())
 
     def _publish_frame(self, frame: EncodedFrame) -> None:
+        latest = self.latest
+        if latest is not None and frame.live and frame.capture_wall_ms < latest.capture_wall_ms:
+            return  # a live frame taken just before a job started, encoded after its first frame
         self.latest = frame
         for s in self.screens:
             s.frame = frame
@@ -180,6 +264,8 @@ class Hub:
         screen = Screen(snapshot=self.service.snapshot(), frame=self.latest)
         screen.wake.set()
         self.screens.add(screen)
+        if self.latest is None:
+            self._live_wake.set()  # the first screen: a picture now, not after a whole interval
         return screen
 
     def close_screen(self, screen: Screen) -> None:

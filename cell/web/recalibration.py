@@ -136,14 +136,14 @@ class RecalibrationDesk:
     def from_camera(self, origin: Origin = SERVICE_ORIGIN) -> Report:
         image = self.service.capture_plate_image(origin)  # refused unless the cell is at rest
         check_image_size(image, self.config, "camera frame")
-        return self._fit(image, f"camera frame {_now():%Y-%m-%d %H:%M:%S} UTC")
+        return self._fit(image, f"camera frame {_local_iso()}")
 
     def from_upload(
         self, data: bytes, origin: Origin = SERVICE_ORIGIN, cancelled: threading.Event | None = None
     ) -> Report:
         image = decode_upload(data, self.config, cancelled)
         digest = hashlib.sha256(data).hexdigest()[:12]
-        return self._fit(image, f"uploaded image sha256 {digest}, {_now():%Y-%m-%d %H:%M:%S} UTC")
+        return self._fit(image, f"uploaded image sha256 {digest}, {_local_iso()}")
 
     def _fit(self, image: np.ndarray, source: str) -> Report:
         if not self._lock.acquire(blocking=False):
@@ -211,8 +211,9 @@ class RecalibrationDesk:
             return info
 
 
-def _now() -> datetime:
-    return datetime.now(UTC)
+def _local_iso() -> str:
+    """Now as the screen writes every date: ISO 8601, this PC's local time with its zone."""
+    return datetime.now(UTC).astimezone().isoformat(timespec="seconds")
 
 
 def _created(text: str) -> datetime | None:

@@ -7,7 +7,8 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import Any
 
-from cell.service.api import STATE_COMMANDS, PickRecord, Snapshot, VisionState
+from cell.service.api import STATE_COMMANDS, Alarm, PickRecord, Snapshot, VisionState
+from cell.web.words import alarm_words
 
 V = VisionState
 RUNNING = frozenset({V.SINGLE_EXECUTION, V.CONTINUOUS_EXECUTION})
@@ -33,6 +34,27 @@ def display_state(s: Snapshot) -> tuple[str, str]:
     return "stopped", "Stopped: ready to start" if s.vision_state is V.READY else "Stopped"
 
 
+def next_action(s: Snapshot, key: str) -> str:
+    """What the operator can do next, in the state shown (`key` from display_state)."""
+    if key == "fault":
+        if s.alarm is None:
+            return "Fix the cause, then press Reset."
+        words = alarm_words(s.alarm)
+        return f"{words.say} {words.do}"
+    held = f"{s.hold[:1].upper()}{s.hold[1:]}." if s.hold else ""
+    return {
+        "halted": "Nothing runs until you press Reset.",
+        "starting": "Wait: the cell is starting.",
+        "stopped": held or "Press Start to clear the table once, or Start continuous to keep picking.",
+        "running": "Clearing the table once: Pause holds it at a safe point, Stop ends the job."
+        if s.vision_state is V.SINGLE_EXECUTION
+        else "Picking parts as they arrive: Pause holds it at a safe point, Stop ends the run.",
+        "waiting": "The table is empty: put parts on it, or press Stop to end the run.",
+        "pausing": "Finishing the current motion, then it holds: wait.",
+        "paused": held or "Press Resume to go on, or Stop to end the job; Recalibrate is possible now.",
+    }.get(key, "")
+
+
 def _time(t: datetime | None) -> str | None:
     return None if t is None else t.isoformat(timespec="seconds")
 
@@ -53,11 +75,23 @@ def pick_json(p: PickRecord) -> dict[str, Any]:
     }
 
 
+def alarm_json(a: Alarm) -> dict[str, Any]:
+    """The alarm as the engine raised it (reason, hint) and in operator words (say, do, details)."""
+    return {
+        "reason": a.reason,
+        "hint": a.hint,
+        "time": _time(a.time_utc),
+        "severity": a.severity,
+        "source": a.source,
+        **alarm_words(a).as_json(),
+    }
+
+
 def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pictures: bool = False) -> dict[str, Any]:
     key, label = display_state(s)
     cal = s.calibration
     return {
-        "display": {"key": key, "label": label},
+        "display": {"key": key, "label": label, "next": next_action(s, key)},
         "vision_state": s.vision_state.value,
         "cell_state": s.cell_state,
         "paused": s.paused,
@@ -67,11 +101,12 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "dropped_events": {x.name: x.dropped + x.failed for x in s.subscribers if x.dropped or x.failed},
         "waiting_for_parts": s.waiting_for_parts,
         "counters": asdict(s.counters),
-        "parts_per_min": round(s.parts_per_min, 1) if s.vision_state in RUNNING and not s.paused else None,
+        "parts_per_min": _rate(s),
         "last_picks": [pick_json(p) for p in reversed(s.last_picks)],  # newest first
-        "alarm": None
-        if s.alarm is None
-        else {"reason": s.alarm.reason, "hint": s.alarm.hint, "time": _time(s.alarm.time_utc)},
+        "alarm": None if s.alarm is None else alarm_json(s.alarm),
+        "warnings": [alarm_json(w) for w in s.warnings],
+        "recipe": s.recipe,
+        "recipe_allowed": s.vision_state is V.READY,  # the command table's PrepareRecipe / UnprepareRecipe
         "calibration": None
         if cal is None
         else {
@@ -90,9 +125,18 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
     }
 
 
+def _rate(s: Snapshot) -> float | None:
+    """Parts per minute while a job runs; None ("-") when none runs, it is paused, or its rate is not known
+    yet (the ledger's 0 before a job's second pick)."""
+    if s.vision_state not in RUNNING or s.paused or s.parts_per_min <= 0:
+        return None
+    return round(s.parts_per_min, 1)
+
+
 def may_recalibrate(s: Snapshot) -> bool:
-    """The service captures and installs only while Ready, paused or Halted."""
-    return s.vision_state in (V.READY, V.HALTED) or (s.vision_state in RUNNING and s.paused)
+    """The service captures and installs only at rest: Ready, Halted, Error (e.g. the camera moved: recalibrate,
+    then Reset), or a job paused at a safe point (the command table's CapturePlate / InstallCalibration)."""
+    return s.vision_state in (V.READY, V.HALTED, V.ERROR) or (s.vision_state in RUNNING and s.paused)
 
 
 COMMANDS = {c.value: c for c in STATE_COMMANDS}
