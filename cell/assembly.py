@@ -225,6 +225,10 @@ def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.Ex
     """The event stream's consumers a config asks for (the history store, plant telemetry), each a
     subscriber of `bus` on its own thread, closed with `resources`. The one place they are built,
     for `run-cell` and `run-cell serve` alike."""
+    if config.telemetry.mqtt.enabled:  # Sparkplug B to the plant's broker (paho-mqtt is imported only then)
+        from cell.telemetry.publisher import attach_mqtt
+
+        attach_mqtt(config.telemetry.mqtt, bus, resources, hooks)
 
 
 def commissioning_camera(config: CellConfig) -> Camera:

@@ -15,6 +15,7 @@ from pydantic import Field, ValidationError, model_validator
 from cell.errors import ConfigError
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
+from cell.telemetry.config import TelemetryConfig
 from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
 from drivers.cameras.config import CameraConfig
@@ -165,6 +166,7 @@ class CellConfig(Strict):
     sim: SimConfig = SimConfig()
     parts: PartsConfig = PartsConfig()
     service: ServiceConfig = ServiceConfig()
+    telemetry: TelemetryConfig = TelemetryConfig()
 
 
 def _format_errors(path: Path | str, err: ValidationError) -> str:

@@ -1,0 +1,177 @@
+"""A real MQTT broker for the telemetry tests: Debian's mosquitto on a free loopback port with a
+config of its own (anonymous, or users from a password file), started and killed by the test;
+and a Sparkplug B listener that decodes every message it sees."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as mqtt
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from cell.telemetry.sparkplug import decode, parse_topic, payload, value_of
+
+MOSQUITTO = shutil.which("mosquitto") or next(
+    (p for p in ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto") if Path(p).exists()), None
+)
+MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd")
+
+needs_mosquitto = pytest.mark.skipif(
+    MOSQUITTO is None, reason="the mosquitto broker is not installed (Debian package mosquitto; .ci/run installs it)"
+)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond: Callable[[], Any], timeout_s: float = 30.0, what: str = "condition") -> Any:
+    end = time.monotonic() + timeout_s
+    while not (got := cond()):
+        assert time.monotonic() < end, f"timed out waiting for {what}"
+        time.sleep(0.05)
+    return got
+
+
+class Broker:
+    """mosquitto on 127.0.0.1:port; `users` turns anonymous access off (password file)."""
+
+    def __init__(self, workdir: Path, port: int | None = None, users: dict[str, str] | None = None):
+        self.workdir, self.port, self.users = workdir, port or free_port(), users
+        self.proc: subprocess.Popen | None = None
+        self.conf = workdir / f"mosquitto-{self.port}.conf"
+        lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_dest stderr", "log_type error"]
+        if users:
+            pwfile = workdir / "passwords"
+            pwfile.write_text("")
+            for user, password in users.items():
+                subprocess.run([MOSQUITTO_PASSWD, "-b", str(pwfile), user, password], check=True, timeout=30)
+            lines += ["allow_anonymous false", f"password_file {pwfile}"]
+        else:
+            lines += ["allow_anonymous true"]
+        self.conf.write_text("\n".join(lines) + "\n")
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def start(self) -> Broker:
+        self.proc = subprocess.Popen(
+            [MOSQUITTO, "-c", str(self.conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+        )
+        wait_for(self._accepts, 20, f"mosquitto listening on {self.port}")
+        return self
+
+    def _accepts(self) -> bool:
+        assert self.proc is not None and self.proc.poll() is None, f"mosquitto ended: {self.proc.stderr.read()}"
+        with socket.socket() as s:
+            s.settimeout(0.5)
+            return s.connect_ex(("127.0.0.1", self.port)) == 0
+
+    def kill(self) -> None:
+        """The broker dies without a word (SIGKILL): clients see their connection drop."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+            self.proc.stderr.close()
+        self.proc = None
+
+    def __enter__(self) -> Broker:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.kill()
+
+
+@dataclass
+class Message:
+    topic: str
+    kind: str  # NBIRTH, DDATA ...
+    edge_node_id: str
+    device_id: str | None
+    seq: int | None
+    metrics: dict[str, Any]  # name -> value (the last one if a name repeats)
+    datatypes: dict[str, int]
+    qos: int
+    retain: bool
+
+
+class Listener:
+    """A Sparkplug host's view of the broker: subscribes to spBv1.0/GROUP/# and decodes everything;
+    reconnects by itself when the broker comes back."""
+
+    def __init__(self, port: int, group_id: str = "#", user: str | None = None, password: str | None = None):
+        self.messages: list[Message] = []
+        self._lock = threading.Lock()
+        self.topic = "spBv1.0/#" if group_id == "#" else f"spBv1.0/{group_id}/#"
+        self.connected = threading.Event()
+        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"listener-{id(self)}", clean_session=True)
+        if user:
+            self.client.username_pw_set(user, password)
+        self.client.reconnect_delay_set(1, 2)
+        self.client.on_connect = self._on_connect
+        self.client.on_disconnect = lambda *a: self.connected.clear()
+        self.client.on_message = self._on_message
+        self.client.connect_async("127.0.0.1", port, keepalive=10)
+        self.client.loop_start()
+        wait_for(self.connected.is_set, 20, "the listener's connection")
+
+    def _on_connect(self, client, userdata, flags, reason, properties) -> None:
+        if not reason.is_failure:
+            client.subscribe(self.topic, qos=1)
+            self.connected.set()
+
+    def _on_message(self, client, userdata, msg) -> None:
+        parsed = parse_topic(msg.topic)
+        if parsed is None:
+            return
+        _, kind, node, device = parsed
+        pb = decode(msg.payload)
+        types = {m.name: m.datatype for m in pb.metrics if m.HasField("datatype")}
+        message = Message(
+            msg.topic,
+            kind,
+            node,
+            device,
+            pb.seq if pb.HasField("seq") else None,
+            {m.name: value_of(m, types.get(m.name) or None) for m in pb.metrics},
+            types,
+            msg.qos,
+            msg.retain,
+        )
+        with self._lock:
+            self.messages.append(message)
+
+    def of(self, kind: str, node: str | None = None) -> list[Message]:
+        with self._lock:
+            return [m for m in self.messages if m.kind == kind and (node is None or m.edge_node_id == node)]
+
+    def all(self, node: str | None = None) -> list[Message]:
+        with self._lock:
+            return [m for m in self.messages if node is None or m.edge_node_id == node]
+
+    def publish_metric(self, topic: str, name: str, value: bool) -> None:
+        """A command as a host sends one: QoS 0, not retained, a timestamp and no seq."""
+        from cell.telemetry.sparkplug import DataType, Metric
+
+        self.client.publish(topic, payload([Metric(name, DataType.BOOLEAN, value)], seq=None), qos=0)
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def picks_seen(listener: Listener, node: str | None = None, outcome: str = "picked") -> int:
+    """Picks the listener saw: DDATA messages whose Last Pick/Outcome is `outcome`."""
+    return sum(m.metrics.get("Last Pick/Outcome") == outcome for m in listener.of("DDATA", node))
