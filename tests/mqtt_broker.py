@@ -4,6 +4,7 @@ and a Sparkplug B listener that decodes every message it sees."""
 
 from __future__ import annotations
 
+import getpass
 import shutil
 import socket
 import subprocess
@@ -52,6 +53,7 @@ class Broker:
         self.proc: subprocess.Popen | None = None
         self.conf = workdir / f"mosquitto-{self.port}.conf"
         lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_dest stderr", "log_type error"]
+        lines += [f"user {getpass.getuser()}"]  # run as root, mosquitto would drop to its own user: keep ours
         if users:
             pwfile = workdir / "passwords"
             pwfile.write_text("")
@@ -175,3 +177,67 @@ class Listener:
 def picks_seen(listener: Listener, node: str | None = None, outcome: str = "picked") -> int:
     """Picks the listener saw: DDATA messages whose Last Pick/Outcome is `outcome`."""
     return sum(m.metrics.get("Last Pick/Outcome") == outcome for m in listener.of("DDATA", node))
+
+
+class Proxy:
+    """A TCP pipe 127.0.0.1:port -> the broker, to cut the cell's network while the broker lives:
+    `cut()` drops every open connection (as a pulled cable noticed at once); new ones still pass."""
+
+    def __init__(self, target_port: int):
+        self.target_port = target_port
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = self._server.getsockname()[1]
+        self._conns: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def _accept(self) -> None:
+        while not self._closed:
+            try:
+                client, _ = self._server.accept()
+            except OSError:
+                return
+            try:
+                upstream = socket.create_connection(("127.0.0.1", self.target_port), timeout=5)
+            except OSError:
+                client.close()
+                continue
+            upstream.settimeout(None)
+            with self._lock:
+                self._conns += [client, upstream]
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pipe(src: socket.socket, dst: socket.socket) -> None:
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (src, dst):
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def cut(self) -> None:
+        with self._lock:
+            conns, self._conns = self._conns, []
+        for s in conns:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            s.close()
+
+    def close(self) -> None:
+        self._closed = True
+        self._server.close()
+        self.cut()

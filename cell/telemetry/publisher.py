@@ -157,7 +157,7 @@ class SparkplugPublisher:
         return client
 
     def _set_will(self, client: mqtt.Client) -> None:
-        death = payload([Metric(M.BD_SEQ, M.D.INT64, self.bd_seq)], seq=None)
+        death = payload([Metric(M.BD_SEQ, M.D.INT64, self.bd_seq)], seq=None, birth=True)
         client.will_set(self.topics.node("NDEATH"), death, qos=1, retain=False)
 
     # ---- life -------------------------------------------------------------------------------
@@ -184,7 +184,7 @@ class SparkplugPublisher:
             self._closing = True
             info = None
             if self.born:
-                death = payload([Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq)], seq=None)
+                death = payload([Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq)], seq=None, birth=True)
                 info = self.client.publish(self.topics.node("NDEATH"), death, qos=1, retain=False)
             self.born = False
         if info is not None and info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:

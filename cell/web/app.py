@@ -22,6 +22,7 @@ from cell.service.api import CommandRefused, LineServiceAPI, Refusal
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
 from cell.web.hub import Hub
+from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, RecalibrationDesk
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
 
@@ -90,6 +91,7 @@ class ScreenApp:
         self.service, self.web, self.access = service, web, access
         self.hub = Hub(service, web.frame_max_width_px, web.jpeg_quality, web.max_screens)
         self.desk = RecalibrationDesk(service, config)
+        self.metrics = CellMetrics(service)  # /metrics (Prometheus); its own registry
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
         self.max_upload = int(web.max_upload_mb * 1024 * 1024)
@@ -317,6 +319,12 @@ class ScreenApp:
             return _error(404, "no report pictures for the calibration in use (not made on this screen since start)")
         return Response(self.desk.active_pictures[kind], media_type=PICTURES[kind])
 
+    async def metrics_page(self, request: Request) -> Response:
+        """Prometheus text exposition; the screen's access rule (basic auth checked off the event loop)."""
+        if refused := await run_in_threadpool(metrics_refused, request, self.access):
+            return refused
+        return await run_in_threadpool(metrics_response, self.metrics)
+
     @staticmethod
     async def _read_body(request: Request, limit: int) -> bytes | Response:
         """The body up to `limit` bytes; longer (declared or sent) is refused without reading it all."""
@@ -346,6 +354,7 @@ class ScreenApp:
             Route("/api/recalibration/{report_id}/{kind:str}", self.recal_picture),
             Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
             Route("/api/calibration/{kind}", self.calibration_picture),
+            Route("/metrics", self.metrics_page),
         ]
 
 
@@ -360,9 +369,11 @@ def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, acces
     @contextlib.asynccontextmanager
     async def lifespan(app):
         screen.hub.start(asyncio.get_running_loop())
+        screen.metrics.start()
         try:
             yield
         finally:
+            screen.metrics.close()
             screen.hub.close()
 
     app = Starlette(routes=screen.routes(), lifespan=lifespan)
