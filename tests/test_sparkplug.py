@@ -164,3 +164,21 @@ def test_the_password_comes_from_the_environment_only():
     with pytest.raises(ConfigError, match="CELL_MQTT_PASSWORD is not set or empty"):
         password_from_env(cfg, {})
     assert password_from_env(MqttConfig(url="mqtt://b"), {}) is None
+
+
+def test_a_run_cell_job_is_not_published_and_says_so(caplog):
+    """attach_consumers builds the publisher for `run-cell serve` only (it needs the line service)."""
+    import contextlib
+
+    from cell.assembly import RunHooks, attach_consumers
+    from cell.config import CellConfig
+    from cell.eventbus import EventBus
+    from cell.signals import Controls
+
+    cfg = CellConfig()
+    cfg.telemetry.mqtt = MqttConfig(url="mqtt://127.0.0.1:1")
+    bus = EventBus()
+    with contextlib.ExitStack() as resources:
+        attach_consumers(cfg, bus, resources, RunHooks(Controls()))
+        assert bus.stats() == ()
+    assert "published by `run-cell serve` only" in caplog.text
