@@ -31,6 +31,42 @@ needs_mosquitto = pytest.mark.skipif(
 )
 
 
+OPENSSL = shutil.which("openssl")
+
+
+@dataclass(frozen=True)
+class Tls:
+    """A test CA, the broker's certificate (for 127.0.0.1) and client certificates, made by openssl."""
+
+    ca: Path
+    server_cert: Path
+    server_key: Path
+    clients: dict[str, tuple[Path, Path]]  # common name -> (certificate, key)
+
+
+def make_tls(folder: Path, clients: tuple[str, ...]) -> Tls:
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def run(*args: str) -> None:
+        subprocess.run([OPENSSL, *args], check=True, capture_output=True, timeout=60, cwd=folder)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=test-ca",
+        "-keyout", "ca.key", "-out", "ca.pem")  # fmt: skip
+    names = {"server": "/CN=127.0.0.1"} | {c: f"/CN={c}" for c in clients}
+    for name, subject in names.items():
+        run("req", "-newkey", "rsa:2048", "-nodes", "-subj", subject, "-keyout", f"{name}.key", "-out", f"{name}.csr")
+        ext = folder / f"{name}.ext"
+        ext.write_text("subjectAltName = IP:127.0.0.1\n" if name == "server" else "extendedKeyUsage = clientAuth\n")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-days", "2", "-extfile", ext.name, "-out", f"{name}.pem")  # fmt: skip
+    return Tls(
+        folder / "ca.pem",
+        folder / "server.pem",
+        folder / "server.key",
+        {c: (folder / f"{c}.pem", folder / f"{c}.key") for c in clients},
+    )
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -48,13 +84,18 @@ def wait_for(cond: Callable[[], Any], timeout_s: float = 30.0, what: str = "cond
 class Broker:
     """mosquitto on 127.0.0.1:port; `users` turns anonymous access off (password file)."""
 
-    def __init__(self, workdir: Path, port: int | None = None, users: dict[str, str] | None = None):
-        self.workdir, self.port, self.users = workdir, port or free_port(), users
+    def __init__(
+        self, workdir: Path, port: int | None = None, users: dict[str, str] | None = None, tls: Tls | None = None
+    ):
+        self.workdir, self.port, self.users, self.tls = workdir, port or free_port(), users, tls
         self.proc: subprocess.Popen | None = None
         self.conf = workdir / f"mosquitto-{self.port}.conf"
         lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_dest stderr", "log_type error"]
         lines += [f"user {getpass.getuser()}"]  # run as root, mosquitto would drop to its own user: keep ours
-        if users:
+        if tls is not None:  # TLS only, each client known by its certificate's common name
+            lines += [f"cafile {tls.ca}", f"certfile {tls.server_cert}", f"keyfile {tls.server_key}"]
+            lines += ["require_certificate true", "use_identity_as_username true", "allow_anonymous false"]
+        elif users:
             pwfile = workdir / "passwords"
             pwfile.write_text("")
             for user, password in users.items():
@@ -66,7 +107,7 @@ class Broker:
 
     @property
     def url(self) -> str:
-        return f"mqtt://127.0.0.1:{self.port}"
+        return f"{'mqtts' if self.tls else 'mqtt'}://127.0.0.1:{self.port}"
 
     def start(self) -> Broker:
         self.proc = subprocess.Popen(
@@ -113,7 +154,14 @@ class Listener:
     """A Sparkplug host's view of the broker: subscribes to spBv1.0/GROUP/# and decodes everything;
     reconnects by itself when the broker comes back."""
 
-    def __init__(self, port: int, group_id: str = "#", user: str | None = None, password: str | None = None):
+    def __init__(
+        self,
+        port: int,
+        group_id: str = "#",
+        user: str | None = None,
+        password: str | None = None,
+        tls: tuple[Path, Path, Path] | None = None,  # (CA, certificate, key)
+    ):
         self.messages: list[Message] = []
         self._lock = threading.Lock()
         self.topic = "spBv1.0/#" if group_id == "#" else f"spBv1.0/{group_id}/#"
@@ -121,6 +169,8 @@ class Listener:
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"listener-{id(self)}", clean_session=True)
         if user:
             self.client.username_pw_set(user, password)
+        if tls is not None:
+            self.client.tls_set(ca_certs=str(tls[0]), certfile=str(tls[1]), keyfile=str(tls[2]))
         self.client.reconnect_delay_set(1, 2)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = lambda *a: self.connected.clear()

@@ -17,7 +17,17 @@ from cell.telemetry import metrics as M
 from cell.telemetry.config import MqttConfig
 from cell.telemetry.publisher import SparkplugPublisher
 from cell.telemetry.sparkplug import DataType, Topics
-from tests.mqtt_broker import Broker, Listener, Message, Proxy, needs_mosquitto, picks_seen, wait_for
+from tests.mqtt_broker import (
+    OPENSSL,
+    Broker,
+    Listener,
+    Message,
+    Proxy,
+    make_tls,
+    needs_mosquitto,
+    picks_seen,
+    wait_for,
+)
 from tests.test_service import picked, running, small_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_mosquitto]
@@ -238,5 +248,32 @@ def test_commands_over_mqtt_through_the_command_table(tmp_path, monkeypatch):
             ("StartSingleJob", True, "cell-c", "operator"),
             ("Stop", True, "cell-c", "operator"),
             ("StartSingleJob", False, "cell-c", "viewer"),
+        ]
+        listener.close()
+
+
+@pytest.mark.skipif(OPENSSL is None, reason="openssl is not installed: no test certificates can be made")
+def test_tls_with_a_client_certificate_authenticates_the_cell_for_commands(tmp_path):
+    tls = make_tls(tmp_path / "pki", clients=("cell-d", "scada"))
+    with Broker(tmp_path, tls=tls) as broker:
+        listener = Listener(broker.port, tls=(tls.ca, *tls.clients["scada"]))
+        cert, key = tls.clients["cell-d"]
+        cfg = telemetry_config(
+            tmp_path, broker.url, "cell-d", ca_file=tls.ca, client_cert_file=cert, client_key_file=key, commands=True
+        )
+        cfg.sim.feeder = NO_FEEDER
+        topics = Topics("test-hall", "cell-d", "cell")
+        with running(cfg) as service:
+            wait_for(lambda: listener.of("DBIRTH", "cell-d"), 30, "DBIRTH over TLS")
+            wait_for(lambda: latest(listener, "cell-d", "State") == "Ready", 30, "Ready")
+            listener.publish_metric(topics.device("DCMD"), "Command/StartSingleJob", True)
+            wait_for(lambda: latest(listener, "cell-d", "Command/Last Accepted") is True, 30, "the start accepted")
+            wait_for(lambda: service.snapshot().vision_state == V.READY and picked(service) == 17, 120, "table cleared")
+            wait_for(lambda: latest(listener, "cell-d", "Counters/Picked") == 17, 30, "the count over TLS")
+        commands = [
+            e for e in read_shift(tmp_path / "logs") if e["kind"] == "command" and e["origin"]["interface"] == "mqtt"
+        ]
+        assert [(e["command"], e["accepted"], e["origin"]["user"]) for e in commands] == [
+            ("StartSingleJob", True, "cell-d")
         ]
         listener.close()

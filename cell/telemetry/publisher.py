@@ -23,6 +23,7 @@ import contextlib
 import logging
 import ssl
 import threading
+from pathlib import Path
 from typing import Any, Protocol
 
 import paho.mqtt.client as mqtt
@@ -96,6 +97,21 @@ def password_from_env(cfg: MqttConfig, environ: dict[str, str]) -> str | None:
     return password
 
 
+def certificate_name(path: Path | None) -> str:
+    """The common name of this cell's TLS client certificate (the broker's user for it), else 'tls-client'."""
+    if path is None:
+        return ""
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        return str(names[0].value) if names else "tls-client"
+    except (OSError, ValueError, ImportError):
+        return "tls-client"
+
+
 class SparkplugPublisher:
     """Sparkplug B edge node over paho-mqtt; `start()` after the service exists, `close()` after it stopped."""
 
@@ -120,6 +136,7 @@ class SparkplugPublisher:
         self._refused = False
         self._sub: Subscription | None = None
         self.client = self._client(password)
+        self._user = cfg.user or certificate_name(cfg.client_cert_file)  # who the broker knows this cell as
 
     # ---- the MQTT client --------------------------------------------------------------------
     def _client(self, password: str | None) -> mqtt.Client:
@@ -252,7 +269,7 @@ class SparkplugPublisher:
         """A DCMD through the one command table, as any interface; the answer goes back as DDATA."""
         origin = Origin(
             Interface.MQTT,
-            self.cfg.user or "tls-client",
+            self._user,
             Role(self.cfg.command_role),
             f"{self.cfg.host}:{self.cfg.port}",
         )
