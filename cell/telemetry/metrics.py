@@ -71,7 +71,7 @@ DEVICE = (
     Spec("Alarm/Reason", D.STRING, "", "what failed and where"),
     Spec("Alarm/Hint", D.STRING, "", "what the operator can do about it"),
     Spec("Alarm/Source", D.STRING, "", "what raised it: job, history, telemetry, drift ..."),
-    Spec("Alarm/Warnings", D.UINT32, "alarms", "warning alarms active"),
+    Spec("Alarm/Warnings", D.UINT64, "alarms", "warning alarms active"),
     Spec("Calibration/Id", D.STRING, "", "content hash of the calibration in use"),
     Spec("Calibration/Model", D.STRING, "", "the pixel-to-table model (quadratic, homography, polynomial, camera)"),
     Spec("Calibration/CV RMS mm", D.DOUBLE, "mm", "its cross-validated RMS error"),
