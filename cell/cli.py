@@ -29,6 +29,7 @@ COMMAND_MODULES = [
     "cell.commands.camera",
     "cell.commands.run",
     "cell.commands.serve",
+    "cell.commands.users",
 ]
 
 log = logging.getLogger(__name__)

@@ -9,6 +9,7 @@ import numpy as np
 
 from cell.atomicfile import write_bytes_atomic
 from cell.errors import InputError, OutputError
+from cell.imagedecode import PNG_SIGNATURE, png_check
 from drivers.cameras.imageheader import UnknownFormat, image_size
 
 
@@ -35,6 +36,8 @@ def read_image(path: str | Path, max_px: int | None = None, expected_size: tuple
             f"{path}: image is {w} x {h} px but {expected_size[0]} x {expected_size[1]} px is expected; not decoded"
         )
     data = np.fromfile(str(path), dtype=np.uint8)
+    if data[:8].tobytes() == PNG_SIGNATURE:
+        png_check(data.tobytes(), str(path))  # its data may not inflate past the header's size (a PNG bomb)
     image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if image is None:
         raise InputError(f"{path}: cannot decode image (empty, corrupt or not an image format OpenCV reads)")

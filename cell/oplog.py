@@ -10,20 +10,32 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from cell.logratelimit import LogRateLimiter
 from cell.recordfile import RecordFile
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
 class RecordHandler(logging.Handler):
-    """A logging handler over a RecordFile: one line per record, best effort."""
+    """A logging handler over a RecordFile: one line per record, best effort; warnings and errors
+    of one kind past 10 a minute are counted, not written (cell.logratelimit)."""
 
     def __init__(self, path: Path, exclusive: bool):
         super().__init__(logging.INFO)
         self.record_file = RecordFile(path, exclusive=exclusive, what="operator log")
         self.path = self.record_file.path
+        self.limiter = LogRateLimiter()
 
     def emit(self, record: logging.LogRecord) -> None:
+        wanted, dropped = self.limiter.check(record)
+        if not wanted:
+            return
+        if dropped:
+            note = logging.makeLogRecord(
+                {"name": record.name, "levelno": record.levelno, "levelname": record.levelname}
+                | {"msg": self.limiter.summary(record, dropped)}
+            )
+            self.record_file.write_line(self.format(note))
         try:
             text = self.format(record)
         except Exception:  # a bad format string in a log call must not break the caller

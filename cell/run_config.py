@@ -177,6 +177,10 @@ class SimConfig(Strict):
     arm_fault_after_grips: int = Field(
         0,
         ge=0,
-        description="arm.kind serial/dynamixel: rehearse a fault after this many grips (GRBL ALARM:1 on the "
-        "next move; Dynamixel gripper servo overload); 0 = never",
+        description="arm.kind serial/dynamixel: rehearse a fault (sim.arm_fault) after this many grips; 0 = never",
+    )
+    arm_fault: Literal["alarm", "restart"] = Field(
+        "alarm",
+        description="what arm_fault_after_grips rehearses: alarm (GRBL ALARM:1 on the next move; the Dynamixel "
+        "gripper servo overloads) or restart (the controller restarts at once: GRBL's banner, all servos' supply dips)",
     )

@@ -269,7 +269,7 @@ class Runner:
             steps.append(("open gripper over bin", self._open_over_bin))
         elif not park_only:
             steps.append(("open gripper", self.arm.open_gripper))
-        steps.append(("home", self.arm.home))
+        steps.append(("home", self._home_unless_position_lost))
         if not park_only:
             steps.append(("release torque", self.arm.stop))
         done = []
@@ -277,6 +277,17 @@ class Runner:
             done.append((name, self._safe_step(name, step, reason)))
         self.holding = False
         return done
+
+    def _home_unless_position_lost(self) -> None:
+        """Home as the last motion of the safe stop, except after a controller restart: homing
+        then is motion started after a power interruption, which is the operator's to start
+        (IEC 60204-1, 7.5), never the fault handler's."""
+        if self.arm.position_lost:
+            raise CellError(
+                "not homed: the arm's controller restarted and its position is lost",
+                hint="check the arm, then home it (`run-cell home`)",
+            )
+        self.arm.home()
 
     def _safe_step(self, name: str, step: Callable[[], None], reason: str) -> str | None:
         """One step of the safe sequence; its error as text (None: it worked). Never raises."""

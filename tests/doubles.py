@@ -54,19 +54,32 @@ class FakeCamera(Camera):
 
 
 class FakeArm(Arm):
-    """Records calls; `fail` maps a method name to the call number (1-based) that raises."""
+    """Records calls; `fail` maps a method name to the call number (1-based) that raises;
+    `restart` to the call number during which the controller restarts: it raises PositionLost,
+    and every motion after it is refused (not recorded) until home() or unlock(), as the real
+    drivers do."""
 
-    def __init__(self, table: FakeTable, truth: TableToRobot = TRUE_FRAME, fail: dict | None = None):
+    MOTION = ("move_to", "open_gripper", "close_gripper", "wait_until_idle")
+
+    def __init__(
+        self, table: FakeTable, truth: TableToRobot = TRUE_FRAME, fail: dict | None = None, restart: dict | None = None
+    ):
         self.port, self.table, self.truth = "fake", table, truth
         self.calls: list[tuple] = []
         self.fail = fail or {}
+        self.restart = restart or {}
         self.pose = Pose(0.0, 150.0, 100.0, 0.0)
         self.connected = False
 
     def _record(self, name, *args):
+        if name in self.MOTION:
+            self._refuse_while_position_lost(name)
         self.calls.append((name, *args))
-        if self.fail.get(name) == sum(c[0] == name for c in self.calls):
+        n = sum(c[0] == name for c in self.calls)
+        if self.fail.get(name) == n:
             raise HardwareFault(f"{name} failed (injected)", port=self.port)
+        if self.restart.get(name) == n:
+            raise self._restarted("injected restart", name)
 
     def connect(self):
         self._record("connect")
@@ -82,6 +95,11 @@ class FakeArm(Arm):
 
     def home(self):
         self._record("home")
+        self._position_regained("homed")
+
+    def unlock(self):
+        self._record("unlock")
+        self._position_regained("unlocked")
 
     def check_target(self, x_mm, y_mm, z_mm, angle_deg=None):
         pass

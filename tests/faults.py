@@ -17,7 +17,7 @@ from pathlib import Path
 import cell.sim.cell
 from cell.audit import read_events
 from cell.recordfile import RecordFile
-from drivers.sim.dxl_emulator import DxlBusEmulator
+from drivers.sim.dxl_emulator import SYNC_WRITE, WRITE, DxlBusEmulator, unstuff
 
 REPO = Path(__file__).resolve().parents[1]
 SIM_CONFIGS = {"serial": REPO / "configs" / "sim-grbl.toml", "dynamixel": REPO / "configs" / "sim-dynamixel.toml"}
@@ -104,3 +104,24 @@ def assert_arm_safe(sim, log_dir: Path) -> None:
 def audit_events(log_dir: Path) -> list[dict]:
     (path,) = log_dir.glob("run-*.jsonl")
     return read_events(path)
+
+
+def bus_writes(emu: DxlBusEmulator, since: int = 0) -> list[tuple[int, bytes]]:
+    """(address, data) of every write and sync write the bus received from packet `since` on."""
+    emu.server.settle()
+    out = []
+    for frame in emu.packets_received[since:]:
+        body = unstuff(frame[7:-2])
+        if body[0] in (WRITE, SYNC_WRITE):
+            out.append((int.from_bytes(body[1:3], "little"), bytes(body[3:] if body[0] == WRITE else body[5:])))
+    return out
+
+
+def motion_writes(emu: DxlBusEmulator, since: int) -> list[tuple[int, bytes]]:
+    """Goal positions, and torque turned on, since packet `since`: what makes a servo move.
+    A write's data is the value; a sync write's is (id, value) per servo."""
+
+    def torque_on(data: bytes) -> bool:
+        return any(data if len(data) == 1 else data[1::2])
+
+    return [(a, d) for a, d in bus_writes(emu, since) if a == 116 or (a == 64 and torque_on(d))]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import re
+import resource
 import signal
 import socket
 import subprocess
@@ -13,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-READY = re.compile(r"^ready: .*screen (http://\S+?/)")
+READY = re.compile(r"^ready: .*screen (https?://\S+?/)")
 
 
 def free_port() -> int:
@@ -23,7 +24,8 @@ def free_port() -> int:
 
 
 class ServeProcess:
-    def __init__(self, workdir: Path, *extra: str, timeout_s: float = 60.0):
+    def __init__(self, workdir: Path, *extra: str, timeout_s: float = 60.0, nofile: int | None = None):
+        """`nofile`: the process's RLIMIT_NOFILE, soft and hard (`ulimit -n`)."""
         self.workdir = workdir
         cmd = [
             sys.executable,
@@ -38,8 +40,21 @@ class ServeProcess:
             *extra,
         ]
         env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+        self.opcua_port = int(cmd[cmd.index("--opcua-port") + 1])
+
+        def limit() -> None:
+            if nofile is not None:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
         self.proc = subprocess.Popen(
-            cmd, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+            cmd,
+            cwd=workdir,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            bufsize=1,
+            preexec_fn=limit if nofile is not None else None,
         )
         self.lines: list[str] = []
         self.url = self._wait_ready(timeout_s)

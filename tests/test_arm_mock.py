@@ -60,6 +60,17 @@ def test_mock_records_commands_with_their_wire_form_and_moves_nothing():
     ]
 
 
+def test_mock_unlock_is_recorded_and_moves_nothing():
+    """A mocked controller never restarts: unlock is what the real driver's would be, recorded."""
+    with MockArm(ArmConfig(kind="mock", mock_of="serial")) as arm:
+        arm.move_to(100.0, 50.0, 20.0)
+        arm.unlock()
+        assert arm.status().pose.x_mm == 100.0 and not arm.position_lost
+    assert [c.name for c in arm.commands] == ["connect", "move_to", "unlock", "disconnect"]
+    with pytest.raises(NotConnected):
+        arm.unlock()
+
+
 def test_mock_dynamixel_records_goal_ticks():
     with MockArm(ArmConfig(kind="mock", mock_of="dynamixel")) as arm:
         arm.move_to(200.0, 0.0, 50.0)

@@ -9,10 +9,11 @@ import pytest
 from cell.sim.emulated_arm import EMULATED_LATENCY_TIMER_MS
 from drivers.arm.config import DynamixelArmConfig
 from drivers.arm.dynamixel import DynamixelArm, ExclusivePortHandler
-from drivers.arm.errors import ConnectionLost, ErrorResponse, HardwareFault, NoResponse, OutOfReach
+from drivers.arm.errors import ConnectionLost, ErrorResponse, HardwareFault, NoResponse, OutOfReach, PositionLost
 from drivers.arm.kinematics import FourAxisKinematics
 from drivers.sim.dxl_emulator import SYNC_WRITE, DxlBusEmulator, packet
 from drivers.sim.pty_port import serve_pty
+from tests.faults import bus_writes, motion_writes
 
 pytestmark = pytest.mark.timeout(60)  # opens a pty with the emulated servo bus
 
@@ -158,7 +159,8 @@ def test_single_bad_crc_is_retried(bus):
 def test_status_error_number_becomes_error_response(bus):
     emu, path = bus
     with make_arm(path) as arm:
-        emu.inject("status_error", error=6)
+        # Every status packet: the SDK's sync read drops error bytes; the gripper's write answer carries it.
+        emu.inject("status_error", error=6, count=1000)
         with pytest.raises(ErrorResponse, match="data limit error") as info:
             arm.close_gripper()
         assert info.value.code == 6 and info.value.command == "close gripper"
@@ -196,6 +198,7 @@ def test_missing_port_is_connection_lost(tmp_path):
 def test_reconnect_waits_for_the_adapter_to_come_back(bus):
     emu, path = bus
     with make_arm(path) as arm:
+        barrier(arm)  # the servos have taken the torque on before the adapter goes
         emu.unplug()
         with pytest.raises(ConnectionLost):
             arm.move_to(200.0, 0.0, 50.0)
@@ -206,3 +209,108 @@ def test_reconnect_waits_for_the_adapter_to_come_back(bus):
         finally:
             replug.join()
         assert arm.is_connected and torques(emu) == [True] * 5
+
+
+def reboot_and_wait(emu, **params) -> int:
+    """The servos' supply dips (all of them unless ids=...); returns the packet count at the restart."""
+    before = len(emu.reboots)
+    emu.inject("reboot", **params)
+    deadline = time.monotonic() + 10.0
+    while len(emu.reboots) == before:
+        assert time.monotonic() < deadline, "no reboot"
+        time.sleep(0.005)
+    return emu.reboots[-1]
+
+
+def barrier(arm) -> None:
+    """A status read: the emulator answers it only after every packet sent before it, the
+    sync writes that get no answer included (allowed while the position is lost)."""
+    arm.status()
+
+
+def assert_motion_refused(arm, emu) -> None:
+    """Every motion command raises PositionLost and nothing at all reaches the bus."""
+    barrier(arm)
+    sent = len(emu.packets_received)
+    for command in (lambda: arm.move_to(200.0, 0.0, 50.0), arm.open_gripper, arm.close_gripper, arm.wait_until_idle):
+        with pytest.raises(PositionLost, match="^controller restarted: position lost; home before moving"):
+            command()
+    barrier(arm)
+    assert len(emu.packets_received) == sent + 1  # the barrier's own sync read
+
+
+def test_servo_restart_mid_move_locks_motion_until_homed(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        emu.inject("reboot", after_s=0.02)
+        with pytest.raises(PositionLost) as info:
+            arm.move_to(150.0, -80.0, 10.0)
+        e = info.value
+        assert (e.port, e.command) == (path, "move to (150.0, -80.0, 10.0) mm")
+        assert e.reply == "torque off on servo 11, 12, 13, 14, 15, no hardware error: the driver had it on"
+        assert "`run-cell home`" in str(e)
+        assert_motion_refused(arm, emu)
+        status = arm.status()
+        assert (status.state, status.detail) == ("alarm", PositionLost.MESSAGE)
+        since = len(emu.packets_received)
+        arm.home()
+        assert not arm.position_lost and torques(emu) == [True] * 5  # home polled the servos after torque on
+        wait_still(emu)
+        assert [round(emu.servos[i].position) for i in CFG.joint_ids] == KIN.to_ticks(
+            [math.radians(v) for v in CFG.home_joints_deg]
+        )
+        # The restart reset the profiles to 0 (no speed limit): they are written before anything moves.
+        addresses = [a for a, _ in bus_writes(emu, since)]
+        assert addresses.index(108) < addresses.index(64) < addresses.index(116)
+        assert emu.servos[11].get(112, 4) == CFG.profile_velocity
+        arm.move_to(200.0, 0.0, 50.0)
+
+
+def test_servo_restart_while_idle_is_found_before_the_next_move(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        arm.move_to(200.0, 0.0, 50.0)
+        wait_still(emu)
+        at = reboot_and_wait(emu, ids=[12])
+        with pytest.raises(PositionLost, match="servo 12, no hardware error"):
+            arm.move_to(150.0, -80.0, 10.0)
+        barrier(arm)
+        assert motion_writes(emu, at) == []  # no goal reached the bus after the restart
+        assert torques(emu) == [False] * 5  # the servos that kept their torque let go too
+
+
+def test_unlock_after_a_restart_holds_the_pose_without_moving(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        arm.move_to(200.0, 0.0, 50.0)
+        wait_still(emu)
+        at = reboot_and_wait(emu)
+        with pytest.raises(PositionLost):
+            arm.status()
+        held = [round(s.position) for s in emu.servos.values()]
+        arm.unlock()
+        barrier(arm)
+        assert not arm.position_lost and torques(emu) == [True] * 5
+        # Since the restart: the torque-off on finding it, then the profiles and torque on; no goal.
+        (off, _), (profiles, _), (on, values) = written = bus_writes(emu, at)
+        assert (off, profiles, on) == (64, 108, 64) and written[0][1][1::2] == bytes(5) and values[1::2] == b"\1" * 5
+        assert [round(s.position) for s in emu.servos.values()] == held
+        arm.move_to(150.0, -80.0, 10.0)
+        wait_still(emu)
+        assert math.dist(emu.tool_pose()[:3], (150.0, -80.0, 10.0)) < 0.5
+
+
+def test_cable_pulled_while_the_servos_restarted_locks_motion(bus):
+    emu, path = bus
+    with make_arm(path) as arm:
+        barrier(arm)  # the servos have taken the torque on
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(200.0, 0.0, 50.0)
+        emu.replug(power_cycled=True)  # the adapter came back, and the servos' supply had dipped
+        with pytest.raises(PositionLost, match="torque off on servo 11, 12, 13, 14, 15"):
+            arm.move_to(200.0, 0.0, 50.0)  # reconnects, then refuses
+        assert arm.is_connected and motion_writes(emu, emu.reboots[-1]) == []
+        assert_motion_refused(arm, emu)
+        arm.home()
+        assert torques(emu) == [True] * 5

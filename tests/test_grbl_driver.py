@@ -6,7 +6,7 @@ import time
 import pytest
 
 from drivers.arm.config import SerialArmConfig, SerialCommands
-from drivers.arm.errors import AlarmResponse, ConnectionLost, ErrorResponse, NoResponse, OutOfReach
+from drivers.arm.errors import AlarmResponse, ConnectionLost, ErrorResponse, NoResponse, OutOfReach, PositionLost
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
 from drivers.sim.grbl_emulator import GrblEmulator
@@ -30,6 +30,36 @@ def make_arm(path: str, **overrides) -> SerialGcodeArm:
 
 def assert_at(emu, x, y, z):
     assert emu.tool_pose()[:3] == pytest.approx((x, y, z), abs=1e-9)
+
+
+def wait_for(condition, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
+
+
+def restart_and_wait(emu) -> None:
+    """The controller restarts at once (a power dip); return once it has."""
+    before = len(emu.restarts)
+    emu.inject("restart")
+    wait_for(lambda: len(emu.restarts) > before)
+
+
+def assert_motion_refused(arm, emu) -> None:
+    """Every motion command raises PositionLost and nothing at all reaches the controller."""
+    sent = list(emu.lines_received)
+    for command in (
+        lambda: arm.move_to(10, 10, 10),
+        arm.open_gripper,
+        arm.close_gripper,
+        arm.wait_until_idle,
+        lambda: (arm.wait_until_idle(), arm.move_to(10, 10, 10)),
+    ):
+        with pytest.raises(PositionLost, match="^controller restarted: position lost; home before moving"):
+            command()
+    emu.server.settle()
+    assert emu.lines_received == sent
 
 
 def test_move_ends_at_commanded_position_with_grbl_lines(grbl):
@@ -163,15 +193,55 @@ def test_garbage_reply_is_an_error_naming_the_bytes(grbl):
         assert emu.state in ("Hold:0", "Idle")  # feed hold sent once the reply made no sense
 
 
-def test_controller_restart_is_reported_then_reconnected(grbl):
-    emu, path = grbl
-    with make_arm(path) as arm:
+def test_controller_restart_locks_motion_until_homed():
+    emu = GrblEmulator(speed_scale=20, homing_enabled=True)
+    with serve_pty(emu) as path, make_arm(path) as arm:
+        arm.home()
         arm.move_to(50, 50, 50)
-        emu.inject("restart")
-        with pytest.raises(ConnectionLost, match="restarted unexpectedly"):
-            arm.wait_until_idle()
-        arm.move_to(10, 10, 10)  # a fresh handshake: banner, G21, G90
+        arm.close_gripper()
+        restart_and_wait(emu)
+        with pytest.raises(PositionLost) as info:
+            arm.move_to(60, 60, 60)
+        e = info.value
+        assert str(e).startswith("controller restarted: position lost; home before moving [")
+        assert (e.port, e.command) == (path, "G1 X60.000 Y60.000 Z60.000 F6000")
+        assert "Grbl 1.1h" in e.reply and "`run-cell home`" in str(e)
+        assert arm.position_lost and emu.state == "Alarm"
+        assert_motion_refused(arm, emu)
+        status = arm.status()
+        assert (status.state, status.detail) == ("alarm", PositionLost.MESSAGE)
+        assert status.gripper_closed is False and not emu.gripper_closed  # the restart let go of the part
+        assert_at(emu, 50, 50, 50)  # the tool stayed put; the controller counts from 0 again
+        arm.home()  # the handshake again, then the homing cycle finds the physical zero
+        assert not arm.position_lost
+        assert_at(emu, 0, 0, 0)
+        arm.move_to(10, 10, 10)
         assert_at(emu, 10, 10, 10)
+    assert "$X" not in emu.lines_received
+
+
+@pytest.mark.parametrize("homing_enabled", [True, False])
+def test_unlock_trusts_the_restarted_controllers_position_and_sends_x_only_then(homing_enabled):
+    emu = GrblEmulator(speed_scale=20, homing_enabled=homing_enabled)
+    with serve_pty(emu) as path, make_arm(path, commands=SerialCommands(home="")) as arm:
+        if homing_enabled:
+            arm.unlock()  # at start-up GRBL waits for homing: the operator's unlock sends $X
+            assert emu.lines_received.count("$X") == 1
+        arm.move_to(20, 20, 20)
+        restart_and_wait(emu)
+        with pytest.raises(PositionLost):
+            arm.wait_until_idle()
+        with pytest.raises(PositionLost, match="no homing cycle") as info:
+            arm.home()  # a move to home_position_mm would trust the restarted controller
+        assert "unlock" in info.value.hint
+        assert_motion_refused(arm, emu)
+        arm.unlock()
+        assert not arm.position_lost and emu.tool_pose()[:3] == (20.0, 20.0, 20.0)  # nothing moved
+        # From now on the controller's count is the truth: it restarted at 0 with the tool at 20 mm.
+        arm.move_to(10, 10, 10)
+        assert emu.machine_position()[:3] == (10.0, 10.0, 10.0)
+        assert_at(emu, 30, 30, 30)
+    assert emu.lines_received.count("$X") == (2 if homing_enabled else 0)
 
 
 def test_silent_device_at_connect_is_no_banner(grbl):
@@ -197,10 +267,34 @@ def test_cable_pulled_mid_move_then_reconnect_on_next_command(grbl):
         with pytest.raises(ConnectionLost):
             arm.move_to(190, 190, 100)
         assert not arm.is_connected
-        emu.replug()  # the controller powers up again
+        wait_for(lambda: emu.state == "Idle")  # the controller ran its queue to the end meanwhile
+        emu.replug()  # only the link comes back: the controller kept running
         arm.move_to(10, 20, 30)
-        assert arm.is_connected
+        assert arm.is_connected and not arm.position_lost
         assert_at(emu, 10, 20, 30)
+
+
+def test_cable_pulled_while_the_controller_restarted_locks_motion_until_homed():
+    emu = GrblEmulator(speed_scale=20, homing_enabled=True)
+    with serve_pty(emu) as path, make_arm(path) as arm:
+        arm.home()
+        arm.move_to(40, 30, 20)
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(10, 10, 10)
+        emu.replug(power_cycled=True)  # the adapter came back and the controller restarted meanwhile
+        sent = list(emu.lines_received)
+        with pytest.raises(PositionLost) as info:
+            arm.move_to(10, 10, 10)  # reconnects, then refuses
+        assert info.value.reply == (  # where it stood, or the end of the move that met the pulled cable
+            "MPos (0.000, 0.000, 0.000) mm after reconnecting, where it was (40.000, 30.000, 20.000) mm"
+            " or (10.000, 10.000, 10.000) mm"
+        )
+        assert arm.is_connected and emu.lines_received == sent  # only Ctrl-X and '?', no line
+        assert_motion_refused(arm, emu)
+        arm.home()
+        arm.move_to(10, 10, 10)
+        assert_at(emu, 10, 10, 10)
 
 
 def test_stop_holds_the_feed_mid_move(grbl):
@@ -254,5 +348,13 @@ def test_firmware_without_status_reports_or_reset_by_configuration(grbl):
     emu, path = grbl
     with make_arm(path, status_query=False, soft_reset_on_connect=False) as arm:
         arm.move_to(40, 30, 20)  # the end of motion is known from the G4 P0 barrier alone
+        assert_at(emu, 40, 30, 20)
+        emu.unplug()
+        with pytest.raises(ConnectionLost):
+            arm.move_to(10, 10, 10)
+        emu.replug()
+        # Nothing can vouch for the position of a controller that does not report it.
+        with pytest.raises(PositionLost, match="cannot be read back"):
+            arm.move_to(10, 10, 10)
         assert_at(emu, 40, 30, 20)
     assert "?" not in "".join(emu.lines_received)

@@ -29,6 +29,7 @@ def make_runner(
     parts=PARTS,
     truth=TRUE_FRAME,
     arm_fail=None,
+    arm_restart=None,
     camera_fail=None,
     locate_fail=None,
     run=None,
@@ -36,7 +37,7 @@ def make_runner(
     expect_motion=True,
 ):
     table = FakeTable(parts)
-    arm = FakeArm(table, truth, arm_fail)
+    arm = FakeArm(table, truth, arm_fail, arm_restart)
     camera = FakeCamera(camera_fail)
     audit = AuditLog(tmp_path / "audit.jsonl")
     runner = Runner(
@@ -172,6 +173,21 @@ def test_fault_while_holding_opens_the_gripper_over_the_bin(tmp_path):
     assert arm.calls[i - 1][0] == "move_to" and arm.calls[i - 1][1:3] in bins_xy
     assert len(table.bins) == 1 and table.held is None
     assert ("stop",) in arm.calls
+
+
+def test_a_controller_restart_faults_and_the_safe_stop_moves_nothing_not_even_home(tmp_path):
+    runner, table, arm, audit = make_runner(tmp_path, arm_restart={"close_gripper": 2})
+    summary = runner.run()
+    assert runner.sm.state == State.FAULT and summary.exit_code == EXIT_FAULT
+    assert summary.reason.startswith("PositionLost: controller restarted: position lost; home before moving")
+    audit.close()
+    events = read_events(audit.path)
+    steps = {e["step"]: e for e in events if e["kind"] == "safe_step"}
+    assert "not homed: the arm's controller restarted" in steps["home"]["error"]
+    assert steps["release torque"]["ok"] and not steps["finish motion"]["ok"]
+    restart = [i for i, c in enumerate(arm.calls) if c[0] == "close_gripper"][1]
+    assert [c[0] for c in arm.calls[restart + 1 :]] == ["stop", "disconnect"]
+    assert arm.position_lost  # for the operator to home or unlock
 
 
 def test_a_blind_frame_is_a_fault_not_a_clear_table_or_a_verified_pick(tmp_path):

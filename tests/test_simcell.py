@@ -78,6 +78,10 @@ def test_sim_arm_refuses_out_of_workspace_and_faults_into_the_table():
         with pytest.raises(HardwareFault, match="into the table"):
             arm.move_to(0.0, 100.0, -3.0)
         assert arm.status().state == "fault"
+        arm.unlock()  # no controller restarted: a torque released by a fault stays released
+        with pytest.raises(HardwareFault, match="torque is off"):
+            arm.move_to(0.0, 100.0, 20.0)
+        assert arm.commands[-1] == ("unlock",)
 
 
 def test_paper_layout_has_the_papers_parts_and_a_washer_none_touching():

@@ -14,6 +14,7 @@ from cell.cli import main
 from cell.config import load_config
 from cell.summary import counts_from_log
 from drivers.arm.kinematics import FourAxisKinematics
+from tests.faults import capture_sim, fast_config, motion_writes
 from tests.helpers import REPO, audit_of, ctrl_c_after_first_pick
 
 pytestmark = pytest.mark.timeout(240)  # whole runs on a pty; one as a subprocess
@@ -135,6 +136,46 @@ def test_a_fault_mid_job_ends_in_fault_with_the_arm_stopped(kind, reason, safe, 
     where = next(e for e in events if e["kind"] == "sim_truth")["where"]
     assert sum(where.get("gripper", {}).values()) == 1  # the third part, gripped when the arm faulted
     assert sum(n for place, kinds in where.items() if place.startswith("bin:") for n in kinds.values()) == 2
+    assert_emulator_gone(events)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["serial", "dynamixel"])
+def test_a_controller_restart_mid_job_faults_and_nothing_moves_after_it(kind, tmp_path, capsys, monkeypatch):
+    """GRBL restarts (its banner mid-run), or every servo's supply dips, as the first grip closes: the real
+    driver latches PositionLost, the run faults with it, and from the restart on nothing that
+    moves reaches the emulated arm: no motion line, no goal and no torque on; the safe
+    stop does not home either (that is for the operator, after a look at the arm)."""
+    cfg = fast_config(tmp_path, kind)
+    text = cfg.read_text()
+    assert "arm_fault_after_grips = 0" in text and 'arm_fault = "alarm"' in text
+    cfg.write_text(
+        text.replace("arm_fault_after_grips = 0", "arm_fault_after_grips = 1").replace(
+            'arm_fault = "alarm"', 'arm_fault = "restart"'
+        )
+    )
+    got = capture_sim(monkeypatch)
+    assert main(["--config", str(cfg), "--log-dir", str(tmp_path / "logs")]) == 3
+    reason = "PositionLost: controller restarted: position lost; home before moving"
+    assert "FAULT: " + reason in capsys.readouterr().out
+    events = audit_of(tmp_path / "logs")
+    (fault,) = [e for e in events if e["kind"] == "fault"]
+    assert fault["reason"].startswith(reason) and "`run-cell home`" in fault["reason"]
+    steps = {e["step"]: e for e in events if e["kind"] == "safe_step"}
+    assert "not homed: the arm's controller restarted" in steps["home"]["error"]
+    assert steps["release torque"]["ok"]
+    emu = got.cell.emulated.emulator
+    if kind == "serial":
+        (at,) = emu.restarts
+        # At most the wait barrier (G4 P0, no motion) the driver sent before the banner reached it.
+        assert [line for line in emu.lines_received[at:] if line != "G4 P0"] == []
+    else:
+        (at,) = emu.reboots
+        assert motion_writes(emu, at) == []
+        assert not any(s.torque for s in emu.servos.values())
+    where = next(e for e in events if e["kind"] == "sim_truth")["where"]
+    assert sum(where.get("gripper", {}).values()) == 0  # the restarted gripper let go of the part
+    assert sum(n for place, kinds in where.items() if place.startswith("bin:") for n in kinds.values()) == 0
     assert_emulator_gone(events)
 
 

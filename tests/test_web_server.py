@@ -117,12 +117,16 @@ def test_non_loopback_without_password_refused_before_binding(service):
 
 
 @pytest.mark.parametrize("where", ["hash", "env"])
-def test_screen_uses_the_services_user_and_password(service, monkeypatch, where):
+def test_screen_uses_the_services_user_and_password(service, monkeypatch, tmp_path, where):
+    import ssl
+
     from cell.service.security import hash_password
     from cell.web.server import screen_server
 
     config = CellConfig()
     config.service.http_port = free_port()
+    config.service.certificate_dir = tmp_path  # with users the screen is HTTPS only (issue 21): its certificate
+    config.service.login.backoff_first_s = 0  # the wrong password below would hold the right one back 1 s
     config.service.user = "operator"
     if where == "hash":
         config.service.password_hash = hash_password("line-4", iterations=1000)
@@ -132,7 +136,9 @@ def test_screen_uses_the_services_user_and_password(service, monkeypatch, where)
     srv = screen_server(service, config)
     srv.start()
     try:
-        with httpx.Client(base_url=srv.url, timeout=10) as c:
+        assert srv.url.startswith("https://")
+        trust = ssl.create_default_context(cafile=str(tmp_path / "screen-cert.pem"))
+        with httpx.Client(base_url=srv.url, timeout=10, verify=trust) as c:
             assert c.get("api/state").status_code == 401
             assert c.post("api/login", json={"user": "operator", "password": "line-5"}).status_code == 401
             token = c.post("api/login", json={"user": "operator", "password": "line-4"}).json()["csrf"]

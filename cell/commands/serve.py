@@ -22,9 +22,11 @@ from cell.eventbus import EventBus
 from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
 from cell.service.api import Command, CommandRefused
+from cell.service.fdlimit import check_open_files
 from cell.service.security import check_exposure, hash_password
 from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
+from cell.service.throttle import LoginThrottle
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
 
@@ -125,6 +127,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             if type(h) is logging.StreamHandler:
                 h.setLevel(logging.WARNING)
     log_to_file(config.run.log_dir / f"serve-{stamp}.log")
+    check_open_files(config.service)  # issue 21: raise the soft limit, or warn (stderr and log), before clients come
     with contextlib.ExitStack() as resources:
         service = open_service(config, args.dry_run, resources, progress=say)
         service.start()
@@ -170,7 +173,8 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
-    interfaces, started = [OpcUaServer(service, config), ScreenInterface(service, config)], []
+    throttle = LoginThrottle(config.service.login)  # one login throttle for both interfaces
+    interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
     safe = True
     try:
         for interface in interfaces:

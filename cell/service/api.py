@@ -299,6 +299,7 @@ class Snapshot:
     warnings: tuple[Alarm, ...] = ()  # warning alarms (no Reset needed)
     subscribers: tuple[SubscriberStats, ...] = ()  # every subscriber's delivered / dropped / failed
     recipe: str = ""  # the prepared recipe's id
+    simulated: bool = False  # a dry run: the simulated cell, or a mock arm over a real table
     shift: str = ""  # the shift the counters count (e.g. 2026-12-01 early)
     extra: dict = field(default_factory=dict)
 

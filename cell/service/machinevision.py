@@ -75,6 +75,7 @@ from cell.service.api import (
 )
 from cell.service.mv_addressspace import DI_URI, MV_URI
 from cell.service.mv_results import ResultMaker, external_id, internal_id, result_data, result_message
+from cell.service.opcua_security import caller_origin
 from cell.service.results import (
     MemoryResultStore,
     ResultFilter,
@@ -492,6 +493,9 @@ class MachineVisionServer:
         return call
 
     def _origin(self) -> Origin:
+        guarded = caller_origin()  # the cell's server knows each session's user and role
+        if guarded.interface is Interface.OPCUA:
+            return guarded
         session = _caller.get()
         user = getattr(session, "user", None)
         name = getattr(user, "name", None) or ("anonymous" if session is not None else "")

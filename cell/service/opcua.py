@@ -13,23 +13,23 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import socket
 import time
 from collections import deque
 from datetime import UTC, datetime
-from pathlib import Path
 
-from asyncua import Server, ua
-from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.permission_rules import User, UserRole
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from asyncua import ua
 
 from cell.config import CellConfig
 from cell.errors import ConfigError
-from cell.events import Event, Interface, JobStarted, Origin, PartFailed, PickVerified, Role, SnapshotChanged
+from cell.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
 from cell.service.api import STATE_COMMANDS, Command, CommandRefused, LineServiceAPI, PickRecord, Refusal, Snapshot
 from cell.service.ledger import PickRecords
-from cell.service.security import credentials_configured, password_ok
+from cell.service.machinevision import MachineVisionServer
+from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
+from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
+from cell.service.security import credentials_configured
+from cell.service.throttle import LoginThrottle
+from cell.service.users import Authenticator
 
 log = logging.getLogger(__name__)
 
@@ -128,26 +128,19 @@ def _finite(v: float) -> float:
     return float(v) if math.isfinite(v) else 0.0
 
 
-class _OneUser:
-    """asyncua user manager: the configured user and password, nobody else."""
-
-    def __init__(self, cfg):
-        self.cfg = cfg
-
-    def get_user(self, iserver, username=None, password=None, certificate=None):
-        if password_ok(self.cfg, username, password):
-            return User(role=UserRole.User, name=username)
-        log.warning("OPC UA login refused for user %r", username)
-        return None
-
-
 class OpcUaServer:
-    def __init__(self, service: LineServiceAPI, config: CellConfig):
-        self.service, self.cfg = service, config.service
+    def __init__(self, service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None):
+        self.service, self.cfg, self.config = service, config.service, config
+        self.machine_vision: MachineVisionServer | None = None
         self.secure = credentials_configured(self.cfg)
-        self.cert_dir = self.cfg.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
         self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
-        self.server = Server(user_manager=_OneUser(self.cfg) if self.secure else None)
+        # issue 21: policies, trust list, users with roles, throttle, limits (cell/service/opcua_security.py)
+        users = Authenticator(self.cfg)
+        self.server = GuardedServer(
+            GuardSettings.from_config(config, APP_URI, self.secure),
+            users.authenticate if self.secure else None,
+            throttle or LoginThrottle(self.cfg.login),
+        )
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
@@ -171,7 +164,7 @@ class OpcUaServer:
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol"):
             logging.getLogger(name).setLevel(logging.WARNING)
         s = self.server
-        await s.init()
+        await init_server_with_models(s, cache_dir_for(self.config.service.machine_vision))  # OPC 40100-1, DI
         s.set_endpoint(self.endpoint)
         s.set_server_name("pick-cell")
         await s.set_application_uri(APP_URI)
@@ -201,6 +194,10 @@ class OpcUaServer:
             lambda e: self._on_event(loop, e),
             kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted),
         )
+        self.machine_vision = MachineVisionServer(
+            s, self.service, self.config, dry_run=self.service.snapshot().simulated
+        )
+        await self.machine_vision.start()
         quiet = logging.getLogger("asyncua.server.server")
         quiet.setLevel(logging.CRITICAL)  # its traceback for a taken port; we say it in one line
         try:
@@ -220,21 +217,7 @@ class OpcUaServer:
         )
 
     async def _secure(self) -> None:
-        self.cert_dir.mkdir(parents=True, exist_ok=True)
-        key, cert = self.cert_dir / "server-key.pem", self.cert_dir / "server-cert.der"
-        await setup_self_signed_certificate(
-            key,
-            cert,
-            APP_URI,
-            socket.gethostname(),
-            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
-            {"commonName": "pick-cell", "organizationName": "pick-cell"},
-        )
-        key.chmod(0o600)
-        await self.server.load_certificate(str(cert))
-        await self.server.load_private_key(str(key))
-        self.server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-        self.server.set_identity_tokens([ua.UserNameIdentityToken])
+        await self.server.secure()  # certificate, configured policies only, user name tokens, trust list
 
     def _method(self, command: Command):
         async def call(parent, *args):
@@ -253,8 +236,9 @@ class OpcUaServer:
 
     @staticmethod
     def _origin(parent) -> Origin:
-        """Who called: the session's user (loopback with no users: anonymous, with every right)."""
-        return Origin(Interface.OPCUA, "", Role.ADMIN)
+        """Who called: the session's user and role (loopback with no users: anonymous, with every right).
+        Issue 21: cell.service.opcua_security.caller_origin, from the request being handled."""
+        return caller_origin()
 
     def _on_event(self, loop: asyncio.AbstractEventLoop, event: Event) -> None:
         """On the subscriber's thread: queue picks for the events, wake the publisher."""
@@ -333,4 +317,6 @@ class OpcUaServer:
                 await self._task
             except asyncio.CancelledError:
                 pass
+        if self.machine_vision is not None:
+            await self.machine_vision.stop()
         await self.server.stop()

@@ -1,73 +1,67 @@
 """Who may drive the cell from off the machine: a server listens on loopback unless configured
-otherwise, and then only with encryption and a user whose password is checked here.
+otherwise, and then only with encryption and users whose passwords are checked here.
 
-Passwords are kept as PBKDF2-SHA256 hashes (`run-cell hash-password`), or read from an
-environment variable named in the config (for systemd's credentials or a secret store).
+Users come from the users file (`service.users_file`, cell.service.users: one per person,
+each with a role) and, as before, the single `service.user` with a PBKDF2-SHA256
+`password_hash` (`run-cell hash-password`) or a password in an environment variable named
+by `password_env` (systemd's credentials, a secret store): that user is an admin.
+What each setting protects: docs/security.md.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
-import os
-import secrets
+from pathlib import Path
+from typing import Any
 
 from cell.errors import ConfigError
 from cell.service.config import ServiceConfig
-
-_ITERATIONS = 200_000
-
-
-def hash_password(password: str, iterations: int = _ITERATIONS) -> str:
-    salt = secrets.token_bytes(16)
-    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
-    return f"pbkdf2_sha256${iterations}${salt.hex()}${digest.hex()}"
+from cell.service.users import ITERATIONS, Authenticator, parse_hash, verify_hash
+from cell.service.users import hash_password as _hash_password
 
 
-def _parse_hash(stored: str) -> tuple[int, bytes, bytes]:
-    try:
-        scheme, iterations, salt, digest = stored.split("$")
-        if scheme != "pbkdf2_sha256":
-            raise ValueError(scheme)
-        return int(iterations), bytes.fromhex(salt), bytes.fromhex(digest)
-    except ValueError:
-        raise ConfigError(
-            "service.password_hash is not a pbkdf2_sha256$ITERATIONS$SALT$HASH string",
-            hint="make one with `run-cell hash-password`",
-        ) from None
+def hash_password(password: str, iterations: int = ITERATIONS) -> str:
+    return _hash_password(password, iterations)
 
 
 def password_ok(cfg: ServiceConfig, user: str | None, password: str | None) -> bool:
-    """Constant-time check of a client's user and password against the config."""
-    if not cfg.user or user is None or password is None:
-        return False
-    user_ok = hmac.compare_digest(user.encode(), cfg.user.encode())
-    if cfg.password_hash:
-        iterations, salt, digest = _parse_hash(cfg.password_hash)
-        got = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
-        return user_ok and hmac.compare_digest(got, digest)
-    expected = os.environ.get(cfg.password_env or "", "")
-    return user_ok and bool(expected) and hmac.compare_digest(password.encode(), expected.encode())
+    """Constant-time check of a client's user and password against the config's single user (any role).
+    New code asks an Authenticator, which also knows the users file and the roles."""
+    return Authenticator(_legacy_only(cfg)).authenticate(user, password) is not None
+
+
+def _legacy_only(cfg: ServiceConfig) -> ServiceConfig:
+    return cfg.model_copy(update={"users_file": None})
 
 
 def credentials_configured(cfg: ServiceConfig) -> bool:
+    """True when anyone can log in: a user in the users file, or the config's single user with its password."""
     if cfg.password_hash:
-        _parse_hash(cfg.password_hash)
-    return bool(cfg.user) and bool(cfg.password_hash or (cfg.password_env and os.environ.get(cfg.password_env)))
+        parse_hash(cfg.password_hash, "service.password_hash")
+    return Authenticator(cfg).configured
+
+
+def certificate_dir(config: Any) -> Path:
+    """Where the servers' certificates and keys live: service.certificate_dir, else opcua/ beside the calibration."""
+    return config.service.certificate_dir or Path(config.calibration.active_path).parent / "opcua"
 
 
 def check_exposure(cfg: ServiceConfig) -> None:
-    """Refuse to listen beyond loopback without a user and password (encryption is then always on)."""
+    """Refuse to listen beyond loopback without users (encryption is then always on)."""
     if cfg.loopback:
         return
     if not credentials_configured(cfg):
         missing = (
-            "service.user"
+            "no user is configured (service.users_file is empty or unset, service.user is unset)"
             if not cfg.user
             else (f"the environment variable {cfg.password_env}" if cfg.password_env else "service.password_hash")
+            + " is not set"
         )
         raise ConfigError(
-            f"service.host {cfg.host!r} is beyond loopback and {missing} is not set: refusing to listen unauthenticated",
-            hint="set service.user and service.password_hash (run-cell hash-password) or service.password_env, "
+            f"service.host {cfg.host!r} is beyond loopback and {missing}: refusing to listen unauthenticated",
+            hint="add users with `run-cell user add NAME --role ROLE --config FILE` (service.users_file), "
+            "or set service.user and service.password_hash (run-cell hash-password) or service.password_env, "
             "or listen on 127.0.0.1",
         )
+
+
+__all__ = ["certificate_dir", "check_exposure", "credentials_configured", "hash_password", "password_ok", "verify_hash"]

@@ -38,6 +38,7 @@ import numpy as np
 from cell.assembly import Cell
 from cell.audit import AuditWriteFailed
 from cell.calibration.store import Calibration
+from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.eventbus import EventBus, Subscription
 from cell.events import (
@@ -56,6 +57,8 @@ from cell.events import (
     VisionStateChanged,
     new_job_id,
 )
+from cell.planning import Planner, table_to_robot
+from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
 from cell.runner import Runner
 from cell.service.api import (
     AccessDenied,
@@ -81,6 +84,7 @@ from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_shift
 from cell.signals import Controls
 from cell.statemachine import State
+from cell.vision.locate import locate
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
@@ -162,6 +166,9 @@ class LineService:
         interval = self.config.service.capture_interval_s
         self.capture_interval_s = interval / self.config.sim.speed_factor if cell.sim is not None else interval
         self.camera = _Locked(cell.camera, self._device_lock)
+        self.recipes = RecipeBook(self.config.service.machine_vision.recipes_dir)
+        self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)
+        self._recipe: Recipe | None = None
         bus.add_record(record.record, owner=record)
         self.ledger = Ledger(iter_shift(self.config.run.log_dir), self._changed)
         self._ledger_sub = bus.subscribe("ledger", self.ledger.handle, maxsize=100_000)
@@ -215,7 +222,8 @@ class LineService:
         with self._lock:
             try:
                 self._check(command, origin)
-                result = self._accept(command, origin, request)
+                payload = self._arguments(command, request)
+                result = self._accept(command, origin, request, payload)
             except CommandRefused as e:
                 self._record_command(command, origin, request, refused=e)
                 log.info("command %s from %s refused: %s", command.value, origin.describe(), e)
@@ -238,7 +246,38 @@ class LineService:
         if why is not None:
             raise InvalidState(command, why, self._vstate)
 
-    def _accept(self, command: Command, origin: Origin, request: Any) -> CommandResult:
+    def _arguments(self, command: Command, request: Any) -> Any:
+        """A command's arguments checked before anything is recorded or done (BadArgument if wrong):
+        the recipe a recipe command names, loaded and validated; the recipe a start asks for."""
+        try:
+            if command in (Command.PREPARE_RECIPE, Command.ADD_RECIPE, Command.REMOVE_RECIPE):
+                if not isinstance(request, RecipeRequest):
+                    raise BadArgument(command, f"{command.value} needs a recipe id", self._vstate)
+                if command is Command.PREPARE_RECIPE:
+                    return (request.recipe_id, self.recipes.load(request.recipe_id))
+                if command is Command.ADD_RECIPE:
+                    parse_recipe(request.content, f"recipe {check_recipe_id(request.recipe_id)!r}")
+                    return (request.recipe_id, request.content)
+                if request.recipe_id == self._recipe_id:
+                    raise BadArgument(
+                        command, f"recipe {request.recipe_id!r} is prepared: unprepare it first", self._vstate
+                    )
+                self.recipes.info(request.recipe_id)
+                return request.recipe_id
+            if command in (Command.START_SINGLE, Command.START_CONTINUOUS) and isinstance(request, JobRequest):
+                wanted = request.recipe_id
+                if wanted and wanted != self._recipe_id:
+                    prepared = f"{self._recipe_id!r} is" if self._recipe_id else "none is"
+                    raise BadArgument(
+                        command,
+                        f"recipe {wanted!r} is not the prepared one ({prepared}): PrepareRecipe first",
+                        self._vstate,
+                    )
+        except RecipeError as e:
+            raise BadArgument(command, str(e), self._vstate) from None
+        return None
+
+    def _accept(self, command: Command, origin: Origin, request: Any, payload: Any = None) -> CommandResult:
         try:
             self._record_command(command, origin, request)
         except AuditWriteFailed as e:
@@ -248,7 +287,10 @@ class LineService:
         handler = getattr(self, "_cmd_" + command.name.lower(), None)
         if handler is None:
             raise BadArgument(command, f"{command.value} is not handled by this service", self._vstate)
-        job_id = handler(origin, request)
+        try:
+            job_id = handler(origin, request if payload is None else payload)
+        except RecipeError as e:  # the recipe file could not be written or removed after all
+            raise BadArgument(command, str(e), self._vstate) from None
         return CommandResult(command, job_id)
 
     def _record_command(
@@ -278,7 +320,9 @@ class LineService:
     def _start_job(self, mode: str, origin: Origin, request: Any) -> str:
         req = request if isinstance(request, JobRequest) else JobRequest()
         job = _Job(new_job_id(), mode, Controls(), origin, req)
-        self.bus.emit(JobStarted(job_id=job.job_id, mode=mode, origin=origin, arguments=req.as_json()))
+        self.bus.emit(
+            JobStarted(job_id=job.job_id, mode=mode, origin=origin, recipe=self._recipe_id, arguments=req.as_json())
+        )
         self._job = job
         self._jobs.put(job)
         self._set_state(V.SINGLE_EXECUTION if mode == "single" else V.CONTINUOUS_EXECUTION, "job started")
@@ -314,6 +358,24 @@ class LineService:
             self._emit_best_effort(AlarmCleared(alarm_id=self._alarm.alarm_id, origin=origin))
             self._alarm = None
         self._set_state(V.READY, f"reset by {origin.describe()}")
+
+    def _cmd_prepare_recipe(self, origin: Origin, prepared: tuple[str, Recipe]) -> None:
+        """In Ready only (the table): the next job picks the recipe's classes, with its bins and limits."""
+        self._recipe_id, self._recipe = prepared
+        log.info("recipe %s prepared by %s", self._recipe_id, origin.describe())
+
+    def _cmd_unprepare_recipe(self, origin: Origin, request: Any) -> None:
+        self._recipe_id, self._recipe = "", None
+
+    def _cmd_add_recipe(self, origin: Origin, added: tuple[str, str]) -> None:
+        self.recipes.add(*added)  # validated before it was recorded; the write is atomic
+
+    def _cmd_remove_recipe(self, origin: Origin, recipe_id: str) -> None:
+        self.recipes.remove(recipe_id)
+
+    def job_config(self) -> CellConfig:
+        """The config a job starts with: the cell's, with the prepared recipe's handling and limits."""
+        return self.config if self._recipe is None else self._recipe.apply(self.config)
 
     def _running_job(self) -> _Job:
         assert self._job is not None, "the command table allows this command only while a job runs"
@@ -403,6 +465,8 @@ class LineService:
                 allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason()),
                 pausing=rest.pausing and not rest.paused,
                 job_id=job.job_id if job is not None else "",
+                recipe=self._recipe_id,
+                simulated=self.cell.sim is not None or not self.cell.expect_motion,
                 job_mode=job.mode if job is not None else "",
                 hold=self._hold_reason(),
                 warnings=tuple(self._warnings.values()),
@@ -486,13 +550,14 @@ class LineService:
         try:
             self.record.best_effort = False
             self.record.ensure_writable()  # no job runs without its record
-            perception = _Perception(self)
+            config = self.job_config()
+            perception = _Perception(self, config, None if self._recipe is None else self._recipe.classes)
             job.runner = Runner(
                 self.camera,
                 self.cell.arm,
                 perception.locate,
-                self.cell.planner(),
-                self.config.run,
+                Planner(config.planning, table_to_robot(config.planning)),
+                config.run,
                 _JobEvents(self.bus),
                 job.controls,
                 self.cell.expect_motion,
@@ -593,15 +658,22 @@ class _JobEvents:
 
 
 class _Perception:
-    """Locate and the drift watch for one job, bound per frame to the calibration in use then."""
+    """Locate and the drift watch for one job, bound per frame to the calibration in use then; parts
+    of a class the job's recipe does not pick are left on the table."""
 
-    def __init__(self, service: LineService):
-        self.service = service
+    def __init__(self, service: LineService, config: CellConfig, classes: frozenset[str] | None):
+        self.service, self.config, self.classes = service, config, classes
+        self.recipe = service._recipe_id
         self.bound: Vision = service._vision
 
     def locate(self, frame: np.ndarray):
         self.bound = self.service._vision  # one reference read: the pair swapped together
-        return self.service.cell.locate(frame, self.bound.calibration)
+        result = locate(frame, self.bound.calibration, self.config)
+        if self.classes is not None:
+            for part in result.objects:
+                if part.pick and part.cls not in self.classes:
+                    part.pick, part.reason = False, f"{part.reason}; not picked by recipe {self.recipe}"
+        return result
 
     def drift(self, frame: np.ndarray) -> object:
         watch = self.bound.drift_watch

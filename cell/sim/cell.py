@@ -233,7 +233,9 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     )
     log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
     if sim_arm_kind(config.arm) != "sim":
-        with emulated_arm(config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips) as emulated:
+        with emulated_arm(
+            config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips, sim.arm_fault
+        ) as emulated:
             yield SimCell(world, camera, emulated.arm, calibration, note, emulated, marks)
         return
     arm = SimArm(

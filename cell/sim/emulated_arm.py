@@ -15,6 +15,7 @@ import contextlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 from cell.sim.world import World
 from drivers.arm.base import Arm
@@ -51,12 +52,19 @@ class EmulatedArm:
 
 
 @contextlib.contextmanager
-def emulated_arm(cfg: ArmConfig, world: World, speed_scale: float, fault_after_grips: int = 0) -> Iterator[EmulatedArm]:
+def emulated_arm(
+    cfg: ArmConfig,
+    world: World,
+    speed_scale: float,
+    fault_after_grips: int = 0,
+    fault: Literal["alarm", "restart"] = "alarm",
+) -> Iterator[EmulatedArm]:
     """Serve the emulator for cfg.kind on a fresh pty and yield the real driver for it; on exit
     (faults and Ctrl-C included) the driver's port is closed, the emulator stopped and the pty gone.
 
-    fault_after_grips > 0 rehearses a fault: after that many grips GRBL raises ALARM:1 (hard
-    limit) on its next move, or the Dynamixel gripper servo overloads as it closes.
+    fault_after_grips > 0 rehearses a fault as grip N closes: "alarm": GRBL raises ALARM:1 (hard
+    limit) on its next move, or the Dynamixel gripper servo overloads; "restart": the controller
+    restarts at once (GRBL's banner, its position counted from zero; every servo's supply dips).
     """
     if cfg.kind == "serial":
         emulator, name = GrblEmulator(speed_scale=speed_scale, rotary_axis=True), "ttyGRBL"
@@ -66,7 +74,7 @@ def emulated_arm(cfg: ArmConfig, world: World, speed_scale: float, fault_after_g
         raise ValueError(f"no emulator for arm.kind {cfg.kind!r}")
     emulator.add_tool_listener(_acting_on(world))
     if fault_after_grips:
-        emulator.add_tool_listener(_fault_after(emulator, fault_after_grips, cfg.dynamixel.gripper_id))
+        emulator.add_tool_listener(_fault_after(emulator, fault_after_grips, cfg.dynamixel.gripper_id, fault))
     with serve_pty(emulator, name) as path:
         arm = make_arm(_for_emulator(cfg, path))
         log.info("emulated %s arm on %s at %gx speed", cfg.kind, path, speed_scale)
@@ -105,7 +113,7 @@ def _acting_on(world: World) -> ToolListener:
     return on_gripper
 
 
-def _fault_after(emulator: Emulator, grips: int, gripper_id: int) -> ToolListener:
+def _fault_after(emulator: Emulator, grips: int, gripper_id: int, fault: str) -> ToolListener:
     """Arms the emulator's own fault injection at grip `grips`, so the driver meets it as it would on the line."""
     closes = 0
 
@@ -113,8 +121,11 @@ def _fault_after(emulator: Emulator, grips: int, gripper_id: int) -> ToolListene
         nonlocal closes
         closes += closed
         if closed and closes == grips:
-            log.info("rehearsed fault: armed after grip %d", grips)
-            if isinstance(emulator, GrblEmulator):
+            log.info("rehearsed fault (%s): armed after grip %d", fault, grips)
+            grbl = isinstance(emulator, GrblEmulator)
+            if fault == "restart":
+                emulator.inject("restart" if grbl else "reboot")
+            elif grbl:
                 emulator.inject("alarm", code=1)
             else:
                 emulator.inject("overload", id=gripper_id)

@@ -117,6 +117,14 @@ class SimArm(Arm):
     def stop(self) -> None:
         self._torque = False
 
+    def unlock(self) -> None:
+        """Recorded and nothing else: the simulated arm has no controller to restart, and its
+        pose is the world's truth; a torque released by a fault stays released (as a real
+        servo's hardware error needs more than an unlock)."""
+        if not self._connected:
+            raise NotConnected("unlock: the simulated arm is not connected", port=self.port)
+        self.commands.append(("unlock",))
+
     def status(self) -> ArmStatus:
         if not self._connected:
             return ArmStatus("disconnected", None, None)

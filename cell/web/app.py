@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import threading
 from importlib import resources
 
 from starlette.applications import Starlette
@@ -17,13 +18,14 @@ from starlette.routing import Route
 
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
-from cell.events import Interface, Origin, Role
+from cell.events import Origin
 from cell.service.api import CommandRefused, LineServiceAPI, Refusal
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
 from cell.web.hub import Hub
 from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, RecalibrationDesk
+from cell.web.shield import set_on_disconnect
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
 
 log = logging.getLogger(__name__)
@@ -107,10 +109,10 @@ class ScreenApp:
         return None
 
     def _origin(self, request: Request) -> Origin:
-        """Who sends a control: the logged-in user (without logins, anyone on this PC, with every right)."""
+        """Who sends a control: the logged-in user with their role (without logins, anyone on this PC, with every
+        right; issue 21: Access.origin)."""
         address = request.client.host if request.client else ""
-        user = self.web_user(request)
-        return Origin(Interface.SCREEN, user, Role.ADMIN, address)
+        return self.access.origin(self._sid(request), address)
 
     def web_user(self, request: Request) -> str:
         return "operator" if self.access.login_required and self.access.session(self._sid(request)) else ""
@@ -163,12 +165,18 @@ class ScreenApp:
                 raise TypeError("user and password must be strings")
         except (ValueError, KeyError, TypeError):
             return _error(400, 'send JSON {"user": "...", "password": "..."}')
-        if not await run_in_threadpool(self.access.check_password, user, password):
-            log.warning("screen: failed login from %s", request.client.host if request.client else "?")
-            await asyncio.sleep(0.5)  # slows guessing
+        address = request.client.host if request.client else "?"
+        result = await run_in_threadpool(self.access.login, user, password, address)  # throttled (issue 21)
+        if result.retry_after_s > 0:
+            wait = max(1, round(result.retry_after_s))
+            return JSONResponse(
+                {"error": f"too many failed logins: try again in {wait} s"}, 429, {"retry-after": str(wait)}
+            )
+        if result.role is None:
+            log.warning("screen: failed login from %s", address)
             return _error(401, "wrong user or password")
-        sid, csrf = self.access.new_session()
-        log.info("screen: login from %s", request.client.host if request.client else "?")
+        sid, csrf = self.access.new_session(user, result.role)
+        log.info("screen: login of %s (%s) from %s", user, result.role.value, address)
         reply = JSONResponse({"csrf": csrf})
         reply.set_cookie(
             SESSION_COOKIE, sid, max_age=int(self.web.session_h * 3600), httponly=True, samesite="strict", path="/"
@@ -253,7 +261,12 @@ class ScreenApp:
         body = await self._read_body(request, self.max_upload)
         if isinstance(body, Response):
             return body
-        return await self._recal(self.desk.from_upload, body)
+        gone = threading.Event()  # the decode stops when the client goes (issue 21)
+        watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
+        try:
+            return await self._recal(self.desk.from_upload, body, self._origin(request), gone)
+        finally:
+            watcher.cancel()
 
     async def _recal(self, make, *args) -> Response:
         if not may_recalibrate(self.service.snapshot()):

@@ -1,11 +1,13 @@
 """Who may watch and who may drive the cell from the screen.
 
-Loopback without a password: anyone on this PC may use it (a browser page from another
+Loopback without users: anyone on this PC may use it (a browser page from another
 site still cannot: every control needs this process's CSRF token, which only a same-origin
 page can read, and the Host header must name loopback, against DNS rebinding).
-With a password (required for a non-loopback bind; the line service's user and password,
-shared with OPC UA): a login gives an HttpOnly, SameSite=Strict session cookie and a CSRF
-token bound to that session.
+With users (required for a non-loopback bind; the line service's users, shared with OPC UA,
+each with a role): the screen speaks only HTTPS, and a login gives an HttpOnly,
+SameSite=Strict, Secure session cookie and a CSRF token bound to that session. Logins are
+throttled per user and per client address (cell.service.throttle); the session remembers
+who logged in and their role, so each command carries an Origin (`origin()`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from cell.errors import ConfigError
+from cell.events import Interface, Origin, Role
+from cell.service.throttle import LoginThrottle
 from cell.web.config import WebConfig
 
 SESSION_COOKIE = "cell_session"
@@ -40,16 +44,39 @@ def is_loopback(host: str) -> bool:
 class _Session:
     csrf: str
     expires_s: float
+    user: str = ""
+    role: Role = Role.ADMIN
+
+
+@dataclass(frozen=True)
+class LoginResult:
+    """A login's answer: the role (None: refused), or how long the throttle still refuses this user or address."""
+
+    role: Role | None = None
+    retry_after_s: float = 0.0
 
 
 class Access:
-    """The screen's access rules: password check, sessions and CSRF tokens."""
+    """The screen's access rules: logins (throttled), sessions with their user and role, and CSRF tokens."""
 
-    def __init__(self, host: str, web: WebConfig, check_password: Callable[[str, str], bool] | None = None):
-        """`check_password(user, password)`: the service's credential check; None when none is configured."""
+    def __init__(
+        self,
+        host: str,
+        web: WebConfig,
+        check_password: Callable[[str, str], bool] | None = None,
+        *,
+        authenticate: Callable[[str, str], Role | None] | None = None,
+        throttle: LoginThrottle | None = None,
+    ):
+        """`authenticate(user, password) -> Role | None`: the service's users (cell.service.users.Authenticator);
+        or, older, `check_password(user, password) -> bool` (an admin). Neither: no login (loopback only)."""
         self.loopback = is_loopback(host)
-        self._check = check_password
-        self.login_required = check_password is not None
+        if authenticate is None and check_password is not None:
+            check = check_password
+            authenticate = lambda user, password: Role.ADMIN if check(user, password) else None  # noqa: E731
+        self._authenticate = authenticate
+        self.throttle = throttle
+        self.login_required = authenticate is not None
         if not self.loopback and not self.login_required:
             raise ConfigError(
                 f"the screen would listen on {host}, beyond loopback, without a password: anyone on the "
@@ -63,17 +90,42 @@ class Access:
         self.open_csrf = secrets.token_urlsafe(32)  # the token when no login is needed
 
     def check_password(self, user: str, password: str) -> bool:
-        return self._check is not None and self._check(user, password)
+        """Unthrottled check (blocking: a password hash); new code calls login()."""
+        return self._authenticate is not None and self._authenticate(user, password) is not None
 
-    def new_session(self) -> tuple[str, str]:
-        """A fresh session id (the cookie) and its CSRF token."""
+    def login(self, user: str, password: str, address: str) -> LoginResult:
+        """Throttle first (a refused try costs no hash), then the password. Blocking: call it off the event loop."""
+        if self._authenticate is None:
+            return LoginResult()
+        if self.throttle is not None and (wait := self.throttle.refuse_for(user, address)) > 0:
+            return LoginResult(None, wait)
+        role = self._authenticate(user, password)
+        if self.throttle is not None:
+            if role is None:
+                self.throttle.failed(user, address, "screen")
+            else:
+                self.throttle.succeeded(user, address)
+        return LoginResult(role)
+
+    def new_session(self, user: str = "", role: Role = Role.ADMIN) -> tuple[str, str]:
+        """A fresh session id (the cookie) and its CSRF token, for `user` with `role`."""
         now = time.monotonic()
         self._sessions = {k: s for k, s in self._sessions.items() if s.expires_s > now}
         while len(self._sessions) >= MAX_SESSIONS:
             self._sessions.pop(next(iter(self._sessions)))
         sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
-        self._sessions[sid] = _Session(csrf, now + self._session_s)
+        self._sessions[sid] = _Session(csrf, now + self._session_s, user, role)
         return sid, csrf
+
+    def origin(self, sid: str | None, address: str = "") -> Origin:
+        """Who sends a command from this screen: the session's user and role; without users (loopback only) the
+        PC's own user, as before, may do everything; a viewer without a session only watches (and may Halt)."""
+        if not self.login_required:
+            return Origin(Interface.SCREEN, "", Role.ADMIN, address)
+        s = self.session(sid)
+        if s is None:
+            return Origin(Interface.SCREEN, "", Role.VIEWER, address)
+        return Origin(Interface.SCREEN, s.user, s.role, address)
 
     def end_session(self, sid: str | None) -> None:
         self._sessions.pop(sid or "", None)

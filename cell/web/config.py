@@ -4,7 +4,9 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pathlib import Path
+
+from pydantic import Field, model_validator
 
 from drivers.config import Strict
 
@@ -22,3 +24,54 @@ class WebConfig(Strict):
     )
     jpeg_quality: int = Field(80, ge=20, le=100)
     max_screens: int = Field(16, ge=1, le=256, description="open screens at once (each holds one event stream)")
+    # HTTPS (whenever users are configured; docs/security.md)
+    tls_certificate: Path | None = Field(
+        None,
+        description="the screen's HTTPS certificate (PEM, chain allowed); default: one made on first start, "
+        "screen-cert.pem in service.certificate_dir",
+    )
+    tls_key: Path | None = Field(None, description="its private key (PEM); required with tls_certificate")
+    hsts_max_age_s: int = Field(
+        31_536_000, ge=0, le=63_072_000, description="Strict-Transport-Security max-age sent over HTTPS (0: none)"
+    )
+    # Limits, so no client can starve the screen or the process of descriptors
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=300, description="a connection's TLS handshake and request headers must arrive within this"
+    )
+    body_timeout_s: float = Field(
+        120.0, gt=0, le=3600, description="a request's body must arrive within this once its headers are in"
+    )
+    keepalive_timeout_s: float = Field(
+        5.0, gt=0, le=300, description="an idle kept-alive connection is closed after this"
+    )
+    max_connections: int = Field(256, ge=8, le=10000, description="open screen connections at once, all clients")
+    max_connections_per_address: int = Field(
+        32,
+        ge=2,
+        le=10000,
+        description="open screen connections from one client address (not this PC's own 127.0.0.1 / ::1)",
+    )
+    max_streams_per_address: int = Field(
+        4,
+        ge=1,
+        le=256,
+        description="open event streams (screens) from one client address (not this PC's own: max_screens bounds those)",
+    )
+    write_stall_s: float = Field(
+        15.0,
+        gt=0,
+        le=600,
+        description="a client that takes nothing we send for this long is dropped (a stream that does not read)",
+    )
+    send_buffer_kb: int = Field(
+        256, ge=16, le=65536, description="bytes queued for one client before it counts as not reading"
+    )
+    decode_timeout_s: float = Field(
+        10.0, gt=0, le=300, description="an uploaded image must decode within this (in a worker process, one at a time)"
+    )
+
+    @model_validator(mode="after")
+    def _certificate_with_key(self) -> WebConfig:
+        if (self.tls_certificate is None) != (self.tls_key is None):
+            raise ValueError("tls_certificate and tls_key go together: give both, or neither (one is made)")
+        return self

@@ -9,8 +9,9 @@ as in the tests, never share a number). Two sources:
   active alarms, the calibration's cross-validated RMS, and every bus subscriber's delivered,
   dropped and failed events.
 
-Access is the screen's: open on a loopback screen without a password; otherwise a logged-in
-session or HTTP basic authentication with the service's user and password.
+Access is the screen's: open on a loopback screen without users; otherwise a logged-in session
+or HTTP basic authentication with a user of the service (any role may read; failed tries are
+throttled like the screen's logins).
 """
 
 from __future__ import annotations
@@ -140,7 +141,7 @@ class _SnapshotCollector:
 
 
 def metrics_refused(request: Request, access: Access) -> Response | None:
-    """The screen's rule: a viewer may read; without a session, HTTP basic auth with the service's user."""
+    """The screen's rule: whoever may view may read; without a session, HTTP basic auth with a service user."""
     if access.may_view(request.cookies.get(SESSION_COOKIE)):
         return None
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
@@ -149,7 +150,8 @@ def metrics_refused(request: Request, access: Access) -> Response | None:
             user, _, password = base64.b64decode(token, validate=True).decode().partition(":")
         except (binascii.Error, UnicodeDecodeError):
             user = password = ""
-        if user and access.check_password(user, password):
+        address = request.client.host if request.client else ""
+        if user and access.login(user, password, address).role is not None:  # throttled, as the screen's login
             return None
     return JSONResponse(
         {"error": "log in, or send the service's user and password (HTTP basic auth)"},

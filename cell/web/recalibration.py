@@ -27,6 +27,7 @@ from cell.calibration.report import annotate_plate, deviation_png
 from cell.config import CellConfig
 from cell.errors import InputError
 from cell.events import SERVICE_ORIGIN, Origin
+from cell.imagedecode import decode_limited
 from cell.service.api import CalibrationInfo, LineServiceAPI
 
 log = logging.getLogger(__name__)
@@ -95,8 +96,10 @@ def image_size_from_header(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def decode_upload(data: bytes, config: CellConfig) -> np.ndarray:
-    """The uploaded bytes as a BGR image of the camera's size, or InputError saying why not."""
+def decode_upload(data: bytes, config: CellConfig, cancelled: threading.Event | None = None) -> np.ndarray:
+    """The uploaded bytes as a BGR image of the camera's size, or InputError saying why not. Decoded within
+    limits (cell.imagedecode: a PNG's data may not inflate past its header's size; a worker process, one
+    decode at a time, within service.web.decode_timeout_s, stopped when `cancelled` is set)."""
     if not data:
         raise InputError("upload: empty file")
     size = image_size_from_header(data)
@@ -107,9 +110,9 @@ def decode_upload(data: bytes, config: CellConfig) -> np.ndarray:
         raise InputError(
             f"upload: image is {size[0]} x {size[1]} px but the camera is configured for {want[0]} x {want[1]} px"
         )
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError("upload: cannot decode the image (corrupt or truncated)")
+    image = decode_limited(
+        data, max_px=want[0] * want[1], timeout_s=config.service.web.decode_timeout_s, cancelled=cancelled
+    )
     check_image_size(image, config, "upload")
     return image
 
@@ -134,8 +137,10 @@ class RecalibrationDesk:
         check_image_size(image, self.config, "camera frame")
         return self._fit(image, f"camera frame {_now():%Y-%m-%d %H:%M:%S} UTC")
 
-    def from_upload(self, data: bytes, origin: Origin = SERVICE_ORIGIN) -> Report:
-        image = decode_upload(data, self.config)
+    def from_upload(
+        self, data: bytes, origin: Origin = SERVICE_ORIGIN, cancelled: threading.Event | None = None
+    ) -> Report:
+        image = decode_upload(data, self.config, cancelled)
         digest = hashlib.sha256(data).hexdigest()[:12]
         return self._fit(image, f"uploaded image sha256 {digest}, {_now():%Y-%m-%d %H:%M:%S} UTC")
 

@@ -2,62 +2,55 @@
 
 The socket is bound here, before the thread starts, so a port in use or an address this
 machine does not have is a one-line error at start, not a log line in a thread.
+Whenever users are configured the screen speaks only HTTPS (cell.web.tls); connections pass
+the limits of cell.web.transport (header and body deadlines, caps per client address and in
+total, clients that do not read dropped) and the Shield (HSTS, Secure cookies, event streams
+per address). Plain HTTP is left only for loopback without users.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import socket
-import threading
 from collections.abc import Callable
-
-import uvicorn
+from pathlib import Path
 
 from cell.config import CellConfig
-from cell.errors import ConfigError
+from cell.events import Role
 from cell.service.api import LineServiceAPI
+from cell.service.throttle import LoginThrottle
 from cell.web.app import build_app
 from cell.web.auth import Access
 from cell.web.config import WebConfig
+from cell.web.shield import Shield
+from cell.web.tls import server_context
+from cell.web.transport import ServerThread, TransportLimits
 
 log = logging.getLogger(__name__)
 
 
-def bind(host: str, port: int) -> socket.socket:
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((host.strip("[]"), port))
-        sock.listen(64)
-    except OSError as e:
-        sock.close()
-        raise ConfigError(
-            f"screen: cannot listen on {host}:{port}: {e.strerror or e}",
-            hint="another program has the port (choose --http-port or service.http_port) or the address is not this machine's",
-        ) from None
-    return sock
-
-
-def screen_server(service: LineServiceAPI, config: CellConfig) -> WebServer:
-    """The screen on `service.host`:`service.http_port`, with the service's user and password if set."""
-    from cell.service.security import credentials_configured, password_ok
+def screen_server(service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None) -> WebServer:
+    """The screen on `service.host`:`service.http_port`, with the service's users if any (then HTTPS only).
+    `throttle`: the service's login throttle, shared with OPC UA (one is made if not given)."""
+    from cell.service.users import Authenticator
 
     svc = config.service
-    check = (lambda user, password: password_ok(svc, user, password)) if credentials_configured(svc) else None
-    return WebServer(service, config, svc.web, svc.host, svc.http_port, check)
+    users = Authenticator(svc)
+    authenticate = users.authenticate if users.configured else None
+    throttle = throttle or LoginThrottle(svc.login)
+    return WebServer(service, config, svc.web, svc.host, svc.http_port, authenticate=authenticate, throttle=throttle)
 
 
 class ScreenInterface:
     """The screen as one of `run-cell serve`'s interfaces: start() and stop() coroutines, ready_text."""
 
-    def __init__(self, service: LineServiceAPI, config: CellConfig):
-        self.service, self.config = service, config
+    def __init__(self, service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None):
+        self.service, self.config, self.throttle = service, config, throttle
         self.server: WebServer | None = None
 
     async def start(self) -> None:
-        self.server = screen_server(self.service, self.config)  # binds: a port in use is a ConfigError here
+        # binds: a port in use is a ConfigError here
+        self.server = screen_server(self.service, self.config, self.throttle)
         await asyncio.to_thread(self.server.start)
 
     async def stop(self) -> None:
@@ -85,53 +78,46 @@ class WebServer:
         host: str,
         port: int,
         check_password: Callable[[str, str], bool] | None = None,
+        *,
+        authenticate: Callable[[str, str], Role | None] | None = None,
+        throttle: LoginThrottle | None = None,
+        certificate_dir: Path | None = None,
     ):
-        self.access = Access(host, web, check_password)  # refuses a non-loopback bind without a password
+        """`authenticate(user, password) -> Role | None` (or the older `check_password`): None without users.
+        With users the screen is HTTPS only, its certificate from service.web or made in `certificate_dir`."""
+        from cell.service.security import certificate_dir as default_certificate_dir
+
+        # refuses a non-loopback bind without users
+        self.access = Access(host, web, check_password, authenticate=authenticate, throttle=throttle)
         self.app = build_app(service, config, web, self.access)
         self.host = host
-        self._sock = bind(host, port)
-        self.port = self._sock.getsockname()[1]
-        self._server = uvicorn.Server(
-            uvicorn.Config(
-                self.app,
-                log_config=None,
-                access_log=False,
-                lifespan="on",
-                timeout_graceful_shutdown=2,
-            )
+        self.https = self.access.login_required
+        ssl_context = None
+        if self.https:
+            cert_dir = certificate_dir or default_certificate_dir(config)
+            ssl_context = server_context(web.tls_certificate, web.tls_key, cert_dir, host)
+        self.limits = TransportLimits.from_web(web)
+        self.asgi = Shield(
+            self.app,
+            https=self.https,
+            hsts_max_age_s=web.hsts_max_age_s,
+            max_streams_per_address=web.max_streams_per_address,
         )
-        self._thread: threading.Thread | None = None
+        self.serving = ServerThread(self.asgi, host, port, self.limits, ssl_context)  # binds: errors now
+        self.port = self.serving.port
 
     @property
     def url(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+        return self.serving.url
 
     def start(self, timeout_s: float = 10.0) -> None:
-        self._thread = threading.Thread(
-            target=self._server.run, kwargs={"sockets": [self._sock]}, name="screen-http", daemon=True
-        )
-        self._thread.start()
-        deadline = threading.Event()
-        for _ in range(int(timeout_s / 0.02)):
-            if self._server.started or not self._thread.is_alive():
-                break
-            deadline.wait(0.02)
-        if not self._server.started:
-            self.stop()
-            raise ConfigError(f"screen: the HTTP server on {self.url} did not start within {timeout_s:g} s")
+        self.serving.start(timeout_s)
         log.info(
             "screen listening on %s (login %s)",
             self.url,
-            "required" if self.access.login_required else "not required: loopback only",
+            "required, HTTPS only" if self.access.login_required else "not required: loopback only",
         )
 
     def stop(self) -> None:
         self.app.screen.hub.close()  # ends the event streams, so shutdown need not wait for them
-        self._server.should_exit = True
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-            if self._thread.is_alive():
-                log.warning("screen: HTTP thread still running 10 s after stop")
-            self._thread = None
-        self._sock.close()
+        self.serving.stop()

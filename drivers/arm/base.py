@@ -8,7 +8,7 @@ import logging
 from dataclasses import dataclass
 from typing import Literal
 
-from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach
+from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach, PositionLost
 from drivers.arm.kinematics import Pose
 from drivers.device import Device
 
@@ -32,9 +32,16 @@ class Arm(Device):
 
     Every method raises an ArmError subclass on failure, after leaving the arm safe (motion
     stopped, servo torque released); `with arm:` connects and always disconnects.
+
+    After a controller restart the driver detects (each says how), the position it relied on
+    is void: every motion command (move_to, the gripper, wait_until_idle) raises PositionLost,
+    sending nothing, until home() re-establishes the position or an operator calls unlock().
+    The latch outlives disconnect/connect: a restart is not undone by reconnecting.
     """
 
     port: str
+    _restart_evidence: str | None = None  # what showed the restart; None while the position holds
+    _position_lost_hint: str | None = None  # a driver's own advice for PositionLost (None: the default)
 
     @abc.abstractmethod
     def home(self) -> None:
@@ -66,6 +73,43 @@ class Arm(Device):
 
     @abc.abstractmethod
     def status(self) -> ArmStatus: ...
+
+    @abc.abstractmethod
+    def unlock(self) -> None:
+        """Let motion resume after a controller restart without homing, moving nothing. Only for
+        an operator who has checked the arm is where its controller now says it is: what that
+        means, and what is sent, is each driver's (see its unlock). The cell never calls it."""
+
+    @property
+    def position_lost(self) -> bool:
+        """True from a detected controller restart until the arm is homed or unlocked."""
+        return self._restart_evidence is not None
+
+    def _refuse_while_position_lost(self, command: str) -> None:
+        """Refuse `command` before anything is sent while the position is lost."""
+        if self._restart_evidence is not None:
+            raise PositionLost(
+                port=self.port, command=command, reply=self._restart_evidence, hint=self._position_lost_hint
+            )
+
+    def _restarted(self, evidence: str, command: str) -> PositionLost:
+        """Latch a controller restart detected by `evidence`; the error for the command that met it."""
+        if self._restart_evidence is None:
+            self._restart_evidence = evidence
+            log.error(
+                "arm on %s: controller restarted (%s): motion locked until homed or unlocked", self.port, evidence
+            )
+        return PositionLost(
+            port=self.port, command=command, reply=self._restart_evidence, hint=self._position_lost_hint
+        )
+
+    def _position_regained(self, how: str) -> None:
+        """End the latch once the position is known again (`how`: homed, unlocked by the operator)."""
+        if self._restart_evidence is not None:
+            log.warning(
+                "arm on %s: position regained (%s) after a restart (%s)", self.port, how, self._restart_evidence
+            )
+        self._restart_evidence = None
 
     @contextlib.contextmanager
     def _guard(self, command: str):

@@ -3,6 +3,24 @@
 The only module that knows the servos' control table. Goals go out in one GroupSyncWrite
 (all joints start together), positions come back through GroupSyncRead. On any fault the
 torque is released, as the brief for this cell requires, and the error names the servo.
+
+Servo restarts. An XM430 restarts when its 12 V supply dips (a loose power cable, a
+brown-out under load, the supply switched off and on) or on a Reboot instruction, while the
+U2D2 on USB may stay up. It comes back with its RAM at the defaults: Torque Enable 0,
+Hardware Error Status 0, Profile Velocity and Acceleration 0 (no limit: the next move would
+run at full speed). The driver reads Torque Enable (64) to Hardware Error Status (70) with
+the moving flag and present position, in the one sync read it polls motion with and makes
+before every command: a servo whose torque is off while the driver has it on, with no
+hardware error, has restarted (a hardware-error shutdown also turns torque off, but sets an
+error bit: that is a HardwareFault). A real OpenManipulator-X shows exactly this after a
+power dip of its servo supply; the driver is the only one on the bus (the port is
+exclusive), so nothing else turns torque off. It then latches PositionLost: the joint
+angles are still read right (absolute encoders, position mode), but the arm went limp and
+sagged, may have dropped or crushed what it held, and lost its motion profiles. A pure link
+loss (the U2D2 re-enumerating) leaves the servos powered with their torque on, so after the
+reconnect they read torque on and motion resumes; torque off there, where the driver had
+left it on, is a restart during the loss. Homing (the home joint angles, profiles written
+first) or unlock() ends the latch.
 """
 
 from __future__ import annotations
@@ -11,6 +29,7 @@ import logging
 import math
 import termios
 import time
+from typing import NamedTuple
 
 import serial
 from dynamixel_sdk import (
@@ -33,6 +52,7 @@ from drivers.arm.errors import (
     NoResponse,
     NotConnected,
     OutOfReach,
+    PositionLost,
 )
 from drivers.arm.kinematics import FourAxisKinematics, Pose
 from drivers.arm.serial_line import wait_for_port
@@ -45,8 +65,10 @@ ADDR_TORQUE_ENABLE = 64
 ADDR_HARDWARE_ERROR = 70
 ADDR_PROFILE_ACCELERATION = 108  # followed by Profile Velocity at 112
 ADDR_GOAL_POSITION = 116
-ADDR_MOVING = 122  # read 122..135: Moving, Moving Status, PWM, Current, Velocity, Position
+ADDR_MOVING = 122
 ADDR_PRESENT_POSITION = 132
+# One sync read covers Torque Enable .. Present Position: torque, hardware error, moving, position.
+READ_START, READ_LENGTH = ADDR_TORQUE_ENABLE, ADDR_PRESENT_POSITION + 4 - ADDR_TORQUE_ENABLE
 POSITION_MODES = {3: "position", 4: "extended position", 5: "current-based position"}
 HARDWARE_ERRORS = {
     0x01: "input voltage error",
@@ -99,6 +121,15 @@ def plan_move(kin: FourAxisKinematics, cfg: DynamixelArmConfig, x_mm, y_mm, z_mm
     return kin.to_ticks(kin.inverse(x_mm, y_mm, z_mm, angle_deg))
 
 
+class ServoReading(NamedTuple):
+    """What one sync read tells of one servo."""
+
+    torque: bool
+    hardware_error: int
+    moving: bool
+    ticks: int
+
+
 def decode_hardware_error(bits: int) -> str:
     return ", ".join(name for bit, name in HARDWARE_ERRORS.items() if bits & bit) or f"0x{bits:02x}"
 
@@ -118,11 +149,9 @@ class DynamixelArm(Arm):
         self._torque_off = True
         self._state = "disconnected"
         self._gripper_closed: bool | None = None
-        self._read = GroupSyncRead(self.ph, self.packet, ADDR_MOVING, ADDR_PRESENT_POSITION + 4 - ADDR_MOVING)
-        self._read_errors = GroupSyncRead(self.ph, self.packet, ADDR_HARDWARE_ERROR, 1)
+        self._read = GroupSyncRead(self.ph, self.packet, READ_START, READ_LENGTH)
         for i in self.all_ids:
             self._read.addParam(i)
-            self._read_errors.addParam(i)
 
     # ----- Arm interface -----
 
@@ -148,16 +177,17 @@ class DynamixelArm(Arm):
             )
         self._connected = True
         self._lost = False
-        self._torque_off = True
+        # Torque on when the driver last let go of the bus: the servos must still have it.
+        torque_was_on, self._torque_off = not self._torque_off, True
         try:
             with self._guard("connect"):
                 self._check_servos()
-                self._sync_write(
-                    ADDR_PROFILE_ACCELERATION,
-                    8,
-                    {i: [*_le(self.cfg.profile_acceleration), *_le(self.cfg.profile_velocity)] for i in self.all_ids},
-                    "profile acceleration and velocity",
-                )
+                self._write_profiles()
+                try:
+                    self._check(self._present(), "connect", torque_expected=torque_was_on)
+                except PositionLost:
+                    self.stop()  # latched: servos that kept their torque let go too
+                    return
                 self._torque_on()
         except ArmError:
             self._close()
@@ -171,12 +201,18 @@ class DynamixelArm(Arm):
         plan_move(self.kin, self.cfg, x_mm, y_mm, z_mm, angle_deg)
 
     def home(self) -> None:
+        """Move to the home joint angles; also ends a PositionLost latch, after writing the
+        profiles the restart reset: in position mode each joint angle comes from an absolute
+        encoder, so a restart loses no angle (extended position mode's turn count excepted)."""
         goals = self.kin.to_ticks([math.radians(v) for v in self.cfg.home_joints_deg])
-        self._move_joints(goals, wait=True, what="home")
+        self._move_joints(goals, wait=True, what="home", recover=True)
+        self._position_regained("homed")
 
     def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True) -> None:
         goals = plan_move(self.kin, self.cfg, x_mm, y_mm, z_mm, angle_deg)
-        self._move_joints(goals, wait, f"move to ({x_mm}, {y_mm}, {z_mm}) mm")
+        what = f"move to ({x_mm}, {y_mm}, {z_mm}) mm"
+        self._refuse_while_position_lost(what)
+        self._move_joints(goals, wait, what)
 
     def open_gripper(self) -> None:
         self._gripper(self.cfg.gripper_open_ticks, closed=False)
@@ -185,8 +221,9 @@ class DynamixelArm(Arm):
         self._gripper(self.cfg.gripper_closed_ticks, closed=True)
 
     def wait_until_idle(self, timeout_s: float | None = None) -> None:
+        self._refuse_while_position_lost("wait")
         with self._guard("wait"):
-            self._ready()
+            self._ready("wait")
             self._wait_stopped(self.all_ids, timeout_s or self.cfg.move_timeout_s)
 
     def stop(self) -> None:
@@ -207,31 +244,60 @@ class DynamixelArm(Arm):
             return ArmStatus("disconnected", None, self._gripper_closed)
         with self._guard("status"):
             present = self._present()
-            errors = self._hardware_errors()
-        pose = self.kin.forward(self.kin.from_ticks([present[i][1] for i in self.cfg.joint_ids]))
-        moving = any(present[i][0] for i in self.all_ids)
-        state = "fault" if errors else ("moving" if moving else self._state)
+            errors = {i: r.hardware_error for i, r in present.items() if r.hardware_error}
+            if not errors:
+                self._check(present, "status")  # a restart found here latches as anywhere
+        pose = self.kin.forward(self.kin.from_ticks([present[i].ticks for i in self.cfg.joint_ids]))
+        moving = any(r.moving for r in present.values())
+        state = "fault" if errors else ("alarm" if self.position_lost else ("moving" if moving else self._state))
         detail = "; ".join(f"servo {i}: {decode_hardware_error(b)}" for i, b in errors.items())
-        g = present[self.cfg.gripper_id][1]
+        if self.position_lost and not errors:
+            detail = PositionLost.MESSAGE
+        g = present[self.cfg.gripper_id].ticks
         closed = abs(g - self.cfg.gripper_closed_ticks) < abs(g - self.cfg.gripper_open_ticks)
         return ArmStatus(state, Pose(pose.x_mm, pose.y_mm, pose.z_mm, pose.angle_deg), closed, detail)
 
+    def unlock(self) -> None:
+        """For an operator who has checked the arm's pose (nothing caught or crushed, the path
+        clear): the joint angles are the encoders', so the pose is known again once the servos
+        are powered. Writes the profiles a restart reset, then torque on: every servo holds
+        where it is; no goal is sent. A servo with a hardware error still refuses (HardwareFault)."""
+        with self._guard("unlock"):
+            self._ready("unlock", recover=True)
+            self._position_regained("unlocked by the operator")
+
     # ----- bus -----
 
-    def _ready(self) -> None:
+    def _ready(self, what: str, recover: bool = False) -> None:
+        """Connected (reconnecting after a lost link), torque on, no servo restarted. recover
+        (home, unlock): go on while the position is lost, profiles written and torque on."""
         if not self._connected:
             if not self._lost:
                 raise NotConnected("the arm is not connected", port=self.port)
             log.warning("reconnecting to the servo bus on %s", self.port)
             wait_for_port(self.port, self.cfg.reconnect_timeout_s)
             self.connect()
+        if self.position_lost:
+            if not recover:
+                self._refuse_while_position_lost(what)  # found by the reconnect
+            self._write_profiles()  # the restart reset them to 0: no limit
+            self._torque_on()
         elif self._torque_off:
             self._torque_on()
+        else:
+            self._check(self._present(), what)  # a servo that restarted since the last command
+
+    def _write_profiles(self) -> None:
+        self._sync_write(
+            ADDR_PROFILE_ACCELERATION,
+            8,
+            {i: [*_le(self.cfg.profile_acceleration), *_le(self.cfg.profile_velocity)] for i in self.all_ids},
+            "profile acceleration and velocity",
+        )
 
     def _torque_on(self) -> None:
         """Torque on (each servo holds where it is), refused while a servo reports a hardware error."""
-        if errors := self._hardware_errors():
-            raise self._fault_error(errors, "torque on")
+        self._check(self._present(), "torque on", torque_expected=False)
         self._sync_write(ADDR_TORQUE_ENABLE, 1, {i: [1] for i in self.all_ids}, "torque on")
         self._torque_off = False
         self._state = "idle"
@@ -261,9 +327,9 @@ class DynamixelArm(Arm):
                     hint="set Operating Mode (address 11) to 3 (position) with the Dynamixel Wizard",
                 )
 
-    def _move_joints(self, goals: list[int], wait: bool, what: str) -> None:
+    def _move_joints(self, goals: list[int], wait: bool, what: str, recover: bool = False) -> None:
         with self._guard(what):
-            self._ready()
+            self._ready(what, recover)
             self._sync_write(
                 ADDR_GOAL_POSITION, 4, {i: _le(t) for i, t in zip(self.cfg.joint_ids, goals, strict=True)}, what
             )
@@ -273,8 +339,9 @@ class DynamixelArm(Arm):
 
     def _gripper(self, ticks: int, closed: bool) -> None:
         what = "close gripper" if closed else "open gripper"
+        self._refuse_while_position_lost(what)
         with self._guard(what):
-            self._ready()
+            self._ready(what)
             gid = self.cfg.gripper_id
             self._call(lambda: self.packet.write4ByteTxRx(self.ph, gid, ADDR_GOAL_POSITION, ticks), what, gid)
             # A gripper closing on a part stops short of its goal: wait for it to stop, not arrive.
@@ -285,9 +352,8 @@ class DynamixelArm(Arm):
         deadline = time.monotonic() + self.cfg.move_timeout_s
         while True:
             present = self._present()
-            if errors := self._hardware_errors():
-                raise self._fault_error(errors, what)
-            off = {i: present[i][1] - g for i, g in goals.items()}
+            self._check(present, what)
+            off = {i: present[i].ticks - g for i, g in goals.items()}
             if all(abs(d) <= self.cfg.tolerance_ticks for d in off.values()):
                 self._state = "idle"
                 return
@@ -307,35 +373,45 @@ class DynamixelArm(Arm):
         time.sleep(self.cfg.poll_interval_s)  # let the servo start before asking if it is moving
         while True:
             present = self._present()
-            if errors := self._hardware_errors():
-                raise self._fault_error(errors, "wait")
-            if not any(present[i][0] for i in ids):
+            self._check(present, "wait")
+            if not any(present[i].moving for i in ids):
                 self._state = "idle"
                 return
             if time.monotonic() >= deadline:
                 raise NoResponse(f"servos {ids} still moving after {timeout_s} s", port=self.port, command="wait")
             time.sleep(self.cfg.poll_interval_s)
 
-    def _present(self) -> dict[int, tuple[int, int]]:
-        """(moving flag, present position ticks) per servo, in one sync read."""
-        self._call(self._read.txRxPacket, "sync read present position")
+    def _present(self) -> dict[int, ServoReading]:
+        """Torque, hardware error, moving flag and present position of every servo, in one sync read."""
+        self._call(self._read.txRxPacket, "sync read servo state")
         out = {}
         for i in self.all_ids:
             if not self._read.isAvailable(i, ADDR_PRESENT_POSITION, 4):
                 raise NoResponse(
                     f"servo {i} missing from the sync read",
                     port=self.port,
-                    command="sync read present position",
+                    command="sync read servo state",
                     hint=BUS_HINT,
                 )
             pos = self._read.getData(i, ADDR_PRESENT_POSITION, 4)
-            out[i] = (self._read.getData(i, ADDR_MOVING, 1), pos - (1 << 32) if pos & 0x80000000 else pos)
+            out[i] = ServoReading(
+                torque=bool(self._read.getData(i, ADDR_TORQUE_ENABLE, 1)),
+                hardware_error=self._read.getData(i, ADDR_HARDWARE_ERROR, 1),
+                moving=bool(self._read.getData(i, ADDR_MOVING, 1)),
+                ticks=pos - (1 << 32) if pos & 0x80000000 else pos,
+            )
         return out
 
-    def _hardware_errors(self) -> dict[int, int]:
-        self._call(self._read_errors.txRxPacket, "sync read hardware error status")
-        errors = {i: self._read_errors.getData(i, ADDR_HARDWARE_ERROR, 1) for i in self.all_ids}
-        return {i: b for i, b in errors.items() if b}
+    def _check(self, present: dict[int, ServoReading], what: str, torque_expected: bool | None = None) -> None:
+        """A hardware error is a HardwareFault; a servo found with its torque off while the driver
+        had it on (torque_expected, default: whether the driver has it on), without one, has
+        restarted: PositionLost, latched."""
+        if errors := {i: r.hardware_error for i, r in present.items() if r.hardware_error}:
+            raise self._fault_error(errors, what)
+        expected = not self._torque_off if torque_expected is None else torque_expected
+        if expected and (off := [i for i, r in present.items() if not r.torque]):
+            servos = ", ".join(str(i) for i in off)
+            raise self._restarted(f"torque off on servo {servos}, no hardware error: the driver had it on", what)
 
     def _fault_error(self, errors: dict[int, int], what: str) -> HardwareFault:
         text = "; ".join(f"servo {i}: {decode_hardware_error(b)}" for i, b in errors.items())

@@ -56,3 +56,19 @@ class NotConnected(ArmError):
     """A command was issued before connect() or after disconnect()."""
 
     default_hint = "call connect() first"
+
+
+class PositionLost(ArmError):
+    """The controller restarted (GRBL's banner mid-run or its position reset across a reconnect,
+    a Dynamixel servo's torque found off while the driver had it on): the position the driver
+    relied on is void. Every motion is refused until the arm is homed or an operator unlocks it;
+    `reply` carries the evidence the restart was detected by."""
+
+    MESSAGE = "controller restarted: position lost; home before moving"
+    default_hint = (
+        "home the arm (`run-cell home`); only an operator who has checked the arm is where its "
+        "controller says may unlock it instead (Arm.unlock)"
+    )
+
+    def __init__(self, message: str = MESSAGE, **kw):
+        super().__init__(message, **kw)

@@ -97,6 +97,12 @@ class MockArm(Arm):
     def stop(self) -> None:
         self.commands.append(MockCommand("stop"))
 
+    def unlock(self) -> None:
+        """Recorded and nothing else: a mocked controller never restarts, so its position is
+        never lost (the real driver would unlock the way its own unlock() says)."""
+        self._require()
+        self.commands.append(MockCommand("unlock"))
+
     def status(self) -> ArmStatus:
         state = "idle" if self._connected else "disconnected"
         return ArmStatus(state, self._pose, self._gripper_closed, f"mock of a {self.cfg.mock_of} arm")

@@ -3,8 +3,29 @@ command templates. The only module that knows this wire protocol.
 
 Protocol (GRBL 1.1): each line is answered `ok` or `error:N`; `ALARM:N` may come at any
 time; `?` (no newline) is answered by `<State|MPos:x,y,z|...>`; `!` holds the feed; Ctrl-X
-resets and is answered by the banner `Grbl 1.1h ['$' for help]`. The driver never sends
-`$X`: an alarm is for the operator to clear.
+resets and is answered by the banner `Grbl 1.1h ['$' for help]`. The driver sends `$X`
+only from unlock(), at the operator's request: an alarm is for the operator to clear.
+
+Controller restarts. GRBL keeps its machine position only in RAM: a restart (power dip,
+brown-out, watchdog, the DTR pulse of an Arduino's auto-reset) starts it at MPos 0 (in alarm
+if homing is enabled), the spindle off (the gripper open) and the parser reset. Two ways
+the driver tells one from a mere link loss:
+
+- The link stayed up: GRBL's banner arrives unasked, in the middle of a command. The driver
+  latches PositionLost (Arm: no motion until homed or unlocked) and re-runs its handshake
+  when homing or unlocking.
+- The link went too (the adapter re-enumerated): no banner can be told apart, because the
+  reconnect's own soft reset (or the port opening) makes one. What tells is the position:
+  a controller that only lost the link kept its MPos and finished the moves it had queued,
+  so after the handshake it reports the last position it reported or the end of the last
+  move sent; a restarted one reports 0 (or its homing pull-off). Anything else within
+  SAME_POSITION_MM latches PositionLost, and so does any reconnect to firmware with no
+  status report (arm.serial.status_query = false): nothing can vouch for its position.
+  A controller that restarts while the arm sits exactly at machine zero passes, and the
+  position it then reports is right. A controller reset by the reconnect while still
+  moving its queue raises GRBL's own ALARM:3 (the alarm lock). Every connection of a driver
+  that knew a position compares, not only its automatic reconnect: the service connects the
+  same driver for each job and holds the port's lock between them: no other run-cell moved it.
 """
 
 from __future__ import annotations
@@ -19,11 +40,11 @@ from drivers.arm.config import SerialArmConfig
 from drivers.arm.errors import (
     AlarmResponse,
     ArmError,
-    ConnectionLost,
     ErrorResponse,
     NoResponse,
     NotConnected,
     OutOfReach,
+    PositionLost,
 )
 from drivers.arm.grbl_codes import alarm_meaning, error_meaning
 from drivers.arm.kinematics import Pose
@@ -48,6 +69,14 @@ _STATES = {
     "Sleep": "fault",
 }
 BAUD_HINT = "the device answers but not in GRBL's language: check arm.serial.baud and the firmware"
+# Positions closer than this are the same (GRBL reports 3 decimals; half a step of a coarse 10
+# steps/mm axis); a restart moves MPos to 0, far from where a job leaves the arm.
+SAME_POSITION_MM = 0.05
+NO_HOMING_CYCLE_HINT = (
+    "this arm has no homing cycle (arm.serial.commands.home is empty): its position is the controller's "
+    "count, which restarted at 0 wherever the arm stood; move the arm to machine zero by hand, then "
+    "unlock it (Arm.unlock) or `run-cell home`; better, enable homing ($22=1, arm.serial.commands.home = '$H')"
+)
 
 
 def plan_move(cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> list[str]:
@@ -85,6 +114,9 @@ class SerialGcodeArm(Arm):
         self._held = False
         self._state = "disconnected"
         self._pose: Pose | None = None
+        self._target_mm: tuple[float, float, float] | None = None  # end of the last move sent
+        self._stale = False  # the controller restarted under the driver: its session must be set up again
+        self._position_lost_hint = None if cfg.commands.home else NO_HOMING_CYCLE_HINT
         self._angle_deg = 0.0
         self._gripper_closed: bool | None = None
 
@@ -111,12 +143,15 @@ class SerialGcodeArm(Arm):
         plan_move(self.cfg, x_mm, y_mm, z_mm, angle_deg)
 
     def home(self) -> None:
+        """The homing cycle, which also ends a PositionLost latch; without one (commands.home
+        empty) a move to home_position_mm, refused while the position is lost."""
         cmd = self.cfg.commands.home
         if not cmd:
+            self._refuse_while_position_lost("home")
             self.move_to(*self.cfg.home_position_mm)
             return
         with self._guard(cmd):
-            self._ready(allow_alarm=True)
+            self._ready(cmd, allow_alarm=True, recover=True)
             try:
                 # GRBL answers $H only once the cycle is done.
                 self._command(cmd, self.cfg.motion_timeout_s)
@@ -130,11 +165,15 @@ class SerialGcodeArm(Arm):
             self._state = "idle"
             self._setup()
             self._wait_idle(self.cfg.motion_timeout_s)
+            self._target_mm = None  # where homing ends is the controller's to report
+            self._position_regained("homed")
 
     def move_to(self, x_mm, y_mm, z_mm, angle_deg=None, *, wait=True) -> None:
         lines = plan_move(self.cfg, x_mm, y_mm, z_mm, angle_deg)
+        self._refuse_while_position_lost(lines[-1])
         with self._guard(lines[-1]):
-            self._ready()
+            self._ready(lines[-1])
+            self._target_mm = (x_mm, y_mm, z_mm)  # before sending: a link lost mid-send may have delivered it
             for line in lines:
                 self._command(line, self.cfg.command_timeout_s)
             if angle_deg is not None:
@@ -149,8 +188,10 @@ class SerialGcodeArm(Arm):
         self._gripper(self.cfg.commands.gripper_close, closed=True)
 
     def wait_until_idle(self, timeout_s: float | None = None) -> None:
-        with self._guard(self.cfg.commands.wait or "?"):
-            self._ready()
+        cmd = self.cfg.commands.wait or "?"
+        self._refuse_while_position_lost(cmd)
+        with self._guard(cmd):
+            self._ready(cmd)
             self._wait_idle(timeout_s or self.cfg.motion_timeout_s)
 
     def stop(self) -> None:
@@ -183,12 +224,34 @@ class SerialGcodeArm(Arm):
         with self._guard("?"):
             if self.cfg.status_query:
                 self._query_status()
+            if self.position_lost:
+                return ArmStatus("alarm", self._pose, self._gripper_closed, PositionLost.MESSAGE)
             return ArmStatus(self._state, self._pose, self._gripper_closed, self.firmware or "")
+
+    def unlock(self) -> None:
+        """For an operator who has checked the arm is where the controller says (its MPos; after
+        a power-up without homing that is machine zero): motion resumes from that position and
+        nothing moves. A controller in alarm (a power-up with homing enabled, or any other
+        alarm) gets GRBL's `$X` here, the one place the driver sends it, because the operator
+        asked; then the setup lines."""
+        with self._guard("unlock"):
+            self._ready("unlock", allow_alarm=True, recover=True)
+            if self._state == "alarm":
+                log.warning("arm on %s: operator unlock of the alarm ($X)", self.port)
+                self._command("$X", self.cfg.command_timeout_s)
+                self._state = "idle"
+                self._setup()
+            if self.cfg.status_query:
+                self._query_status()
+            self._target_mm = None
+            self._position_regained("unlocked by the operator")
 
     # ----- protocol -----
 
     def _handshake(self) -> None:
-        self._setup_done = self._held = False
+        held = self._positions_held()
+        self._pose = None  # what the controller reports now, not what it reported before
+        self._setup_done = self._held = self._stale = False
         if self.cfg.soft_reset_on_connect:
             self.line.reset_input()
             self.line.write(SOFT_RESET, "Ctrl-X")
@@ -198,6 +261,8 @@ class SerialGcodeArm(Arm):
         self._state = "idle"
         if self.cfg.status_query:
             self._query_status()
+        if held and not self.position_lost and (jump := self._position_jump(held)):
+            self._restarted(jump, "connect")
         if self._state == "alarm":
             log.warning("arm on %s is in alarm after start-up; it needs homing", self.port)
         else:
@@ -237,11 +302,18 @@ class SerialGcodeArm(Arm):
             self._command(line, self.cfg.command_timeout_s)
         self._setup_done = True
 
-    def _ready(self, allow_alarm: bool = False) -> None:
+    def _ready(self, command: str, allow_alarm: bool = False, recover: bool = False) -> None:
+        """Connected (reconnecting after a lost link), set up, not locked. recover (home,
+        unlock): go on while the position is lost, after a fresh handshake if the controller
+        restarted under the driver."""
         if not self._connected:
             if not self._lost:
                 raise NotConnected("the arm is not connected", port=self.port)
             self._reconnect()
+        elif self._stale and recover:
+            self._handshake()
+        if self.position_lost and not recover:
+            self._refuse_while_position_lost(command)  # found by the reconnect
         if self._state == "alarm" and not allow_alarm:
             raise AlarmResponse("the arm is in alarm and locked", port=self.port)
         if self._state != "alarm" and (not self._setup_done or self._held):
@@ -254,6 +326,24 @@ class SerialGcodeArm(Arm):
         self.line.open()
         self._handshake()
 
+    def _positions_held(self) -> list[tuple[float, float, float]]:
+        """Where a controller that kept running may be: the position it last reported, and the
+        end of the last move sent (it finishes its queue while the link is down)."""
+        held = [] if self._pose is None else [(self._pose.x_mm, self._pose.y_mm, self._pose.z_mm)]
+        return list(dict.fromkeys(held + ([] if self._target_mm is None else [self._target_mm])))
+
+    def _position_jump(self, held: list[tuple[float, float, float]]) -> str | None:
+        """Why the controller's position after a handshake shows a restart (None: it does not)."""
+        if not self.cfg.status_query:
+            return "reconnected to a controller whose position cannot be read back (arm.serial.status_query = false)"
+        if self._pose is None:
+            return "reconnected to a controller whose status report gives no position"
+        here = (self._pose.x_mm, self._pose.y_mm, self._pose.z_mm)
+        if any(max(abs(a - b) for a, b in zip(here, h, strict=True)) <= SAME_POSITION_MM for h in held):
+            return None
+        where = " or ".join(_mm(h) for h in held)
+        return f"MPos {_mm(here)} after reconnecting, where it was {where}"
+
     def _gripper(self, cmd: str, closed: bool) -> None:
         if not cmd:
             raise ArmError(
@@ -261,8 +351,9 @@ class SerialGcodeArm(Arm):
                 port=self.port,
                 hint="set arm.serial.commands.gripper_open / gripper_close",
             )
+        self._refuse_while_position_lost(cmd)
         with self._guard(cmd):
-            self._ready()
+            self._ready(cmd)
             # GRBL runs spindle commands in order with motion: the ok may wait for moves to end.
             self._command(cmd, self.cfg.motion_timeout_s)
             self._gripper_closed = closed
@@ -302,14 +393,11 @@ class SerialGcodeArm(Arm):
                 f"arm alarm {code}: {alarm_meaning(code)}", code=code, port=self.port, command=cmd, reply=reply
             )
         if _BANNER.search(reply):
-            self._connected = False
-            self._lost = True
-            raise ConnectionLost(
-                "the arm controller restarted unexpectedly (power dip or USB reset); its position is lost",
-                port=self.port,
-                command=cmd,
-                reply=reply,
-            )
+            # Restarted with the link up: the spindle is off (gripper open), setup and parser gone.
+            self._stale = True
+            self._setup_done = self._held = False
+            self._gripper_closed = False
+            raise self._restarted(f"{reply.strip()} mid-run", cmd)
         if m := _STATUS.fullmatch(reply):
             self._parse_status(m)
             return
@@ -404,3 +492,7 @@ class SerialGcodeArm(Arm):
         """Feed hold; after an alarm the machine has already halted itself."""
         if not isinstance(error, AlarmResponse):
             self.stop()
+
+
+def _mm(xyz: tuple[float, float, float]) -> str:
+    return "(" + ", ".join(f"{v:.3f}" for v in xyz) + ") mm"

@@ -18,20 +18,27 @@ class UnknownFormat(ValueError):
     """The header is not one of the formats read here, or is cut short."""
 
 
-def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) in pixels from the file's header; UnknownFormat if it cannot tell."""
-    with open(path, "rb") as f:
-        head = f.read(32)
-        for test, reader in _READERS:
-            if test(head):
-                f.seek(0)
-                try:
-                    w, h = reader(f)
-                except (struct.error, IndexError, ValueError) as e:
-                    raise UnknownFormat(f"corrupt header ({e})") from None
-                if w <= 0 or h <= 0:
-                    raise UnknownFormat(f"header gives a size of {w} x {h} px")
-                return w, h
+def image_size(path: str | Path | BinaryIO) -> tuple[int, int]:
+    """(width, height) in pixels from the header of a file (a path, or an open binary file such as
+    io.BytesIO over uploaded bytes); UnknownFormat if it cannot tell."""
+    if hasattr(path, "read"):
+        return _size(path)  # type: ignore[arg-type]
+    with open(path, "rb") as f:  # type: ignore[arg-type]
+        return _size(f)
+
+
+def _size(f: BinaryIO) -> tuple[int, int]:
+    head = f.read(32)
+    for test, reader in _READERS:
+        if test(head):
+            f.seek(0)
+            try:
+                w, h = reader(f)
+            except (struct.error, IndexError, ValueError) as e:
+                raise UnknownFormat(f"corrupt header ({e})") from None
+            if w <= 0 or h <= 0:
+                raise UnknownFormat(f"header gives a size of {w} x {h} px")
+            return w, h
     raise UnknownFormat("not a PNG, JPEG, BMP, TIFF, WebP or PNM image")
 
 

@@ -170,6 +170,15 @@ class Servo:
         self.table[MOVING] = int(self.torque and round(self.position) != goal)
         return moved_s
 
+    def restart(self) -> None:
+        """Power-up (a supply dip, or the Reboot instruction): the RAM area back to its defaults
+        (torque off, no hardware error, profiles 0), the EEPROM kept; goal = present position."""
+        for addr, (size, value) in TABLE.items():
+            if addr >= TORQUE_ENABLE:
+                self.set(addr, size, value)
+        self.set(PRESENT_POSITION, 4, round(self.position))
+        self.set(GOAL_POSITION, 4, round(self.position))
+
     def fault(self, bits: int) -> None:
         """A hardware error: the servo releases its torque, as an XM430 does at shutdown."""
         self.table[HW_ERROR] |= bits
@@ -180,7 +189,7 @@ class Servo:
 class DxlBusEmulator(EmulatedDevice):
     """Servos sharing one Protocol 2.0 bus; serve it with drivers.sim.pty_port.serve_pty."""
 
-    FAULTS = ("no_answer", "garbage", "bad_crc", "status_error", "overload", "unplug")
+    FAULTS = ("no_answer", "garbage", "bad_crc", "status_error", "overload", "unplug", "reboot")
 
     def __init__(
         self,
@@ -204,6 +213,7 @@ class DxlBusEmulator(EmulatedDevice):
             for i in ids
         }
         self.packets_received: list[bytes] = []
+        self.reboots: list[int] = []  # len(packets_received) at each restart of the servos' supply
         self._rx = bytearray()
         self._last_s: float | None = None
         self._gripper_closed = False
@@ -230,15 +240,21 @@ class DxlBusEmulator(EmulatedDevice):
         bad_crc (count=1): the next status packets carry a wrong CRC.
         status_error (error=N, count=1): the next status packets carry error number N.
         overload (id, after_s=0): that servo trips Overload Error (bit 5) T seconds into its next move.
-        unplug (after_s=0): the cable is pulled T seconds into the next move.
+        unplug (after_s=0): the cable is pulled T seconds into the next move; the servos run on.
+        reboot (ids=None: all, after_s=None: at once): those servos' supply dips, T seconds into
+            the next move or at once: they restart (RAM defaults: torque off, profiles 0), and a
+            gripper servo among them lets go of what it held.
         """
         self._arm_fault(fault, {"count": 1, **params, "elapsed_s": 0.0})
 
     # ----- ByteDevice interface -----
 
     def power_on(self, now_s: float) -> bytes:
-        # Only the USB adapter was re-plugged: the servos kept their power and state.
+        # The USB adapter was plugged in; the servos kept their power and state unless
+        # replug(power_cycled=True) says their supply went too.
         self._rx.clear()
+        if self._take_restart_on_plug():
+            self._reboot(None)
         return b""
 
     def receive(self, data: bytes, now_s: float) -> bytes:
@@ -265,6 +281,10 @@ class DxlBusEmulator(EmulatedDevice):
     def tick(self, now_s: float) -> bytes:
         dt = 0.0 if self._last_s is None else max(0.0, now_s - self._last_s)
         self._last_s = now_s
+        reboot = self._faults.get("reboot")
+        if reboot is not None and reboot.get("after_s") is None:
+            del self._faults["reboot"]
+            self._reboot(reboot.get("ids"))
         moving_before = any(
             s.table[MOVING] or s.get(GOAL_POSITION, 4) != round(s.position) for s in self.servos.values() if s.torque
         )
@@ -277,7 +297,7 @@ class DxlBusEmulator(EmulatedDevice):
     # ----- internals -----
 
     def _motion_faults(self, dt: float) -> None:
-        for name in ("overload", "unplug"):
+        for name in ("overload", "unplug", "reboot"):
             params = self._faults.get(name)
             if params is None:
                 continue
@@ -287,8 +307,19 @@ class DxlBusEmulator(EmulatedDevice):
             del self._faults[name]
             if name == "overload":
                 self.servos[params["id"]].fault(OVERLOAD)
+            elif name == "reboot":
+                self._reboot(params.get("ids"))
             else:
                 self.unplug_requested = True
+
+    def _reboot(self, ids: list[int] | None) -> None:
+        self.reboots.append(len(self.packets_received))
+        for i in self.servos if ids is None else ids:
+            self.servos[i].restart()
+        gripper_limp = ids is None or self.arm.gripper_id in ids
+        if gripper_limp and self._gripper_closed and self.arm.gripper_id in self.servos:
+            self._gripper_closed = False
+            self._notify_tool(False, self.tool_pose())
 
     def _handle(self, frame: bytes) -> bytes:
         dxl_id = frame[4]
@@ -315,9 +346,7 @@ class DxlBusEmulator(EmulatedDevice):
             return self._status(dxl_id, self._write(dxl_id, int.from_bytes(params[0:2], "little"), params[2:]))
         if inst == REBOOT:
             reply = self._status(dxl_id, 0)
-            servo = self.servos[dxl_id]
-            servo.table[HW_ERROR] = 0
-            servo.table[TORQUE_ENABLE] = 0
+            self.servos[dxl_id].restart()
             return reply
         return self._status(dxl_id, ERR_INSTRUCTION)
 

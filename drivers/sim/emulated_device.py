@@ -26,6 +26,7 @@ class EmulatedDevice:
         self.server = None  # set by PtyServer
         self._listeners: list[ToolListener] = []
         self._faults: dict[str, dict] = {}
+        self._restart_on_plug = False
 
     def add_tool_listener(self, listener: ToolListener) -> None:
         """Call listener(closed, x_mm, y_mm, z_mm, angle_deg) on every gripper open/close."""
@@ -39,8 +40,16 @@ class EmulatedDevice:
     def unplug(self) -> None:
         self.server.unplug()
 
-    def replug(self) -> None:
+    def replug(self, *, power_cycled: bool = False) -> None:
+        """The cable is plugged back in. power_cycled: the device lost its power meanwhile too and
+        starts afresh; otherwise it kept running and only the link comes back."""
+        with self.lock:
+            self._restart_on_plug = power_cycled
         self.server.replug()
+
+    def _take_restart_on_plug(self) -> bool:
+        restart, self._restart_on_plug = self._restart_on_plug, False
+        return restart
 
     def _arm_fault(self, fault: str, params: dict) -> None:
         if fault not in self.FAULTS:

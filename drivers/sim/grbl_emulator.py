@@ -5,6 +5,11 @@ real-time commands (`?` status, `!` feed hold, `~` resume, Ctrl-X soft reset). M
 at finite speed against the clock; speed_scale > 1 runs it faster for tests. The spindle
 drives the gripper (M3 S>0 closes, M5 opens), as on hobby arms with a servo gripper.
 Faults can be injected to test the driver's error paths.
+
+Machine position (MPos, what GRBL counts) and the tool's physical position differ after a
+restart: the controller starts counting from start_mm wherever the tool stands, until a
+homing cycle ($H) finds the physical zero again. A pulled cable leaves the controller
+running its queue; only replug(power_cycled=True) or the restart fault restarts it.
 """
 
 from __future__ import annotations
@@ -92,13 +97,22 @@ class GrblEmulator(EmulatedDevice):
         self.settings[22] = int(homing_enabled)
         self._start_mm = start_mm
         self.lines_received: list[str] = []
+        self.restarts: list[int] = []  # len(lines_received) at each restart after the first start-up
         self.motion_time_s = 0.0  # machine time spent moving, at the machine's own speed (not scaled)
+        self._offset = [0.0, 0.0, 0.0, 0.0]  # physical tool position minus machine position
+        self._running = False
         self._power_up(now_s=0.0)
 
     # ----- public API for tests and the simulated world -----
 
     def tool_pose(self) -> tuple[float, float, float, float]:
-        """Current tool point (x, y, z mm, robot base frame) and angle_deg."""
+        """Where the tool physically is (x, y, z mm, robot base frame) and angle_deg."""
+        with self.lock:
+            p = self._physical()
+            return p[0], p[1], p[2], p[3]
+
+    def machine_position(self) -> tuple[float, float, float, float]:
+        """What the controller counts (MPos): the tool pose until a restart, then offset from it."""
         with self.lock:
             p = self._position()
             return p[0], p[1], p[2], p[3]
@@ -119,16 +133,21 @@ class GrblEmulator(EmulatedDevice):
         garbage: the next reply is replaced by noise bytes.
         error (code=N): the next G-code line is refused with error:N.
         alarm (code=N, after_s=T): ALARM:N during the next motion, T seconds into it.
-        unplug (after_s=T): the cable is pulled T seconds into the next motion.
-        restart: the controller reboots at once (power dip): banner, position lost.
+        unplug (after_s=T): the cable is pulled T seconds into the next motion; the controller
+            runs on (replug(power_cycled=True) restarts it as well).
+        restart: the controller reboots at once (power dip): banner, MPos back to start_mm where
+            the tool stands, spindle off (the gripper opens), in alarm if homing is enabled.
         """
         self._arm_fault(fault, params)
 
     # ----- ByteDevice interface (called by the pty server) -----
 
     def power_on(self, now_s: float) -> bytes:
-        self._power_up(now_s)
-        return self._banner()
+        """Plugged in: the first start-up, or a restart after replug(power_cycled=True); after a
+        plain replug only the link came back and the controller, still running, says nothing."""
+        if self._running and not self._take_restart_on_plug():
+            return b""
+        return self._start_up(now_s)
 
     def receive(self, data: bytes, now_s: float) -> bytes:
         if "no_answer" in self._faults:
@@ -161,12 +180,26 @@ class GrblEmulator(EmulatedDevice):
             self._last_s = now_s
             return b""
         if self._faults.pop("restart", None) is not None:
-            return self.power_on(now_s)
+            return self._start_up(now_s)
         out = self._advance(now_s)
         out += self._process_lines()
         return self._maybe_garble(out)
 
     # ----- internals -----
+
+    def _start_up(self, now_s: float) -> bytes:
+        restart, physical = self._running, self._physical()
+        if restart:  # the tool stays where it is, the gripper lets go
+            self.restarts.append(len(self.lines_received))
+            self._set_spindle(False, 0.0)
+        self._power_up(now_s)
+        if restart:
+            self._offset = [a - b for a, b in zip(physical, self._pos, strict=True)]
+        self._running = True
+        return self._banner()
+
+    def _physical(self) -> list[float]:
+        return [a + b for a, b in zip(self._position(), self._offset, strict=True)]
 
     def _power_up(self, now_s: float) -> None:
         self._pos = [*self._start_mm, 0.0][: len(self.axes)]
@@ -220,20 +253,19 @@ class GrblEmulator(EmulatedDevice):
             seg.elapsed_s += step
             self.motion_time_s += step
             dt -= step
-            for fault in ("alarm", "unplug"):
-                params = self._faults.get(fault)
-                if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
-                    del self._faults[fault]
-                    self._pos = seg.position()
-                    self._queue.clear()
-                    if fault == "alarm":
-                        code = params.get("code", 1)
-                        self._state = "Alarm"
-                        self._pending.clear()
-                        self._sync_waiting = None
-                        return out + f"ALARM:{code}\r\n".encode() + b"[MSG:Reset to continue]\r\n"
-                    self.unplug_requested = True
-                    return out
+            params = self._faults.get("unplug")
+            if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
+                del self._faults["unplug"]
+                self.unplug_requested = True  # GRBL does not know: it runs on
+            params = self._faults.get("alarm")
+            if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
+                del self._faults["alarm"]
+                self._pos = seg.position()
+                self._queue.clear()
+                self._state = "Alarm"
+                self._pending.clear()
+                self._sync_waiting = None
+                return out + f"ALARM:{params.get('code', 1)}\r\n".encode() + b"[MSG:Reset to continue]\r\n"
             if seg.elapsed_s >= seg.duration_s:
                 self._pos = seg.end
                 self._queue.pop(0)
@@ -284,6 +316,9 @@ class GrblEmulator(EmulatedDevice):
         if line == "$H":
             if not self.settings[22]:
                 return b"error:5\r\n"
+            # The cycle finds the physical zero: from here on the machine position is the tool's.
+            self._pos = [a + b for a, b in zip(self._pos, self._offset, strict=True)]
+            self._offset = [0.0, 0.0, 0.0, 0.0]
             self._state = "Home"
             self._plan([0.0, 0.0, 0.0, self._pos[3]], self.settings[25])
             self._sync_waiting = "$H"
@@ -387,7 +422,7 @@ class GrblEmulator(EmulatedDevice):
         self._spindle_on = on
         self._spindle_speed = speed if on else 0.0
         if changed:
-            self._notify_tool(on, tuple(self._position()[:4]))
+            self._notify_tool(on, tuple(self._physical()[:4]))
 
     def _status_report(self) -> bytes:
         pos = self._position()[: max(3, len(self.axes))]

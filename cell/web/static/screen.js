@@ -7,13 +7,24 @@ const CONFIRM_COMMANDS = new Set(["Stop", "Halt"]);
 const BLOCKED_WHILE_RECALIBRATING = new Set(["StartSingleJob", "StartContinuous", "Resume"]);
 
 // What the page measured, for the operator (frame-meta) and for the tests and benchmark.
-window.screenStats = { frames: 0, lastSeq: -1, latenciesMs: [], serviceMs: [], states: 0, lastState: null };
+window.screenStats = { frames: 0, lastSeq: -1, latenciesMs: [], serviceMs: [], states: 0, lastState: null, retries: 0 };
 
 let csrf = null;
 let canControl = false;
 let state = null;
 let events = null;
 let openReport = null;
+
+// Reconnecting: the server sends state at least once a second; a stream silent for longer than
+// SILENT_MS, or one the browser gave up on (a 503 when every screen slot is taken, a reset),
+// is opened again after a pause that doubles up to RETRY_MAX_MS (with jitter, so screens that
+// lost the server together do not all come back at the same instant).
+const SILENT_MS = 10000;
+const RETRY_FIRST_MS = 1000;
+const RETRY_MAX_MS = 30000;
+let retryMs = RETRY_FIRST_MS;
+let retryTimer = null;
+let silenceTimer = null;
 
 function showMessage(text, bad) {
   const box = $("message");
@@ -134,15 +145,56 @@ async function showFrame(f) {
 
 // ---- connection --------------------------------------------------------------------
 function connect() {
+  clearTimeout(retryTimer);
   if (events) events.close();
   events = new EventSource("/api/events");
-  events.addEventListener("state", (e) => { $("link").textContent = "live"; $("link").className = ""; render(JSON.parse(e.data)); });
-  events.addEventListener("frame", (e) => showFrame(JSON.parse(e.data)));
-  events.onerror = () => { $("link").textContent = "connection lost, retrying"; $("link").className = "down"; };
+  events.addEventListener("state", (e) => {
+    heard();
+    retryMs = RETRY_FIRST_MS;
+    $("link").textContent = "live";
+    $("link").className = "";
+    render(JSON.parse(e.data));
+  });
+  events.addEventListener("frame", (e) => { heard(); showFrame(JSON.parse(e.data)); });
+  events.onerror = () => {
+    linkDown();
+    if (events && events.readyState === EventSource.CLOSED) retryLater();  // the browser gave up: we do not
+  };
+  heard();
+}
+
+function linkDown() {
+  $("link").textContent = "connection lost, retrying";
+  $("link").className = "down";
+}
+
+function heard() {
+  clearTimeout(silenceTimer);
+  silenceTimer = setTimeout(() => { linkDown(); retryLater(); }, SILENT_MS);
+}
+
+function retryLater() {
+  clearTimeout(silenceTimer);
+  clearTimeout(retryTimer);
+  if (events) { events.close(); events = null; }
+  const wait = retryMs * (0.75 + Math.random() / 2);
+  retryMs = Math.min(2 * retryMs, RETRY_MAX_MS);
+  window.screenStats.retries += 1;
+  retryTimer = setTimeout(reconnect, wait);
+}
+
+async function reconnect() {
+  try {
+    await loadSession();  // the login may have ended meanwhile: then the login dialog, not a stream
+  } catch (e) {
+    linkDown();
+    retryLater();  // the server is not answering yet
+  }
 }
 
 async function loadSession() {
   const reply = await fetch("/api/session", { credentials: "same-origin" });
+  if (!reply.ok) throw new Error(`HTTP ${reply.status}`);
   const s = await reply.json();
   csrf = s.csrf;
   canControl = s.can_control;
@@ -285,5 +337,5 @@ document.addEventListener("DOMContentLoaded", () => {
   $("recal-reject").addEventListener("click", () => answerReport("reject"));
   $("recal-close").addEventListener("click", closeRecal);
   $("recal").addEventListener("cancel", (e) => { e.preventDefault(); closeRecal(); });
-  loadSession();
+  loadSession().catch(() => { linkDown(); retryLater(); });
 });

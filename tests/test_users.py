@@ -1,0 +1,160 @@
+"""Users and roles: the users file, the `run-cell user` commands, and who authenticates as what."""
+
+from __future__ import annotations
+
+import io
+import json
+import stat
+
+import pytest
+
+from cell.cli import main
+from cell.commands import users as users_cli
+from cell.events import Role
+from cell.service.config import ServiceConfig
+from cell.service.users import Authenticator, UserEntry, UsersError, hash_password, read_users, write_users
+
+pytestmark = pytest.mark.timeout(60)
+
+FAST = 1000  # iterations for test hashes (the default, 600,000, costs 0.14 s of CPU per check)
+
+
+@pytest.fixture
+def config(tmp_path, monkeypatch):
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text('[service]\nusers_file = "users.json"\n')
+    monkeypatch.chdir(tmp_path)  # users_file is relative, as the configs' other paths are: to the working folder
+    return cfg
+
+
+def run_user(*argv: str, stdin: str = "") -> int:
+    """`run-cell user ...` through run-cell's own entry point, stdin not a terminal."""
+    old = users_cli.sys.stdin
+    users_cli.sys.stdin = io.StringIO(stdin)
+    try:
+        return main(list(argv))
+    finally:
+        users_cli.sys.stdin = old
+
+
+def test_add_list_passwd_remove(config, tmp_path, capsys):
+    assert run_user("user", "add", "anna", "--role", "operator", "--config", str(config), stdin="anna-pass-1\n") == 0
+    assert run_user("user", "add", "ben", "--role", "engineer", "--config", str(config), stdin="ben-pass-12\n") == 0
+    path = tmp_path / "users.json"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert "anna-pass-1" not in path.read_text()
+    auth = Authenticator(ServiceConfig(users_file=path))
+    assert auth.authenticate("anna", "anna-pass-1") is Role.OPERATOR
+    assert auth.authenticate("ben", "ben-pass-12") is Role.ENGINEER
+    assert auth.authenticate("anna", "ben-pass-12") is None
+
+    assert run_user("user", "passwd", "anna", "--role", "admin", "--config", str(config), stdin="new-anna-pw\n") == 0
+    assert auth.authenticate("anna", "anna-pass-1") is None  # the file is read again: no restart needed
+    assert auth.authenticate("anna", "new-anna-pw") is Role.ADMIN
+
+    capsys.readouterr()
+    assert run_user("user", "list", "--config", str(config)) == 0
+    listing = capsys.readouterr().out
+    assert "anna" in listing and "admin" in listing and "ben" in listing and "pbkdf2" not in listing
+
+    assert run_user("user", "remove", "ben", "--config", str(config)) == 0
+    assert auth.authenticate("ben", "ben-pass-12") is None
+    assert set(read_users(path)) == {"anna"}
+
+
+@pytest.mark.parametrize(
+    "argv, stdin, message",
+    [
+        (("add", "anna", "--role", "operator"), "short\n", "shorter than 8 characters"),
+        (("add", "anna", "--role", "operator"), "", "no password on stdin"),
+        (("add", "bad name", "--role", "operator"), "long-enough-pw\n", "user name 'bad name' is not allowed"),
+        (("remove", "nobody"), "", "no user 'nobody'"),
+        (("passwd", "nobody"), "long-enough-pw\n", "no user 'nobody'"),
+    ],
+)
+def test_bad_input_is_one_line_and_changes_nothing(config, tmp_path, capsys, argv, stdin, message):
+    before = None
+    if argv[0] != "add" or argv[1] != "anna":
+        assert run_user("user", "add", "keep", "--role", "viewer", "--config", str(config), stdin="keep-pass-1\n") == 0
+        before = (tmp_path / "users.json").read_bytes()
+    capsys.readouterr()
+    assert run_user("user", *argv, "--config", str(config), stdin=stdin) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and err.count("\n") == 0 and "Traceback" not in err
+    if before is None:
+        assert not (tmp_path / "users.json").exists()
+    else:
+        assert (tmp_path / "users.json").read_bytes() == before
+
+
+def test_add_twice_and_missing_config_setting(config, tmp_path, capsys):
+    assert run_user("user", "add", "anna", "--role", "viewer", "--config", str(config), stdin="anna-pass-1\n") == 0
+    assert run_user("user", "add", "anna", "--role", "admin", "--config", str(config), stdin="other-pass-1\n") == 2
+    assert "already exists" in capsys.readouterr().err
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[service]\n")
+    assert run_user("user", "list", "--config", str(bare)) == 2
+    assert "service.users_file is not set" in capsys.readouterr().err
+    assert run_user("user", "list") == 2
+    assert "needs --config FILE" in capsys.readouterr().err
+
+
+def test_the_terminal_asks_twice(config, tmp_path, monkeypatch, capsys):
+    answers = iter(["typed-pass-1", "typed-pass-2"])
+    monkeypatch.setattr(users_cli.getpass, "getpass", lambda prompt: next(answers))
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    monkeypatch.setattr(users_cli.sys, "stdin", Tty())
+    assert main(["user", "add", "anna", "--role", "viewer", "--config", str(config)]) == 2
+    assert "the two passwords differ" in capsys.readouterr().err
+    assert not (tmp_path / "users.json").exists()
+
+
+def test_the_old_single_user_is_an_admin(tmp_path, monkeypatch):
+    auth = Authenticator(ServiceConfig(user="plc", password_hash=hash_password("plc-secret", FAST)))
+    assert auth.configured and auth.authenticate("plc", "plc-secret") is Role.ADMIN
+    assert auth.authenticate("plc", "wrong-pass") is None and auth.authenticate("PLC", "plc-secret") is None
+    env = Authenticator(ServiceConfig(user="plc", password_env="CELL_TEST_PW"))
+    assert not env.configured and env.authenticate("plc", "") is None  # unset: nobody gets in
+    monkeypatch.setenv("CELL_TEST_PW", "from-the-env")
+    assert env.configured and env.authenticate("plc", "from-the-env") is Role.ADMIN
+
+
+def test_old_user_and_file_together(tmp_path):
+    path = tmp_path / "users.json"
+    write_users(path, [UserEntry("op", Role.OPERATOR, hash_password("op-pass-123", FAST))])
+    both = Authenticator(ServiceConfig(user="plc", password_hash=hash_password("plc-secret", FAST), users_file=path))
+    assert both.names() == {"op": Role.OPERATOR, "plc": Role.ADMIN}
+    assert both.authenticate("op", "op-pass-123") is Role.OPERATOR
+    assert both.authenticate("plc", "plc-secret") is Role.ADMIN
+    with pytest.raises(UsersError, match="both service.user and in"):
+        Authenticator(ServiceConfig(user="op", password_hash=hash_password("x" * 8, FAST), users_file=path))
+
+
+def test_a_broken_file_is_refused_at_start_and_kept_at_runtime(tmp_path, caplog):
+    path = tmp_path / "users.json"
+    path.write_text('{"format": "pick-cell users 1", "users": [{"name": "a", "role": "boss", "password_hash": "x"}]}')
+    with pytest.raises(UsersError, match=r"users\[0\] \(a\): role 'boss' is not one of"):
+        Authenticator(ServiceConfig(users_file=path))
+    write_users(path, [UserEntry("op", Role.OPERATOR, hash_password("op-pass-123", FAST))])
+    auth = Authenticator(ServiceConfig(users_file=path))
+    path.write_text("{ not json")
+    assert auth.authenticate("op", "op-pass-123") is Role.OPERATOR  # the last good users stay
+    assert "cannot be used, keeping the previous users" in caplog.text
+
+
+def test_a_missing_file_means_no_users(tmp_path):
+    auth = Authenticator(ServiceConfig(users_file=tmp_path / "none.json"))
+    assert not auth.configured and auth.authenticate("anyone", "anything") is None
+
+
+def test_file_is_json_with_the_roles(tmp_path):
+    path = tmp_path / "users.json"
+    write_users(path, [UserEntry(n, r, hash_password("pass-word-1", FAST)) for n, r in zip("abcd", Role, strict=True)])
+    data = json.loads(path.read_text())
+    assert [u["role"] for u in data["users"]] == ["viewer", "operator", "engineer", "admin"]
+    auth = Authenticator(ServiceConfig(users_file=path))
+    assert [auth.authenticate(n, "pass-word-1") for n in "abcd"] == list(Role)
