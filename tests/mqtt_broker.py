@@ -82,15 +82,13 @@ def wait_for(cond: Callable[[], Any], timeout_s: float = 30.0, what: str = "cond
 
 
 class Broker:
-    """mosquitto on 127.0.0.1:port; `users` turns anonymous access off (password file)."""
+    """mosquitto on 127.0.0.1:port; `users` turns anonymous access off (password file), `tls` turns on
+    TLS with client certificates."""
 
-    def __init__(
-        self, workdir: Path, port: int | None = None, users: dict[str, str] | None = None, tls: Tls | None = None
-    ):
-        self.workdir, self.port, self.users, self.tls = workdir, port or free_port(), users, tls
+    def __init__(self, workdir: Path, users: dict[str, str] | None = None, tls: Tls | None = None):
+        self.workdir, self.port, self.users, self.tls = workdir, free_port(), users, tls
         self.proc: subprocess.Popen | None = None
-        self.conf = workdir / f"mosquitto-{self.port}.conf"
-        lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_dest stderr", "log_type error"]
+        lines = ["persistence false", "log_dest stderr", "log_type error"]
         lines += [f"user {getpass.getuser()}"]  # run as root, mosquitto would drop to its own user: keep ours
         if tls is not None:  # TLS only, each client known by its certificate's common name
             lines += [f"cafile {tls.ca}", f"certfile {tls.server_cert}", f"keyfile {tls.server_key}"]
@@ -103,24 +101,35 @@ class Broker:
             lines += ["allow_anonymous false", f"password_file {pwfile}"]
         else:
             lines += ["allow_anonymous true"]
-        self.conf.write_text("\n".join(lines) + "\n")
+        self.settings = lines
 
     @property
     def url(self) -> str:
         return f"{'mqtts' if self.tls else 'mqtt'}://127.0.0.1:{self.port}"
 
-    def start(self) -> Broker:
-        self.proc = subprocess.Popen(
-            [MOSQUITTO, "-c", str(self.conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
-        )
-        wait_for(self._accepts, 20, f"mosquitto listening on {self.port}")
-        return self
+    def start(self, new_port: bool = False) -> Broker:
+        """Start on `port` (a fresh free port with `new_port`, as after a restart: the old one may be
+        taken meanwhile); a port lost to another process between choosing and binding is chosen again."""
+        for attempt in range(3):
+            if new_port or attempt:
+                self.port = free_port()
+            conf = self.workdir / f"mosquitto-{self.port}.conf"
+            conf.write_text("\n".join([f"listener {self.port} 127.0.0.1", *self.settings]) + "\n")
+            self.proc = subprocess.Popen(
+                [MOSQUITTO, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+            )
+            if wait_for(self._accepts_or_ended, 20, f"mosquitto on {self.port}") == "listening":
+                return self
+            error = self.proc.stderr.read()
+            self.proc.stderr.close()
+        raise AssertionError(f"mosquitto did not start: {error}")
 
-    def _accepts(self) -> bool:
-        assert self.proc is not None and self.proc.poll() is None, f"mosquitto ended: {self.proc.stderr.read()}"
+    def _accepts_or_ended(self) -> str:
+        if self.proc.poll() is not None:
+            return "ended"
         with socket.socket() as s:
             s.settimeout(0.5)
-            return s.connect_ex(("127.0.0.1", self.port)) == 0
+            return "listening" if s.connect_ex(("127.0.0.1", self.port)) == 0 else ""
 
     def kill(self) -> None:
         """The broker dies without a word (SIGKILL): clients see their connection drop."""

@@ -49,8 +49,12 @@ def telemetry_config(tmp_path, url: str, node: str, **mqtt) -> CellConfig:
     return cfg
 
 
-def births(listener: Listener, node: str, bd_seq: int | None = None) -> list[Message]:
-    return [m for m in listener.of("NBIRTH", node) if bd_seq is None or m.metrics["bdSeq"] == bd_seq]
+def births(listener: Listener, node: str, bd_seq: int | None = None, above: int | None = None) -> list[Message]:
+    return [
+        m
+        for m in listener.of("NBIRTH", node)
+        if (bd_seq is None or m.metrics["bdSeq"] == bd_seq) and (above is None or m.metrics["bdSeq"] > above)
+    ]
 
 
 def latest(listener: Listener, node: str, name: str):
@@ -62,19 +66,21 @@ def latest(listener: Listener, node: str, name: str):
     return value
 
 
-def wait_birth(listener: Listener, topics: Topics, bd_seq: int, timeout_s: float = 60.0) -> Message:
-    """An NBIRTH with this bdSeq; as a host does, ask for a rebirth (every 2 s) in case the listener
-    joined after the cell's own birth."""
+def wait_birth(
+    listener: Listener, topics: Topics, bd_seq: int | None = None, above: int | None = None, timeout_s: float = 60.0
+) -> Message:
+    """An NBIRTH with this bdSeq (or one above); as a host does, ask for a rebirth (every 2 s) in case the
+    listener joined after the cell's own birth."""
     asked = [0.0]
 
     def seen():
-        found = births(listener, topics.edge_node_id, bd_seq)
+        found = births(listener, topics.edge_node_id, bd_seq, above)
         if not found and listener.connected.is_set() and time.monotonic() - asked[0] > 2.0:
             asked[0] = time.monotonic()
             listener.publish_metric(topics.node("NCMD"), M.REBIRTH, True)
         return found
 
-    return wait_for(seen, timeout_s, f"NBIRTH with bdSeq {bd_seq}")[-1]
+    return wait_for(seen, timeout_s, f"NBIRTH with bdSeq {bd_seq if above is None else f'above {above}'}")[-1]
 
 
 def assert_seq_in_order(listener: Listener, node: str) -> None:
@@ -135,7 +141,8 @@ def test_births_every_pick_rebirth_and_ndeath(tmp_path):
 def test_broker_lost_mid_shift_picks_go_on_and_the_cell_rebirths(tmp_path):
     with Broker(tmp_path) as broker:
         proxy = Proxy(broker.port)  # the cell's network to the broker, which the test can cut
-        listener = Listener(broker.port)
+        host_side = Proxy(broker.port)  # the listener's way in: the broker may come back on another port
+        listener = Listener(host_side.port)
         cfg = telemetry_config(tmp_path, proxy.url, "cell-b")
         topics = Topics("test-hall", "cell-b", "cell")
         with running(cfg) as service:
@@ -154,9 +161,12 @@ def test_broker_lost_mid_shift_picks_go_on_and_the_cell_rebirths(tmp_path):
             warnings = service.snapshot().warnings
             assert any(w.source == "telemetry" and "unreachable" in w.reason for w in warnings)
 
-            broker.start()
+            broker.start(new_port=True)
+            proxy.target_port = host_side.target_port = broker.port
             wait_for(listener.connected.is_set, 30, "the listener back")
-            reborn = wait_birth(listener, topics, bd_seq=2)
+            # a new session: bdSeq + 1 for every CONNECT the cell sent meanwhile (through its network to
+            # the dead broker each try's CONNECT went out and was cut)
+            reborn = wait_birth(listener, topics, above=1)
             assert reborn.metrics[M.DROPPED] > 0  # updates lost while away, counted
             wait_for(lambda: not service.snapshot().warnings, 30, "the telemetry warning cleared")
 
@@ -167,6 +177,7 @@ def test_broker_lost_mid_shift_picks_go_on_and_the_cell_rebirths(tmp_path):
             assert final > before + 1
         listener.close()
         proxy.close()
+        host_side.close()
     assert_seq_in_order(listener, "cell-b")
 
 
