@@ -157,6 +157,7 @@ class Message:
     datatypes: dict[str, int]
     qos: int
     retain: bool
+    connection: int = 0  # the listener's connection it came on (+1 each time the listener reconnects)
 
 
 class Listener:
@@ -175,6 +176,7 @@ class Listener:
         self._lock = threading.Lock()
         self.topic = "spBv1.0/#" if group_id == "#" else f"spBv1.0/{group_id}/#"
         self.connected = threading.Event()
+        self.connections = 0
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"listener-{id(self)}", clean_session=True)
         if user:
             self.client.username_pw_set(user, password)
@@ -190,6 +192,7 @@ class Listener:
 
     def _on_connect(self, client, userdata, flags, reason, properties) -> None:
         if not reason.is_failure:
+            self.connections += 1
             client.subscribe(self.topic, qos=1)
             self.connected.set()
 
@@ -210,6 +213,7 @@ class Listener:
             types,
             msg.qos,
             msg.retain,
+            self.connections,
         )
         with self._lock:
             self.messages.append(message)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import ssl
 import threading
 from pathlib import Path
@@ -385,12 +386,11 @@ def attach_mqtt(
     environ: dict[str, str] | None = None,
 ) -> SparkplugPublisher | None:
     """The publisher for `run-cell serve` (hooks = the line service), closed with `resources`."""
-    import os
-
     if not all(callable(getattr(hooks, name, None)) for name in ("snapshot", "command")):
         log.warning("telemetry.mqtt is published by `run-cell serve` only; this run is not published")
         return None
-    publisher = SparkplugPublisher(cfg, hooks, password_from_env(cfg, dict(os.environ if environ is None else environ)))  # type: ignore[arg-type]
+    password = password_from_env(cfg, dict(os.environ if environ is None else environ))
+    publisher = SparkplugPublisher(cfg, hooks, password)  # type: ignore[arg-type]  (checked just above)
     publisher.start(bus)
     resources.callback(publisher.close, bus)
     return publisher
