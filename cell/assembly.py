@@ -15,7 +15,7 @@ import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, get_args
+from typing import TYPE_CHECKING, Protocol, get_args
 
 import numpy as np
 
@@ -34,6 +34,10 @@ from drivers.arm.config import ArmConfig, DeviceKind
 from drivers.arm.factory import make_arm, with_overrides
 from drivers.cameras.base import Camera
 from drivers.cameras.factory import make_camera
+
+if TYPE_CHECKING:
+    from cell.history.store import HistoryStore
+    from cell.telemetry.publisher import SparkplugPublisher
 
 log = logging.getLogger(__name__)
 
@@ -221,14 +225,33 @@ class RunHooks:
         log.info("warning %s cleared", key)
 
 
-def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks) -> None:
+@dataclass
+class Consumers:
+    """What attach_consumers built (None where the config leaves it out)."""
+
+    history: HistoryStore | None = None
+    telemetry: SparkplugPublisher | None = None
+
+
+def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks) -> Consumers:
     """The event stream's consumers a config asks for (the history store, plant telemetry), each a
     subscriber of `bus` on its own thread, closed with `resources`. The one place they are built,
     for `run-cell` and `run-cell serve` alike."""
+    consumers = Consumers()
+    if config.history.enabled:
+        from cell.history.store import EVENT_TYPES, HistoryStore
+
+        store = HistoryStore(config.history, config.run.log_dir, hooks)
+        resources.callback(store.close)
+        # a large queue: the subscriber only turns events into rows (fast); it must lose none
+        sub = bus.subscribe("history", store.handle, kinds=EVENT_TYPES, maxsize=200_000)
+        resources.callback(bus.unsubscribe, sub)  # first: the queued events are handed over, then the store closes
+        consumers.history = store
     if config.telemetry.mqtt.enabled:  # Sparkplug B to the plant's broker (paho-mqtt is imported only then)
         from cell.telemetry.publisher import attach_mqtt
 
-        attach_mqtt(config.telemetry.mqtt, bus, resources, hooks)
+        consumers.telemetry = attach_mqtt(config.telemetry.mqtt, bus, resources, hooks)
+    return consumers
 
 
 def commissioning_camera(config: CellConfig) -> Camera:

@@ -30,6 +30,8 @@ COMMAND_MODULES = [
     "cell.commands.run",
     "cell.commands.serve",
     "cell.commands.users",
+    "cell.commands.history",
+    "cell.commands.report",
 ]
 
 log = logging.getLogger(__name__)

@@ -13,8 +13,10 @@ from typing import Literal
 from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
+from cell.history.config import HistoryConfig
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
+from cell.shifts import ShiftsConfig
 from cell.telemetry.config import TelemetryConfig
 from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
@@ -166,6 +168,8 @@ class CellConfig(Strict):
     sim: SimConfig = SimConfig()
     parts: PartsConfig = PartsConfig()
     service: ServiceConfig = ServiceConfig()
+    history: HistoryConfig = HistoryConfig()
+    shifts: ShiftsConfig = ShiftsConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
 
 

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -56,8 +57,10 @@ class Subscription:
         kinds: frozenset[type[Event]] | None,
         maxsize: int,
         coalesce: frozenset[type[Event]],
+        frames: bool = False,
     ):
         self.name, self.handler, self.kinds, self.maxsize, self.coalesce = name, handler, kinds, maxsize, coalesce
+        self.frames = frames  # False: events reach it without their frame (`ref`), so its queue holds no images
         self.delivered = self.dropped = self.failed = 0
         self._queue: deque[_Box] = deque()
         self._latest: dict[type[Event], _Box] = {}
@@ -72,6 +75,8 @@ class Subscription:
     def offer(self, event: Event) -> None:
         if self.kinds is not None and type(event) not in self.kinds:
             return
+        if not self.frames and getattr(event, "ref", None) is not None:
+            event = dataclasses.replace(event, ref=None)  # type: ignore[call-arg]
         with self._cond:
             if self._closing:
                 return
@@ -137,13 +142,12 @@ class Subscription:
             self._cond.notify_all()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            log.warning(
-                "subscriber %s: still busy %.1f s after close; %d events undelivered",
-                self.name,
-                timeout_s,
-                len(self._queue),
-            )
+        if self._thread.is_alive():  # too slow to finish: what it has not taken is dropped, so its thread ends
+            with self._cond:
+                left = len(self._queue)
+                self.dropped += left
+                self._queue.clear()
+            log.warning("subscriber %s: still busy %.1f s after close; %d events dropped", self.name, timeout_s, left)
             return False
         return True
 
@@ -178,8 +182,12 @@ class EventBus:
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
         coalesce: Iterable[type[Event]] = (FrameLocated,),
+        frames: bool = False,
     ) -> Subscription:
-        sub = Subscription(name, handler, None if kinds is None else frozenset(kinds), maxsize, frozenset(coalesce))
+        """`frames`: the subscriber uses the images events carry (the screen, the history store);
+        others get the events without them, so a queue that backs up never holds frames."""
+        kind_set = None if kinds is None else frozenset(kinds)
+        sub = Subscription(name, handler, kind_set, maxsize, frozenset(coalesce), frames)
         with self._lock:
             self._subs = (*self._subs, sub)
         return sub

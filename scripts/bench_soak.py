@@ -4,7 +4,9 @@ Starts `run-cell serve --dry-run --config <shift>` in a subprocess (the built-in
 cell at 960 x 540 to keep frames cheap, the feeder at 6 parts per simulated minute with
 time running 60x: 360 parts a minute, more than the cell picks, so it never idles), calls
 StartContinuous, and samples the server process (RSS, threads, open fds, child processes)
-from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log checked against the counters.
+from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log and the history
+store (data/history.sqlite: picked rows, unique ids, PRAGMA integrity_check) checked against
+the counters.
 
     .venv/bin/python scripts/bench_soak.py [--picks 2000] [--timeout-s 1800]
 """
@@ -64,7 +66,7 @@ def free_port() -> int:
 
 
 async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
-    async with Client(url, timeout=10) as client:
+    async with Client(url, timeout=10, watchdog_intervall=15) as client:
         ns = await client.get_namespace_index("urn:pick-cell")
         cell = await client.nodes.objects.get_child(f"{ns}:Cell")
 
@@ -115,6 +117,23 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict:
         return out
 
 
+def history_figures(path: Path) -> dict:
+    """The store's side of the soak: what it holds, and whether the file is sound."""
+    import sqlite3
+
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return {
+            "picked": db.execute("SELECT count(*) FROM picks WHERE outcome = 'picked'").fetchone()[0],
+            "rows": db.execute("SELECT count(*) FROM picks").fetchone()[0],
+            "unique": db.execute("SELECT count(DISTINCT id) FROM picks").fetchone()[0],
+            "integrity": db.execute("PRAGMA integrity_check").fetchone()[0],
+            "images": db.execute("SELECT count(*) FROM images").fetchone()[0],
+        }
+    finally:
+        db.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--picks", type=int, default=2000)
@@ -161,6 +180,7 @@ def main() -> int:
             rc = proc.wait(60)
         events = [e for f in sorted((tmp / "logs").glob("cell-*.jsonl")) for e in read_events(f)]
         files = len(list((tmp / "logs").glob("cell-*.jsonl")))
+        store = history_figures(tmp / "data" / "history.sqlite")
     c = r["counters"]
     picks = c["PickedBolts"] + c["PickedNuts"]
     picked_lines = sum(1 for e in events if e["kind"] == "verify" and e["result"] == "picked")
@@ -189,9 +209,16 @@ def main() -> int:
         f"audit: {len(events)} lines in {files} file(s); 'picked' lines {picked_lines} vs picks {picks}; "
         f"serve exit code {rc}"
     )
+    print(
+        f"history store: {store['picked']} picked rows of {store['rows']} picks, {store['unique']} unique ids; "
+        f"integrity_check {store['integrity']}; {store['images']} images"
+    )
     ok = (
         faults == 0
         and picked_lines == picks
+        and store["picked"] == picks
+        and store["unique"] == store["rows"]
+        and store["integrity"] == "ok"
         and rc == 0
         and e["threads"] <= a["threads"]
         and e["fds"] <= a["fds"]

@@ -126,8 +126,8 @@ class FakeLineService:
                 subscribers=self.bus.stats(),
             )
 
-    def subscribe(self, name, handler, *, kinds=None, maxsize=1024):
-        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize)
+    def subscribe(self, name, handler, *, kinds=None, maxsize=1024, frames=False):
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
 
     def unsubscribe(self, subscription) -> None:
         self.bus.unsubscribe(subscription)

@@ -139,8 +139,9 @@ class FakeLineService:
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
+        frames: bool = False,
     ) -> Subscription:
-        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize)
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
 
     def unsubscribe(self, subscription: Subscription) -> None:
         self.bus.unsubscribe(subscription)

@@ -164,7 +164,7 @@ async def secure_client(
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
     key, cert, server_cert = await credentials.load()
-    client = Client(url, timeout=timeout_s)
+    client = Client(url, timeout=timeout_s, watchdog_intervall=15)  # a loaded machine answers the 1 s probe late
     client.application_uri = credentials.uri
     client.security_policy = SecurityPolicyBasic256Sha256(server_cert, cert, key, getattr(ua.MessageSecurityMode, mode))
     client.uaclient.set_security(client.security_policy)

@@ -35,7 +35,8 @@ def test_a_killed_writer_leaves_a_readable_log(tmp_path):
         "import os\nfrom cell.audit import AuditLog\n"
         f"log = AuditLog({str(path)!r})\n"
         "log.state = 'pick'\nlog.event('target', robot_mm=[1, 2, 3])\n"
-        'os.write(log._file._fd, b\'{"seq": 2, "kind": "ver\')\nos._exit(9)\n'
+        f"fd = os.open({str(path)!r}, os.O_WRONLY | os.O_APPEND)\n"  # the second line, torn by the kill
+        'os.write(fd, b\'{"seq": 2, "kind": "ver\')\nos._exit(9)\n'
     )
     subprocess.run([sys.executable, "-c", code], check=False)
     events = read_events(path)

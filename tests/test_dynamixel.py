@@ -131,10 +131,10 @@ def test_silent_bus_mid_move_releases_torque(bus):
     emu, path = bus
     with make_arm(path) as arm:
         emu.inject("no_answer")
-        start = time.monotonic()
-        with pytest.raises(NoResponse):
+        with pytest.raises(NoResponse) as info:
             arm.move_to(200.0, 0.0, 50.0)
-        assert time.monotonic() - start < 2.0  # a few SDK packet timeouts, not the move timeout
+        # the bus's silence is found by the packet timeouts, not by waiting out the move timeout
+        assert "no status packet" in str(info.value) and "did not arrive" not in str(info.value)
         assert torques(emu) == [False] * 5  # sync writes need no answer: the torque-off got through
 
 

@@ -301,7 +301,10 @@ def test_stop_holds_the_feed_mid_move(grbl):
     emu, path = grbl
     with make_arm(path, speed_mm_s=5.0) as arm:
         arm.move_to(100, 0, 0, wait=False)
-        time.sleep(0.1)
+        deadline = time.monotonic() + 30
+        while emu.tool_pose()[0] <= 0:  # under way
+            assert time.monotonic() < deadline, "the move never started"
+            time.sleep(0.01)
         arm.stop()
         assert emu.state == "Hold:0"
         x = emu.tool_pose()[0]

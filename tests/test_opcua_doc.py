@@ -14,7 +14,7 @@ DOC = (Path(__file__).resolve().parents[1] / "docs" / "opcua.md").read_text(enco
 def test_every_variable_is_documented_with_its_type():
     rows = {}
     for line in DOC.splitlines():
-        m = re.match(r"^\| (`\w+`(?:, `\w+`)*) \| (\w+)(\[\d\])? \|", line)
+        m = re.match(r"^\| (`\w+`(?:, `\w+`)*) \| (\w+)(\[\d*\])? \|", line)
         if m:
             for name in re.findall(r"`(\w+)`", m.group(1)):
                 rows[name] = m.group(2)

@@ -75,7 +75,7 @@ def test_a_none_channel_serves_discovery_only(secure):
         endpoints = await Client(secure.opcua_url, timeout=10).connect_and_get_server_endpoints()
         offered = {(e.SecurityPolicyUri.rsplit("#", 1)[1], e.SecurityMode.name) for e in endpoints}
         assert offered == {("Basic256Sha256", "SignAndEncrypt")}
-        plain = Client(secure.opcua_url, timeout=10)  # no security: a None channel
+        plain = Client(secure.opcua_url, timeout=10, watchdog_intervall=15)  # no security: a None channel
         plain.set_user("op")
         plain.set_password("op-pass-1")  # a plain-text token on a plain channel: the probe
         return await refusal(plain)

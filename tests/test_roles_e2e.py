@@ -26,7 +26,10 @@ def served(tmp_path_factory):
     work = tmp_path_factory.mktemp("roles")
     certs = work / "certs"
     write_users(work / "users.json", [UserEntry(n, r, hash_password(pw, 1000)) for n, (pw, r) in USERS.items()])
-    (work / "line.toml").write_text(f'[service]\nusers_file = "users.json"\ncertificate_dir = "{certs}"\n')
+    (work / "line.toml").write_text(
+        f'[service]\nusers_file = "users.json"\ncertificate_dir = "{certs}"\n'
+        "[service.login]\nmax_failures_per_user = 3\nbackoff_first_s = 0\n"
+    )
     key, cert, uri = asyncio.run(make_client_certificate(work / "client", "plc"))
     (certs / "trusted").mkdir(parents=True)
     (certs / "trusted" / "plc.der").write_bytes(cert.read_bytes())
@@ -76,3 +79,24 @@ def test_the_screen_is_https_only_with_roles(served):
         assert viewer.post("api/command/StartSingleJob", headers={"x-csrf-token": token}).status_code == 403
     with pytest.raises(httpx.HTTPError):
         httpx.get(serve.url.replace("https://", "http://"), timeout=5)
+
+
+def test_guessing_a_password_on_the_screen_raises_a_warning_alarm_on_opc_ua(served):
+    serve, credentials, certs = served
+    trust = ssl.create_default_context(cafile=str(certs / "screen-cert.pem"))
+    with httpx.Client(base_url=serve.url, verify=trust, timeout=10) as guesser:
+        codes = [
+            guesser.post("api/login", json={"user": "mallory", "password": f"guess-{i}"}).status_code for i in range(4)
+        ]
+    assert codes[:3] == [401, 401, 401] and codes[3] == 429  # the fourth try is not even checked
+
+    async def warnings() -> list[str]:
+        client = await secure_client(
+            f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", credentials, user="otto", password=USERS["otto"][0]
+        )
+        async with client:
+            ns = await client.get_namespace_index("urn:pick-cell")
+            return await (await client.nodes.objects.get_child([f"{ns}:Cell", f"{ns}:ActiveWarnings"])).read_value()
+
+    found = asyncio.run(warnings())
+    assert any("3 failed logins for user mallory: locked out" in w for w in found), found

@@ -66,16 +66,30 @@ def test_empty_table_waits_then_picks_what_appears_and_stop_parks_the_arm(tmp_pa
 
 
 def test_waiting_does_not_busy_loop_or_move_the_arm(tmp_path):
-    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=0.2)
+    """Each WAIT is one blocking wait of the capture interval (no busy loop), then one frame; the
+    arm is not moved meanwhile. Counted, not timed: the test lets each wait end when it says so."""
+    runner, table, arm, camera, controls = continuous_runner(tmp_path, parts=[], interval_s=30.0)
+    waits, ends = [], threading.Semaphore(0)
+
+    class CountedWake(threading.Event):
+        def wait(self, timeout=None):
+            waits.append(timeout)
+            ends.acquire()  # the interval elapses when the test says so
+            return False
+
+    controls.wake = CountedWake()
     thread = run_in_thread(runner)
-    wait_for(lambda: runner.sm.state == State.WAIT)
+    wait_for(lambda: len(waits) == 1)
     frames, calls = camera.frames, len(arm.calls)
-    time.sleep(1.0)
-    moves = [c for c in arm.calls[calls:] if c[0] not in ("status",)]
+    for n in range(2, 7):
+        ends.release()
+        wait_for(lambda: len(waits) == n)
+    assert camera.frames - frames == 5  # one frame per wait, nothing in between
+    assert set(waits) == {30.0}  # each wait blocks for the whole interval
+    assert [c for c in arm.calls[calls:] if c[0] != "status"] == []
     controls.request(controls.stop)
+    ends.release()
     thread.join(5)
-    assert 3 <= camera.frames - frames <= 7  # one frame per 0.2 s interval
-    assert moves == []
     assert runner.sm.state == State.STOPPED
 
 

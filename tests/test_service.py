@@ -285,14 +285,15 @@ def test_after_shutdown_begins_commands_get_a_clear_refusal(tmp_path):
         assert service.snapshot().vision_state == V.READY
 
 
-def test_counters_start_again_with_the_next_days_shift():
-    ledger = Ledger()
-    today = datetime.now(UTC)
-    ledger.handle(PartUnreachable(track=1, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=today))
+def test_counters_start_again_with_the_next_shift():
+    ledger = Ledger()  # the default shifts: 06:00, 14:00, 22:00 UTC
+    now = datetime.now(UTC)
+    ledger.handle(PartUnreachable(track=1, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=now))
     assert ledger.counters().unreachable == 1
-    tomorrow = today + timedelta(days=1)
-    ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=tomorrow))
-    assert ledger.counters().unreachable == 1 and ledger.shift == tomorrow.date().isoformat()
+    nxt = ledger.current_shift.end_utc + timedelta(minutes=1)
+    ledger.handle(PartUnreachable(track=2, cls="nut", table_mm=(1.0, 2.0), reason="far", time_utc=nxt))
+    assert ledger.counters().unreachable == 1 and ledger.shift == ledger.calendar.at(nxt).id
+    assert ledger.shift != ledger.calendar.at(now).id
 
 
 def test_a_fault_from_another_part_stops_the_job_safely_into_error(tmp_path):
@@ -307,3 +308,41 @@ def test_a_fault_from_another_part_stops_the_job_safely_into_error(tmp_path):
     events = read_shift(tmp_path / "logs")
     assert [e["step"] for e in events if e["kind"] == "safe_step"][-2:] == ["home", "release torque"]
     assert [e for e in events if e["kind"] == "job_end"][-1]["outcome"] == "fault"
+
+
+def test_a_full_disk_faults_the_job_and_nothing_starts_until_the_record_can_be_written(tmp_path, monkeypatch):
+    import errno
+
+    from cell.recordfile import RecordFile
+    from cell.service.api import NotRecorded
+
+    full = {"on": False}
+
+    class MaybeFull(RecordFile):
+        def _write(self, data):
+            if full["on"]:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return super()._write(data)
+
+    monkeypatch.setattr("cell.audit.RecordFile", MaybeFull)
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        full["on"] = True
+        wait_for(lambda: service.snapshot().vision_state == V.ERROR, what="the fault")
+        assert "No space left on device" in service.snapshot().alarm.reason
+        service.command(Command.RESET)  # bringing the cell to rest is never held up by the record
+        with pytest.raises(NotRecorded, match="StartContinuous not carried out: .*No space left on device"):
+            service.command(Command.START_CONTINUOUS)
+        assert service.snapshot().vision_state == V.READY  # nothing started without its record
+        full["on"] = False  # space freed: the next start opens the day's next file
+        before = picked(service)
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) > before, what="picks again")
+        service.command(Command.STOP)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
+    logs = tmp_path / "logs"
+    files = shift_files(logs, time.strftime("%Y%m%d", time.gmtime()))
+    assert len(files) >= 2  # the broken file was left for a new one
+    verified = [e for e in read_shift(logs) if e["kind"] == "verify" and e["result"] == "picked"]
+    assert len(verified) >= before + 1

@@ -119,3 +119,25 @@ def test_thirty_screens_that_never_read_do_not_hold_up_the_job(tmp_path):
             for s in streams:
                 s.close()
             server.stop()
+
+
+def test_only_subscribers_that_ask_for_frames_get_them():
+    import numpy as np
+
+    from cell.events import FrameRef, PickVerified
+
+    bus = EventBus()
+    plain, framed = [], []
+    a = bus.subscribe("opcua", plain.append)
+    b = bus.subscribe("history", framed.append, frames=True)
+    ref = FrameRef(1, np.zeros((4, 4, 3), np.uint8), None, 0.0)
+    fields = {"pick_id": "j/1", "track": 1, "cls": "nut", "attempt": 1, "result": "missed", "pixel": (1.0, 2.0)}
+    bus.emit(
+        PickVerified(
+            **fields, table_mm=(1.0, 2.0), robot_mm=(1.0, 2.0, 3.0), jaw_angle_deg=None, still_at_mm=(), ref=ref
+        )
+    )
+    assert a.wait_idle(10) and b.wait_idle(10)
+    assert plain[0].ref is None and framed[0].ref is ref  # a queue that backs up holds no images
+    assert plain[0].pick_id == framed[0].pick_id == "j/1"
+    bus.close()

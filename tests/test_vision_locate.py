@@ -93,8 +93,8 @@ def test_paper_preset_maps_on_the_table_plane_without_holes(camera, calibration)
         ([PartSpec("washer", "M10", 100.0, 80.0)], "washer"),
         ([PartSpec("coin", "", 100.0, 80.0)], "coin"),
         ([PartSpec("nut", "M8", 100.0, 80.0), PartSpec("nut", "M8", 113.5, 80.0)], "touching"),
-        ([PartSpec("nut", "M10", 100.0, 80.0), PartSpec("bolt", "M6", 122.0, 80.0, 0.0, 25.0)], ""),
-        ([PartSpec("bolt", "M6", 100.0, 80.0, 0.0, 30.0), PartSpec("bolt", "M6", 110.0, 80.0, 90.0, 30.0)], ""),
+        ([PartSpec("nut", "M10", 100.0, 80.0), PartSpec("bolt", "M6", 122.0, 80.0, 0.0, 25.0)], "touching"),
+        ([PartSpec("bolt", "M6", 100.0, 80.0, 0.0, 30.0), PartSpec("bolt", "M6", 110.0, 80.0, 90.0, 30.0)], "touching"),
     ],
 )
 def test_non_parts_and_touching_parts_are_never_picked(camera, calibration, parts, reason_word):

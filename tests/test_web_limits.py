@@ -214,7 +214,9 @@ def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
         wait_until(picked, 60, "the first pick")
 
         async def opcua_reads(seconds: float) -> list[float]:
-            client = Client(f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", timeout=10)  # loopback, no users
+            client = Client(
+                f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", timeout=10, watchdog_intervall=15
+            )  # loopback, no users
             await client.connect()
             try:
                 ns = await client.get_namespace_index("urn:pick-cell")

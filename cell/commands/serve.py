@@ -11,13 +11,14 @@ import logging
 import os
 import signal
 import socket
+import threading
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import get_args
 
 from cell.assembly import Overrides, assemble, attach_consumers, cell_config
 from cell.config import CellConfig
-from cell.errors import ConfigError
+from cell.errors import REPORTED_ERRORS, ConfigError
 from cell.eventbus import EventBus
 from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
@@ -112,8 +113,32 @@ def open_service(
     resources.callback(consumers.close)  # after the service has closed: they record its last events
     service = LineService(cell, bus, record)
     resources.callback(service.close)
-    attach_consumers(config, bus, consumers, service)
+    attached = attach_consumers(config, bus, consumers, service)
+    service.history = attached.history
+    if attached.history is not None:
+        restore_ledger(service, config)
     return service
+
+
+def restore_ledger(service: LineService, config: CellConfig) -> None:
+    """The running shift's counters and the last picks from the history store (after a restart);
+    from the audit files where the store cannot be read (a PostgreSQL server away)."""
+    from cell.history.query import open_reader
+
+    shift = service.ledger.current_shift
+    try:
+        reader = open_reader(config)
+    except REPORTED_ERRORS as e:
+        log.warning("counters from the audit files: the history store cannot be read (%s)", e)
+        service.prime_ledger_from_audit()
+        return
+    try:
+        service.ledger.restore(reader.counters(shift.start_utc, shift.end_utc), reader.last_picks())
+    except Exception as e:
+        log.warning("counters from the audit files: the history store cannot be read (%s)", e)
+        service.prime_ledger_from_audit()
+    finally:
+        reader.close()
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -148,6 +173,20 @@ def _check_port_free(host: str, port: int, option: str) -> None:
             ) from None
 
 
+def lockout_alarm(service: LineService, lockout) -> None:
+    """A login lockout (screen or OPC UA) as a warning alarm, cleared when the lockout ends."""
+    key = f"lockout:{lockout.kind}:{lockout.key}"
+    service.raise_warning(
+        key,
+        f"{lockout.failures} failed logins for {lockout.kind} {lockout.key}: locked out for {lockout.lockout_s:g} s",
+        "if these were not your own attempts, someone is guessing passwords: tell the plant's IT",
+        "login",
+    )
+    timer = threading.Timer(lockout.lockout_s, service.clear_warning, (key,))
+    timer.daemon = True
+    timer.start()
+
+
 def toggle_pause(service: LineService) -> None:
     """SIGUSR1, as for `run-cell`: Pause or Resume, through the command table like any client."""
     command = Command.RESUME if service.snapshot().pausing or service.snapshot().paused else Command.PAUSE
@@ -173,7 +212,7 @@ async def _serve(config: CellConfig, service: LineService) -> int:
     for sig in STOP_SIGNALS:  # here a stop signal ends the service gracefully: job halted, clients told
         loop.add_signal_handler(sig, stop.set)
     loop.add_signal_handler(signal.SIGUSR1, toggle_pause, service)
-    throttle = LoginThrottle(config.service.login)  # one login throttle for both interfaces
+    throttle = LoginThrottle(config.service.login, on_lockout=lambda lockout: lockout_alarm(service, lockout))
     interfaces, started = [OpcUaServer(service, config, throttle), ScreenInterface(service, config, throttle)], []
     safe = True
     try:

@@ -333,9 +333,11 @@ class LineServiceAPI(Protocol):
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
+        frames: bool = False,
     ) -> Subscription:
         """`handler` gets every event (of `kinds`), on its own thread behind its own bounded queue;
-        `unsubscribe(subscription)` ends it."""
+        with `frames` the images events carry too (otherwise `ref` is None); `unsubscribe(subscription)`
+        ends it."""
         ...
 
     def unsubscribe(self, subscription: Subscription) -> None: ...

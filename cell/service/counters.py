@@ -41,6 +41,15 @@ class ShiftCounts:
             counts.apply(e)
         return counts
 
+    @classmethod
+    def from_counters(cls, c: Counters) -> ShiftCounts:
+        """Counts restored from a store (attempts are not kept there: only the shown counters)."""
+        counts = cls()
+        counts.picked = {k: v for k, v in (("bolt", c.picked_bolts), ("nut", c.picked_nuts)) if v}
+        counts.misses, counts.retries, counts.failed = c.misses, c.retries, c.failed
+        counts.unreachable, counts.unknown_left = c.unreachable, c.unknown_left
+        return counts
+
     def counters(self) -> Counters:
         return Counters(
             self.picked.get("bolt", 0),

@@ -1,8 +1,10 @@
 """The shift's counters, the last picks and the pick rate, kept from the event stream.
 
 A subscriber of the bus (its own thread): it never runs on the control thread, and the
-service reads it under its own lock. At start it is primed from the day's audit files, so a
-restart loses no count.
+service reads it under its own lock. Shifts are the plant's (`[shifts]`, cell.shifts): the
+counters start again when the next shift starts. At start it is restored from the history
+store (counters and last picks of the running shift), or, without a store, primed from the
+audit files of the shift, so a restart loses no count.
 """
 
 from __future__ import annotations
@@ -11,56 +13,91 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from datetime import UTC, datetime
+from dataclasses import replace
+from datetime import datetime
 
 from cell.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
 from cell.service.api import Counters, PickRecord
 from cell.service.counters import ShiftCounts
+from cell.shifts import Shift, ShiftCalendar
 
 PICKS_KEPT = 20
 RATE_WINDOW = 20  # picks the parts-per-minute figure is taken over
 
 
-def _utc_day(t: datetime) -> str:
-    return t.astimezone(UTC).date().isoformat()
-
-
 class PickRecords:
-    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place)."""
+    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place).
+
+    Only the records of parts missed and not yet picked or given up are kept (small records, never
+    the events: those carry frames, and a continuous job's parts never end)."""
 
     def __init__(self) -> None:
-        self._last: dict[tuple[str, int], PickVerified] = {}
+        self._missed: dict[tuple[str, int], PickRecord] = {}
 
     def of(self, event: Event) -> PickRecord | None:
         if isinstance(event, JobStarted):
-            self._last.clear()
+            self._missed.clear()
         elif isinstance(event, PickVerified):
-            self._last[(event.job_id or "", event.track)] = event
-            return _record(event, event.result)
+            record = _record(event, event.result)
+            key = (event.job_id or "", event.track)
+            if event.result == "missed":
+                self._missed[key] = record  # it may yet be given up
+            else:
+                self._missed.pop(key, None)
+            return record
         elif isinstance(event, PartFailed):
-            last = self._last.pop((event.job_id or "", event.track), None)
+            last = self._missed.pop((event.job_id or "", event.track), None)
             if last is not None:
-                return _record(last, "failed")
+                return replace(last, outcome="failed")
         return None
 
 
 class Ledger:
-    def __init__(self, history: Iterable[dict] = (), on_change: Callable[[str], None] = lambda what: None):
+    def __init__(
+        self,
+        history: Iterable[dict] = (),
+        on_change: Callable[[str], None] = lambda what: None,
+        calendar: ShiftCalendar | None = None,
+    ):
+        """`history`: audit events of the running shift to count first (the restart without a store)."""
         self._lock = threading.Lock()
-        self._counts = ShiftCounts.from_events(history)
-        self._day = _utc_day(datetime.now(UTC))
+        self.calendar = calendar or ShiftCalendar()
+        self._shift: Shift = self.calendar.now()
+        self._counts = ShiftCounts.from_events(e for e in history if self._in_shift(e))
         self._picks: deque[PickRecord] = deque(maxlen=PICKS_KEPT)
         self._pick_times: deque[float] = deque(maxlen=RATE_WINDOW)
         self._records = PickRecords()
         self._on_change = on_change
 
+    def _in_shift(self, e: dict) -> bool:
+        t = e.get("t_utc")
+        if not t:
+            return True
+        try:
+            return self._shift.contains(datetime.fromisoformat(t))
+        except ValueError:
+            return True
+
+    def prime(self, history: Iterable[dict]) -> None:
+        """Count the running shift's audit events (a restart without a history store)."""
+        with self._lock:
+            self._counts = ShiftCounts.from_events(e for e in history if self._in_shift(e))
+        self._on_change("counters")
+
+    def restore(self, counters: Counters, picks: Iterable[PickRecord]) -> None:
+        """The running shift's counters and the last picks, read back from the history store."""
+        with self._lock:
+            self._counts = ShiftCounts.from_counters(counters)
+            self._picks.clear()
+            self._picks.extend(picks)
+        self._on_change("counters")
+
     # ---- the subscriber ------------------------------------------------------------------
     def handle(self, event: Event) -> None:
         changed = ""
         with self._lock:
-            day = _utc_day(event.time_utc)
-            if day != self._day:  # 00:00 UTC: the audit files roll to a new day, a new shift
-                self._day, self._counts = day, ShiftCounts()
+            if not self._shift.contains(event.time_utc) and event.time_utc >= self._shift.end_utc:
+                self._shift, self._counts = self.calendar.at(event.time_utc), ShiftCounts()  # the next shift
                 changed = "counters"
             if event.audited and self._counts.apply({"kind": event.kind, **event.record()}):
                 changed = "counters"
@@ -99,7 +136,12 @@ class Ledger:
 
     @property
     def shift(self) -> str:
-        return self._day
+        """The id of the shift the counters count (e.g. 2026-12-01/early)."""
+        return self._shift.id
+
+    @property
+    def current_shift(self) -> Shift:
+        return self._shift
 
 
 def _record(e: PickVerified, outcome: str) -> PickRecord:

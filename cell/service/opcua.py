@@ -60,6 +60,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "LastPickOutcome": (_T.String, False),
     "LastPickTime": (_T.DateTime, False),
     "ActiveAlarm": (_T.String, False),
+    "ActiveWarnings": (_T.String, True),
     "Heartbeat": (_T.UInt32, False),
     "CalibrationModel": (_T.String, False),
     "CalibrationCvRmsMm": (_T.Double, False),
@@ -67,6 +68,7 @@ VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
     "CalibrationTime": (_T.DateTime, False),
     "JobId": (_T.String, False),
     "DroppedEvents": (_T.UInt32, False),
+    "Shift": (_T.String, False),
 }
 
 
@@ -94,6 +96,7 @@ def _values(s: Snapshot) -> dict:
         "LastPickOutcome": last.outcome if last else "",
         "LastPickTime": last.time_utc if last else _EPOCH,
         "ActiveAlarm": alarm,
+        "ActiveWarnings": [f"{w.reason} (hint: {w.hint})" for w in s.warnings],
         "Heartbeat": s.heartbeat,
         "CalibrationModel": cal.model if cal else "",
         "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
@@ -101,6 +104,7 @@ def _values(s: Snapshot) -> dict:
         "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
         "JobId": s.job_id,
         "DroppedEvents": sum(x.dropped + x.failed for x in s.subscribers),
+        "Shift": s.shift,
     }
 
 

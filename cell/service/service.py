@@ -81,7 +81,8 @@ from cell.service.api import (
     state_refusal,
 )
 from cell.service.ledger import Ledger
-from cell.service.shiftlog import ShiftLog, iter_shift
+from cell.service.shiftlog import ShiftLog, iter_since
+from cell.shifts import ShiftCalendar
 from cell.signals import Controls
 from cell.statemachine import State
 from cell.vision.locate import locate
@@ -170,8 +171,15 @@ class LineService:
         self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)
         self._recipe: Recipe | None = None
         bus.add_record(record.record, owner=record)
-        self.ledger = Ledger(iter_shift(self.config.run.log_dir), self._changed)
+        self.history: Any = None  # the history store (cell.history.store), set by open_service when configured
+        self.ledger = Ledger((), self._changed, ShiftCalendar(self.config.shifts))
+        if not self.config.history.enabled:  # else restored from the store (cell.commands.serve.open_service)
+            self.prime_ledger_from_audit()
         self._ledger_sub = bus.subscribe("ledger", self.ledger.handle, maxsize=100_000)
+
+    def prime_ledger_from_audit(self) -> None:
+        """The running shift's counters from the service's audit files (no history store, or it cannot be read)."""
+        self.ledger.prime(iter_since(self.config.run.log_dir, self.ledger.current_shift.start_utc))
 
     # ---- life -----------------------------------------------------------------------
     def start(self) -> None:
@@ -485,8 +493,9 @@ class LineService:
         *,
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
+        frames: bool = False,
     ) -> Subscription:
-        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize)
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
 
     def unsubscribe(self, subscription: Subscription) -> None:
         self.bus.unsubscribe(subscription)

@@ -49,6 +49,15 @@ def iter_shift(log_dir: Path, day: str | None = None) -> Iterator[dict]:
                     log.warning("%s: skipping a torn line: %.60s", path, line)
 
 
+def iter_since(log_dir: Path, start_utc: datetime) -> Iterator[dict]:
+    """Every complete event of the UTC days from `start_utc`'s to today's (a plant shift may span two)."""
+    day = start_utc.astimezone(UTC).date()
+    today = datetime.now(UTC).date()
+    while day <= today:
+        yield from iter_shift(log_dir, day.strftime("%Y%m%d"))
+        day = day.fromordinal(day.toordinal() + 1)
+
+
 def read_shift(log_dir: Path, day: str | None = None) -> list[dict]:
     return list(iter_shift(log_dir, day))
 

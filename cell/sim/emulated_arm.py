@@ -27,7 +27,7 @@ from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
 
 log = logging.getLogger(__name__)
-EMULATED_LATENCY_TIMER_MS = 50.0  # status wait about 100 ms: an emulator thread starved for a while still answers
+EMULATED_LATENCY_TIMER_MS = 250.0  # status wait about 0.5 s a try: an emulator thread starved by a loaded machine (stalls of 0.6 s seen) still answers; a prompt reply costs no more
 
 Emulator = GrblEmulator | DxlBusEmulator
 

@@ -22,6 +22,7 @@ from cell.events import Origin
 from cell.service.api import CommandRefused, LineServiceAPI, Refusal
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.config import WebConfig
+from cell.web.history import HistoryRoutes
 from cell.web.hub import Hub
 from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, RecalibrationDesk
@@ -97,6 +98,7 @@ class ScreenApp:
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
         self.max_upload = int(web.max_upload_mb * 1024 * 1024)
+        self.history = HistoryRoutes(self._view_refused, service, config)  # the History page and alarm list
 
     # ---- checks ----------------------------------------------------------------------
     @staticmethod
@@ -367,6 +369,7 @@ class ScreenApp:
             Route("/api/recalibration/{report_id}/{kind:str}", self.recal_picture),
             Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
             Route("/api/calibration/{kind}", self.calibration_picture),
+            *self.history.routes(),
             Route("/metrics", self.metrics_page),
         ]
 

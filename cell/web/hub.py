@@ -92,6 +92,7 @@ class Hub:
                 self._on_frame_event,
                 kinds=(FrameLocated, PickOrderChosen, StateChanged, RunEnded),
                 maxsize=256,
+                frames=True,
             ),
         ]
 

@@ -66,8 +66,14 @@ class CellMetrics:
     def start(self) -> None:
         """Count events from now on (the screen's lifespan: with the server)."""
         if self._sub is None:
+            # frames: the latency needs the frame's capture time (its `ref`); frames coalesce, so the queue
+            # holds one at most, and only a reference to the image the runner already keeps
             self._sub = self.service.subscribe(
-                "metrics", self.handle, kinds=(PickVerified, PartFailed, AlarmRaised, FrameLocated), maxsize=10_000
+                "metrics",
+                self.handle,
+                kinds=(PickVerified, PartFailed, AlarmRaised, FrameLocated),
+                maxsize=10_000,
+                frames=True,
             )
 
     def handle(self, event: Event) -> None:

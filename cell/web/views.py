@@ -81,6 +81,7 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
             "pictures": calibration_pictures,
         },
         "heartbeat": s.heartbeat,
+        "shift": s.shift,
         "allowed": sorted(c.value for c in s.allowed),
         "recalibration_allowed": may_recalibrate(s),
         "recalibration_open": recalibration_open,

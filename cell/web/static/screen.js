@@ -63,6 +63,7 @@ function render(s) {
   $("vision-state").textContent = s.vision_state;
   $("cell-state").textContent = s.cell_state;
   $("heartbeat").textContent = s.heartbeat;
+  if (s.shift !== undefined) $("shift").textContent = s.shift || "-";
   renderButtons(s);
   for (const [name, value] of Object.entries(s.counters)) {
     const cell = $(`count-${name}`);

@@ -1,0 +1,144 @@
+"""`run-cell history`: the picks of a time span, a shift or a job, from the history store, as a
+table, JSON or CSV."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from datetime import UTC, date, datetime, time
+from pathlib import Path
+from zoneinfo import ZoneInfo
+
+from cell.config import CellConfig, load_config
+from cell.errors import InputError
+
+OUTCOMES = ("picked", "missed", "failed", "rehearsed", "placed")
+CSV_COLUMNS = (
+    "id",
+    "job_id",
+    "time_utc",
+    "class",
+    "track",
+    "attempt",
+    "pixel_x",
+    "pixel_y",
+    "table_x_mm",
+    "table_y_mm",
+    "robot_x_mm",
+    "robot_y_mm",
+    "robot_z_mm",
+    "jaw_angle_deg",
+    "calibration_id",
+    "outcome",
+    "cycle_ms",
+    "image_id",
+)
+
+
+def add_store_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", dest="store_config", type=Path, help="cell config (TOML): [history], [shifts]")
+    p.add_argument("--url", help="the store to read instead of history.url (sqlite:///PATH or postgresql://...)")
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "history",
+        help="the picks kept in the history store: by time, shift, job, class or outcome",
+        description="Print the picks kept in the history store (oldest first). Times are ISO 8601; without a "
+        "zone they are the plant's ([shifts].time_zone). A shift is DATE/NAME (2026-12-01/early).",
+    )
+    add_store_arguments(p)
+    p.add_argument("--since", help="from this time (ISO 8601, or a date)")
+    p.add_argument("--until", help="before this time (ISO 8601, or a date)")
+    p.add_argument("--shift", help="one shift, e.g. 2026-12-01/early")
+    p.add_argument("--job", help="one job's picks (its id)")
+    p.add_argument("--class", dest="cls", choices=("bolt", "nut"), help="one class")
+    p.add_argument("--outcome", choices=OUTCOMES, help="one outcome")
+    p.add_argument("--limit", type=int, default=None, help="at most this many (default: all)")
+    fmt = p.add_mutually_exclusive_group()
+    fmt.add_argument("--json", action="store_true", help="a JSON array of picks")
+    fmt.add_argument("--csv", action="store_true", help="CSV with a header line")
+    p.set_defaults(func=cmd_history)
+
+
+def store_config(args: argparse.Namespace) -> CellConfig:
+    config = load_config(args.store_config)
+    if args.url:
+        try:
+            config.history = config.history.model_validate({**config.history.model_dump(), "url": args.url})
+        except ValueError as e:
+            raise InputError(f"--url {args.url}: {str(e).splitlines()[-1].strip()}") from None
+    return config
+
+
+def parse_when(text: str, zone: ZoneInfo, option: str) -> datetime:
+    """An ISO time (or a date: its midnight), in the plant's zone unless it names its own."""
+    try:
+        t = datetime.fromisoformat(text)
+    except ValueError:
+        try:
+            t = datetime.combine(date.fromisoformat(text), time())
+        except ValueError:
+            raise InputError(f"{option} {text!r}: expected an ISO 8601 time like 2026-12-01T14:32 or a date") from None
+    return (t if t.tzinfo else t.replace(tzinfo=zone)).astimezone(UTC)
+
+
+def cmd_history(args: argparse.Namespace) -> int:
+    from cell.history.query import PickFilter, open_reader
+    from cell.shifts import ShiftCalendar
+
+    config = store_config(args)
+    calendar = ShiftCalendar(config.shifts)
+    since = parse_when(args.since, calendar.zone, "--since") if args.since else None
+    until = parse_when(args.until, calendar.zone, "--until") if args.until else None
+    if args.shift:
+        try:
+            shift = calendar.by_id(args.shift)
+        except ValueError as e:
+            raise InputError(f"--shift: {e}") from None
+        since = max(since or shift.start_utc, shift.start_utc)
+        until = min(until or shift.end_utc, shift.end_utc)
+    if args.limit is not None and args.limit < 1:
+        raise InputError(f"--limit {args.limit}: give 1 or more")
+    reader = open_reader(config)
+    try:
+        picks = reader.list_picks(PickFilter(since, until, args.job, args.cls, args.outcome), limit=args.limit)
+    finally:
+        reader.close()
+    if args.json:
+        json.dump(picks, sys.stdout, indent=1)
+        print()
+    elif args.csv:
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        for p in picks:
+            writer.writerow(
+                [p["id"], p["job_id"], p["time_utc"], p["class"], p["track"], p["attempt"], *p["pixel"]]
+                + [*p["table_mm"], *p["robot_mm"], p["jaw_angle_deg"], p["calibration_id"], p["outcome"]]
+                + [p["cycle_ms"], p["image_id"] or ""]
+            )
+    else:
+        for line in _table(picks, calendar.zone):
+            print(line)
+    return 0
+
+
+def _table(picks: list[dict], zone: ZoneInfo) -> list[str]:
+    if not picks:
+        return ["no picks"]
+    out = [
+        f"{'time (' + str(zone) + ')':26} {'pick':28} {'class':5} {'table x, y mm':>15} {'robot x, y, z mm':>22}  outcome"
+    ]
+    for p in picks:
+        t = datetime.fromisoformat(p["time_utc"]).astimezone(zone)
+        tx, ty = (v or 0.0 for v in p["table_mm"])
+        rx, ry, rz = (v or 0.0 for v in p["robot_mm"])
+        image = "  (image)" if p["image_id"] else ""
+        out.append(
+            f"{t:%Y-%m-%d %H:%M:%S}.{t.microsecond // 1000:03d}    {p['id']:28} {p['class']:5} "
+            f"{tx:7.1f},{ty:7.1f} {rx:7.1f},{ry:7.1f},{rz:6.1f}  {p['outcome']}{image}"
+        )
+    out.append(f"{len(picks)} picks")
+    return out

@@ -1,0 +1,121 @@
+"""The history store on a live PostgreSQL server that these tests start (once per session): the
+same schema and rows as on SQLite, queries and the report, and an outage mid-shift: the cell
+keeps picking, rows wait in the local outbox and reach the server when it is back, none lost,
+none twice."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+
+from cell.history.query import PickFilter, open_reader
+from cell.history.report import build_report
+from cell.service.api import Command, VisionState
+from tests.history_helpers import JOB, T0, history_config, verify
+from tests.pg_server import PostgresServer, why_no_postgresql
+from tests.test_history import Hooks, fill
+from tests.test_service import picked, running, small_config, wait_for
+
+pytestmark = [
+    pytest.mark.skipif(why_no_postgresql() is not None, reason=str(why_no_postgresql())),
+    pytest.mark.slow,  # a PostgreSQL server in a subprocess
+    pytest.mark.timeout(180),
+]
+
+
+@pytest.fixture(scope="session")
+def pg():
+    server = PostgresServer()
+    server.start()
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def pg_url(pg):
+    """A clean database for each test (the schema dropped)."""
+    import psycopg
+
+    if pg.proc is None:
+        pg.start()
+    with psycopg.connect(pg.url, autocommit=True) as conn:
+        conn.execute("DROP SCHEMA public CASCADE")
+        conn.execute("CREATE SCHEMA public")
+    return pg.url
+
+
+def test_the_same_rows_and_queries_on_postgresql(tmp_path, pg_url):
+    cfg = history_config(tmp_path, url=pg_url)
+    store = fill(cfg)
+    assert store.wait_sent(30)
+    store.close()
+    reader = open_reader(cfg)
+    try:
+        assert reader.db.dialect == "postgresql"
+        assert [p["id"] for p in reader.list_picks()] == [f"{JOB}/{n}" for n in (1, 2, 3, 4, 6)]
+        assert reader.get_pick(f"{JOB}/4")["outcome"] == "failed"
+        assert reader.count_picks(PickFilter(cls="nut")) == 4
+        assert reader.alarms()[0]["cleared_user"] == "anna"
+        report = build_report(reader, "pg", T0 - timedelta(minutes=10), T0 + timedelta(minutes=10))
+        assert (report.picked, report.misses, report.failed) == (3, 2, 1) and report.per_hour[0][1] == 3
+        assert report.down_s == pytest.approx(120.0)
+        versions = reader.db.execute("SELECT version FROM schema_version")
+        assert versions == [(1,)]
+    finally:
+        reader.close()
+
+
+def test_an_outage_queues_rows_locally_and_sends_them_once_when_the_server_is_back(tmp_path, pg, pg_url):
+    cfg = history_config(tmp_path, url=pg_url, retry_s=0.2, connect_timeout_s=2)
+    hooks = Hooks()
+    store = fill(cfg, [verify(n, track=n) for n in range(1, 11)], hooks)
+    assert store.wait_sent(30)
+    pg.stop()  # the server goes away mid-shift
+    for n in range(11, 31):
+        store.handle(verify(n, track=n))
+    assert store.wait_idle(30)  # the cell's side is done: rows are safe in the local outbox
+    wait_for(lambda: store.stats().outbox == 20, 30, "20 rows in the outbox")
+    wait_for(lambda: "history-server" in hooks.warnings, 30, "the outage's warning")
+    assert "rows wait in the local queue" in hooks.warnings["history-server"]
+    pg.start()
+    assert store.wait_sent(60)
+    wait_for(lambda: "history-server" in hooks.cleared, 30, "the warning cleared")
+    for n in (5, 25):  # a resend (the forwarder killed between the server's commit and the outbox's delete)
+        store.handle(verify(n, track=n))
+    assert store.wait_sent(30)
+    store.close()
+    reader = open_reader(cfg)
+    try:
+        ids = [p["id"] for p in reader.list_picks(limit=None)]
+    finally:
+        reader.close()
+    assert ids == [f"{JOB}/{n}" for n in range(1, 31)]  # none lost, none twice, in order
+
+
+def test_a_shift_goes_on_through_a_server_outage(tmp_path, pg, pg_url):
+    cfg = small_config(tmp_path)
+    cfg.history.url, cfg.history.retry_s, cfg.history.min_free_mb = pg_url, 0.2, 1
+    cfg.history.connect_timeout_s = 2
+    cfg.sim.feeder = cfg.sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(cfg) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 3, 120, "3 picks")
+        pg.stop()
+        wait_for(lambda: picked(service) >= 12, 120, "picks while the server is away")
+        assert service.snapshot().vision_state == VisionState.CONTINUOUS_EXECUTION
+        wait_for(lambda: any(w.source == "history" for w in service.snapshot().warnings), 30, "the warning")
+        pg.start()
+        wait_for(lambda: service.snapshot().waiting_for_parts, 120, "the table cleared")
+        service.command(Command.STOP)
+        wait_for(lambda: service.snapshot().vision_state == VisionState.READY, 60, "Ready")
+        assert service.history.wait_sent(60)
+        counters = service.snapshot().counters
+    reader = open_reader(cfg)
+    try:
+        picks = reader.list_picks(limit=None)
+    finally:
+        reader.close()
+    ids = [p["id"] for p in picks]
+    assert len(ids) == len(set(ids))
+    assert sum(p["outcome"] == "picked" for p in picks) == counters.picked_bolts + counters.picked_nuts == 17
