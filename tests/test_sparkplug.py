@@ -176,9 +176,10 @@ def test_a_run_cell_job_is_not_published_and_says_so(caplog):
     from cell.signals import Controls
 
     cfg = CellConfig()
+    cfg.history.enabled = False  # this test is about telemetry alone
     cfg.telemetry.mqtt = MqttConfig(url="mqtt://127.0.0.1:1")
     bus = EventBus()
     with contextlib.ExitStack() as resources:
-        attach_consumers(cfg, bus, resources, RunHooks(Controls()))
-        assert bus.stats() == ()
+        consumers = attach_consumers(cfg, bus, resources, RunHooks(Controls()))
+        assert consumers.telemetry is None and bus.stats() == ()
     assert "published by `run-cell serve` only" in caplog.text
