@@ -38,6 +38,7 @@ from drivers.cameras.factory import make_camera
 if TYPE_CHECKING:  # a real cell never loads cell.sim; the store is built where it is configured
     from cell.history.store import HistoryStore
     from cell.sim.cell import SimCell
+    from cell.telemetry.publisher import SparkplugPublisher
 
 log = logging.getLogger(__name__)
 
@@ -230,6 +231,7 @@ class Consumers:
     """What attach_consumers built (None where the config leaves it out)."""
 
     history: HistoryStore | None = None
+    telemetry: SparkplugPublisher | None = None
 
 
 def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks) -> Consumers:
@@ -248,6 +250,10 @@ def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.Ex
         )
         resources.callback(bus.unsubscribe, sub)  # first: the queued events are handed over, then the store closes
         consumers.history = store
+    if config.telemetry.mqtt.enabled:  # Sparkplug B to the plant's broker (paho-mqtt is imported only then)
+        from cell.telemetry.publisher import attach_mqtt
+
+        consumers.telemetry = attach_mqtt(config.telemetry.mqtt, bus, resources, hooks)
     return consumers
 
 

@@ -17,6 +17,7 @@ from cell.history.config import HistoryConfig
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
 from cell.shifts import ShiftsConfig
+from cell.telemetry.config import TelemetryConfig
 from cell.vision.config import PartsConfig, Preset
 from drivers.arm.config import ArmConfig
 from drivers.cameras.config import CameraConfig
@@ -169,6 +170,7 @@ class CellConfig(Strict):
     service: ServiceConfig = ServiceConfig()
     history: HistoryConfig = HistoryConfig()
     shifts: ShiftsConfig = ShiftsConfig()
+    telemetry: TelemetryConfig = TelemetryConfig()
 
 
 def _format_errors(path: Path | str, err: ValidationError) -> str:

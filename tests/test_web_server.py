@@ -137,7 +137,7 @@ def test_stop_ends_streams_and_threads_and_unsubscribes(service):
     before = {t.name for t in threading.enumerate()}
     srv = WebServer(service, CellConfig(), WebConfig(), "127.0.0.1", 0)
     srv.start()
-    assert service.listeners == 2  # the screen: its state and its frames, each a subscriber of its own
+    assert service.listeners == 3  # the screen: its state, its frames and /metrics, each a subscriber of its own
     stream_ended = threading.Event()
 
     def hold_stream():

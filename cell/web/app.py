@@ -29,6 +29,7 @@ from cell.web.camera_check import CameraCheck
 from cell.web.config import WebConfig
 from cell.web.history import HistoryRoutes
 from cell.web.hub import Hub, Screen
+from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
 from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
@@ -125,6 +126,7 @@ class ScreenApp:
             service, web.frame_max_width_px, web.jpeg_quality, web.max_screens, web.live_interval_s, self.check
         )
         self.desk = RecalibrationDesk(service, config)
+        self.metrics = CellMetrics(service)  # /metrics (Prometheus); its own registry
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
         self.max_upload = int(web.max_upload_mb * 1024 * 1024)
@@ -423,6 +425,12 @@ class ScreenApp:
         log.info("screen: %s %s accepted", command.value, recipe_id)
         return JSONResponse({"ok": True, "command": command.value, "recipe": recipe_id})
 
+    async def metrics_page(self, request: Request) -> Response:
+        """Prometheus text exposition; the screen's access rule (basic auth checked off the event loop)."""
+        if refused := await run_in_threadpool(metrics_refused, request, self.access):
+            return refused
+        return await run_in_threadpool(metrics_response, self.metrics)
+
     @staticmethod
     async def _read_body(
         request: Request, limit: int, refuse: Callable[..., JSONResponse] = _error
@@ -458,6 +466,7 @@ class ScreenApp:
             Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
             Route("/api/calibration/{kind}", self.calibration_picture),
             *self.history.routes(),
+            Route("/metrics", self.metrics_page),
         ]
 
 
@@ -472,9 +481,11 @@ def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, acces
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
         screen.hub.start(asyncio.get_running_loop())
+        screen.metrics.start()
         try:
             yield
         finally:
+            screen.metrics.close()
             screen.hub.close()
 
     app = Starlette(routes=screen.routes(), lifespan=lifespan)

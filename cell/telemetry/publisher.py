@@ -1,0 +1,396 @@
+"""The cell as a Sparkplug B 3.0 edge node on the plant's MQTT broker (paho-mqtt).
+
+One edge node (`edge_node_id`, this PC) with one device (`device_id`, the cell) in a group
+(`group_id`). On every MQTT session: the NDEATH is the connection's Will (QoS 1, with the
+session's bdSeq: 0 for the first CONNECT, +1 for each new one, 255 wraps to 0), the node
+subscribes to its NCMD (and, with commands on, its device's DCMD) topic, then publishes NBIRTH
+(seq 0, bdSeq, `Node Control/Rebirth` false) and DBIRTH (seq 1, every device metric with its
+type and current value). After that each change goes out as DDATA with seq +1 (wrapping at
+255): each finished pick as it happens, and what the service's snapshot shows (state,
+counters, rate, alarm, calibration) whenever it changes. An NCMD `Node Control/Rebirth` = true
+publishes the births again (same bdSeq: same session). Stopping publishes NDEATH, then
+disconnects.
+
+Off the control thread: the publisher is a subscriber of the event bus (its own thread, its
+own bounded queue); paho's network thread does the sending and reconnects with exponential
+backoff. While the broker is away updates are dropped and counted (the history store keeps
+every event; the next births carry the current values), and nothing waits: the picks go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import ssl
+import threading
+from pathlib import Path
+from typing import Any, Protocol, cast
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+
+from cell.errors import ConfigError
+from cell.eventbus import EventBus, Subscription
+from cell.events import (
+    AlarmCleared,
+    AlarmRaised,
+    CalibrationInstalled,
+    Event,
+    Interface,
+    JobEnded,
+    JobStarted,
+    Origin,
+    PartFailed,
+    PickVerified,
+    Role,
+    SnapshotChanged,
+    StateChanged,
+    VisionStateChanged,
+)
+from cell.service.api import Command, CommandRefused, CommandResult, Snapshot
+from cell.service.ledger import PickRecords
+from cell.telemetry import metrics as M
+from cell.telemetry.config import MqttConfig
+from cell.telemetry.sparkplug import Metric, Topics, decode, next_seq, now_ms, payload, value_of
+
+log = logging.getLogger(__name__)
+
+KINDS = (
+    SnapshotChanged,
+    PickVerified,
+    PartFailed,
+    StateChanged,
+    VisionStateChanged,
+    JobStarted,
+    JobEnded,
+    AlarmRaised,
+    AlarmCleared,
+    CalibrationInstalled,
+)
+WARNING_KEY = "telemetry-mqtt"
+_CLOSE_WAIT_S = 3.0
+
+
+class ServiceView(Protocol):
+    """What the publisher needs of the line service (cell.service.api.LineServiceAPI has it)."""
+
+    def snapshot(self) -> Snapshot: ...
+
+    def command(self, command: Command, origin: Origin = ..., request: Any = None) -> CommandResult: ...
+
+    def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None: ...
+
+    def clear_warning(self, key: str) -> None: ...
+
+
+def password_from_env(cfg: MqttConfig, environ: dict[str, str]) -> str | None:
+    """The broker password, read from the environment variable the config names (never from the file)."""
+    if cfg.password_env is None:
+        return None
+    password = environ.get(cfg.password_env)
+    if not password:
+        raise ConfigError(
+            f"telemetry.mqtt.password_env: the environment variable {cfg.password_env} is not set or empty",
+            hint=f"export {cfg.password_env} with the broker password for user {cfg.user!r}, or remove "
+            "telemetry.mqtt.user and password_env",
+        )
+    return password
+
+
+def certificate_name(path: Path | None) -> str:
+    """The common name of this cell's TLS client certificate (the broker's user for it), else 'tls-client'."""
+    if path is None:
+        return ""
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        return str(names[0].value) if names else "tls-client"
+    except (OSError, ValueError, ImportError):
+        return "tls-client"
+
+
+class SparkplugPublisher:
+    """Sparkplug B edge node over paho-mqtt; `start()` after the service exists, `close()` after it stopped."""
+
+    def __init__(self, cfg: MqttConfig, service: ServiceView, password: str | None = None):
+        self.cfg, self.service = cfg, service
+        self.topics = Topics(cfg.group_id, cfg.edge_node_id, cfg.device_id)
+        self.commands = cfg.commands
+        self._lock = threading.RLock()  # seq, the births and every publish, in order
+        self._counts = threading.Lock()
+        self.bd_seq = 0  # the bdSeq of the Will registered for the next (or current) CONNECT
+        self.session_bd_seq: int | None = None  # the bdSeq of the session now up
+        self._seq = 0
+        self.born = False
+        self.dropped = 0
+        self.published = 0
+        self.births = 0
+        self._unsent = 0
+        self._values: dict[str, Any] = {**M.NO_PICK, **(M.NO_COMMAND if self.commands else {})}
+        self._records = PickRecords()
+        self._cycle: dict[str, float] = {}
+        self._closing = False
+        self._refused = False
+        self._sub: Subscription | None = None
+        self.client = self._client(password)
+        self._user = cfg.user or certificate_name(cfg.client_cert_file)  # who the broker knows this cell as
+
+    # ---- the MQTT client --------------------------------------------------------------------
+    def _client(self, password: str | None) -> mqtt.Client:
+        cfg = self.cfg
+        client = mqtt.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=f"{cfg.group_id}:{cfg.edge_node_id}",
+            clean_session=True,  # Sparkplug: always a clean session
+            protocol=mqtt.MQTTv311,
+        )
+        if cfg.user is not None:
+            client.username_pw_set(cfg.user, password)
+        if cfg.tls:
+            certfile = str(cfg.client_cert_file) if cfg.client_cert_file else None
+            keyfile = str(cfg.client_key_file) if cfg.client_key_file else None
+            try:
+                client.tls_set(
+                    ca_certs=str(cfg.ca_file) if cfg.ca_file else None,
+                    certfile=certfile,
+                    keyfile=keyfile,
+                    cert_reqs=ssl.CERT_REQUIRED,
+                )
+            except (OSError, ssl.SSLError, ValueError) as e:
+                raise ConfigError(
+                    f"telemetry.mqtt: cannot load the TLS files: {e}",
+                    hint="check ca_file, client_cert_file and client_key_file (PEM, readable)",
+                ) from None
+        client.reconnect_delay_set(min_delay=max(1, round(cfg.reconnect_min_s)), max_delay=round(cfg.reconnect_max_s))
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_message = self._on_message
+        client.on_connect_fail = self._on_connect_fail
+        client.on_publish = self._on_publish
+        self._set_will(client)
+        return client
+
+    def _set_will(self, client: mqtt.Client) -> None:
+        death = payload([Metric(M.BD_SEQ, M.D.INT64, self.bd_seq)], seq=None, birth=True)
+        client.will_set(self.topics.node("NDEATH"), death, qos=1, retain=False)
+
+    # ---- life -------------------------------------------------------------------------------
+    def start(self, bus: EventBus) -> None:
+        self._sub = bus.subscribe("telemetry-mqtt", self.handle, kinds=KINDS, maxsize=self.cfg.queue_max)
+        self.client.connect_async(self.cfg.host, self.cfg.port, keepalive=self.cfg.keepalive_s)
+        self.client.loop_start()
+        log.info(
+            "telemetry: Sparkplug B edge node %s/%s/%s -> %s",
+            self.cfg.group_id,
+            self.cfg.edge_node_id,
+            self.cfg.device_id,
+            self.cfg.url,
+        )
+
+    def close(self, bus: EventBus | None = None) -> None:
+        """Publish what is queued, then NDEATH (an intentional disconnect), then disconnect."""
+        if self._sub is not None:
+            if bus is not None:
+                bus.unsubscribe(self._sub, _CLOSE_WAIT_S)
+            else:
+                self._sub.close(_CLOSE_WAIT_S)
+        with self._lock:
+            self._closing = True
+            info = None
+            if self.born:
+                death = payload([Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq)], seq=None, birth=True)
+                info = self.client.publish(self.topics.node("NDEATH"), death, qos=1, retain=False)
+            self.born = False
+        if info is not None and info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
+            with contextlib.suppress(RuntimeError, ValueError):
+                info.wait_for_publish(_CLOSE_WAIT_S)
+        self.client.disconnect()
+        self.client.loop_stop()
+        log.info("telemetry: stopped (%d published, %d dropped)", self.published, self.dropped)
+
+    # ---- paho's thread: session, births, commands ------------------------------------------------
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        if reason.is_failure:
+            self._refused = True
+            log.error("telemetry: the broker %s refused the connection: %s", self.cfg.url, reason)
+            self._warn(f"the plant broker {self.cfg.url} refused the connection: {reason}")
+            return
+        self._refused = False
+        with self._counts:
+            self.dropped += self._unsent  # what the last session never sent
+            self._unsent = 0
+        client.subscribe(self.topics.node("NCMD"), qos=1)
+        if self.commands:
+            client.subscribe(self.topics.device("DCMD"), qos=1)
+        with self._lock:
+            self.session_bd_seq = self.bd_seq
+            self._birth()
+        log.info("telemetry: connected to %s (bdSeq %d)", self.cfg.url, self.session_bd_seq)
+        self._clear_warning()
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        with self._lock:
+            self.born = False
+            self.bd_seq = next_seq(self.bd_seq)  # the next CONNECT is a new session
+            self._set_will(client)
+            closing = self._closing
+        if not closing and not self._refused:
+            log.warning("telemetry: lost the broker %s (%s); reconnecting", self.cfg.url, reason)
+            self._warn(f"the plant broker {self.cfg.url} is unreachable: telemetry is not being published")
+
+    def _on_connect_fail(self, client: mqtt.Client, userdata: Any) -> None:
+        log.debug("telemetry: cannot reach %s; retrying", self.cfg.url)
+        self._warn(f"the plant broker {self.cfg.url} is unreachable: telemetry is not being published")
+
+    def _on_message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        try:
+            received = decode(bytes(message.payload))
+        except Exception as e:  # anything on our topics that is not a Sparkplug payload
+            log.warning("telemetry: %s: not a Sparkplug B payload (%s); ignored", message.topic, e)
+            return
+        if message.topic == self.topics.node("NCMD"):
+            if any(m.name == M.REBIRTH and value_of(m, M.D.BOOLEAN) is True for m in received.metrics):
+                log.info("telemetry: rebirth requested")
+                with self._lock:
+                    self._birth()
+        elif message.topic == self.topics.device("DCMD") and self.commands:
+            for m in received.metrics:
+                if m.name in M.MQTT_COMMANDS and value_of(m, M.D.BOOLEAN) is True:
+                    self._command(M.MQTT_COMMANDS[m.name])
+
+    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any, properties: Any) -> None:
+        with self._counts:
+            self._unsent = max(self._unsent - 1, 0)
+
+    def _command(self, command: Command) -> None:
+        """A DCMD through the one command table, as any interface; the answer goes back as DDATA."""
+        origin = Origin(
+            Interface.MQTT,
+            self._user,
+            Role(self.cfg.command_role),
+            f"{self.cfg.host}:{self.cfg.port}",
+        )
+        result: dict[str, str | bool] = {"Command/Last Name": command.value, "Command/Last Job Id": ""}
+        try:
+            done = self.service.command(command, origin)
+            result.update({"Command/Last Accepted": True, "Command/Last Refusal": "", "Command/Last Message": ""})
+            result["Command/Last Job Id"] = done.job_id or ""
+        except CommandRefused as e:
+            result.update(
+                {"Command/Last Accepted": False, "Command/Last Refusal": e.reason.value, "Command/Last Message": str(e)}
+            )
+        with self._lock:
+            self._data(result, force=True)
+
+    # ---- births and data (under the lock) ------------------------------------------------------------
+    def _birth(self) -> None:
+        """NBIRTH (seq 0) and DBIRTH (seq 1) with every metric's current value; DATA may follow."""
+        self.born = False
+        self._values.update(M.snapshot_values(self.service.snapshot()))
+        node = [
+            Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq),
+            Metric(M.REBIRTH, M.D.BOOLEAN, False),
+            Metric(M.DROPPED, M.D.UINT64, self.dropped),
+        ]
+        self._seq = 0
+        if not self._send(self.topics.node("NBIRTH"), node, birth=True):
+            return
+        specs = M.device_specs(self.commands)
+        device = [Metric(s.name, s.dtype, self._values.get(s.name)) for s in specs]
+        if self._send(self.topics.device("DBIRTH"), device, birth=True):
+            self.born = True
+            self.births += 1
+
+    def _data(self, values: dict[str, Any], force: bool = False) -> None:
+        """DDATA with the values that changed (all given ones with `force`)."""
+        changed = {k: v for k, v in values.items() if force or self._values.get(k, _UNSET) != v}
+        self._values.update(values)
+        if not changed:
+            return
+        if not self.born:
+            with self._counts:
+                self.dropped += 1
+            return
+        types = {s.name: s.dtype for s in M.device_specs(self.commands)}
+        self._send(self.topics.device("DDATA"), [Metric(k, types[k], v) for k, v in changed.items()], birth=False)
+
+    def _send(self, topic: str, metrics: list[Metric], birth: bool) -> bool:
+        """Publish at QoS 0, not retained (Sparkplug's rule for births and data); seq +1 when handed over."""
+        with self._counts:
+            if self._unsent >= self.cfg.unsent_max:
+                self.dropped += 1
+                return False
+        stamp = now_ms()
+        stamped = [Metric(m.name, m.dtype, m.value, stamp) for m in metrics]
+        info = self.client.publish(topic, payload(stamped, self._seq, birth=birth, timestamp_ms=stamp), qos=0)
+        if info.rc != MQTTErrorCode.MQTT_ERR_SUCCESS:
+            with self._counts:
+                self.dropped += 1
+            return False
+        with self._counts:
+            self._unsent += 1
+            self.published += 1
+        self._seq = next_seq(self._seq)
+        return True
+
+    # ---- the bus subscriber's thread -------------------------------------------------------------
+    def handle(self, event: Event) -> None:
+        if isinstance(event, PickVerified):
+            self._cycle[event.pick_id] = event.cycle_ms
+        record = self._records.of(event)
+        if record is not None:
+            cycle = self._cycle.pop(record.pick_id, None) if record.outcome != "failed" else None
+            with self._lock:
+                self._data(M.pick_values(record, cycle), force=True)  # every pick, even one like the last
+            return
+        if isinstance(event, StateChanged) and not self.born:
+            return  # the runner's steps while the broker is away: the next birth reads the snapshot again
+        snapshot_values = M.snapshot_values(self.service.snapshot())
+        with self._lock:
+            self._data(snapshot_values)
+
+    # ---- the service's warning while the broker is away ---------------------------------------------
+    def _warn(self, reason: str) -> None:
+        if self._closing:
+            return
+        with contextlib.suppress(Exception):  # the warning is for the operator; it must not break the client
+            self.service.raise_warning(
+                WARNING_KEY,
+                reason,
+                "the cell goes on picking; check the broker and the network (telemetry.mqtt.url), "
+                "the plant database still records everything",
+                "telemetry",
+            )
+
+    def _clear_warning(self) -> None:
+        with contextlib.suppress(Exception):
+            self.service.clear_warning(WARNING_KEY)
+
+    def stats(self) -> dict[str, int]:
+        with self._counts:
+            return {"published": self.published, "dropped": self.dropped, "births": self.births}
+
+
+_UNSET = object()
+
+
+def attach_mqtt(
+    cfg: MqttConfig,
+    bus: EventBus,
+    resources: contextlib.ExitStack,
+    hooks: object,
+    environ: dict[str, str] | None = None,
+) -> SparkplugPublisher | None:
+    """The publisher for `run-cell serve` (hooks = the line service), closed with `resources`."""
+    if not all(callable(getattr(hooks, name, None)) for name in ("snapshot", "command")):
+        log.warning("telemetry.mqtt is published by `run-cell serve` only; this run is not published")
+        return None
+    password = password_from_env(cfg, dict(os.environ if environ is None else environ))
+    publisher = SparkplugPublisher(cfg, cast(ServiceView, hooks), password)  # its methods checked just above
+    publisher.start(bus)
+    resources.callback(publisher.close, bus)
+    return publisher
