@@ -198,3 +198,37 @@ def model_from_dict(name: str, d: dict):
     if name == "camera":
         return CameraMap.from_dict(d)
     raise ValueError(f"unknown model {name!r}")
+
+
+def camera_height_sd_mm(camera: CameraModel, pixels: np.ndarray, table_mm: np.ndarray) -> float:
+    """Standard deviation of the fitted camera's height above the table, from the fit's own
+    residuals and Jacobian (focal length, k1, k2, p1, p2 and pose free, as fit_camera fits them).
+
+    A plate seen nearly straight on cannot tell a near camera with a short lens from a far one
+    with a long lens (only the tilt's keystone separates them): then this is large, and the
+    fitted height means little.
+    """
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    obj = np.column_stack([np.asarray(table_mm, dtype=np.float64).reshape(-1, 2), np.zeros(len(pixels))])
+    projected, jac = cv2.projectPoints(obj, camera.rvec, camera.tvec, camera.camera_matrix, camera.dist_coeffs)
+    J = np.hstack([jac[:, :6], jac[:, 6:7] + jac[:, 7:8], jac[:, 10:14]])  # pose, f, k1 k2 p1 p2
+    dof = J.shape[0] - J.shape[1]
+    if dof <= 0:
+        return float("inf")
+    variance = float(np.sum((projected.reshape(-1, 2) - pixels) ** 2)) / dof
+    norms = np.maximum(np.linalg.norm(J, axis=0), 1e-12)
+    Jn = J / norms
+    cov = np.linalg.pinv(Jn.T @ Jn, rcond=1e-12) * variance / np.outer(norms, norms)
+    grad = np.zeros(J.shape[1])
+    for k in range(6):
+        step = 1e-6 * max(1.0, abs(float(np.r_[camera.rvec, camera.tvec][k])))
+        params = np.r_[camera.rvec, camera.tvec]
+        params[k] += step
+        grad[k] = (_height(params) - _height(np.r_[camera.rvec, camera.tvec])) / step
+    return float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+
+
+def _height(pose: np.ndarray) -> float:
+    """The camera's distance from the table plane for a pose (rvec, tvec)."""
+    R = cv2.Rodrigues(pose[:3])[0]
+    return abs(float((-R.T @ pose[3:])[2]))

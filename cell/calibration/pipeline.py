@@ -12,7 +12,8 @@ import numpy as np
 
 from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
 from cell.calibration.lattice import Numbering, number_lattice
-from cell.calibration.models import fit_camera, fit_model, monomial_exponents
+from cell.calibration.models import camera_height_sd_mm, fit_camera, fit_model, monomial_exponents
+from cell.calibration.roundness import PitchRatio, measure_pitch_ratio
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
@@ -55,6 +56,8 @@ class CalibrationResult:
     chosen: ModelScore
     why: str
     timings_ms: dict
+    pitch_ratio: PitchRatio | None = None  # the configured pitch ratio as the circles see it
+    camera_height_sd_mm: float = 0.0  # how well the plate pins down the fitted camera's height
 
 
 def point_numbers(col_row: np.ndarray, plate: PlateConfig) -> np.ndarray:
@@ -279,6 +282,10 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
     camera = final.camera if chosen.name == "camera" else fit_camera(pts.pixel, pts.table_mm, (w, h))
     t2 = time.perf_counter()
     plate = config.plate
+    col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
+    pitch_ratio = measure_pitch_ratio(to_gray(image), pts.pixel, col_row, plate)
+    height_sd = camera_height_sd_mm(camera, pts.pixel, pts.table_mm)
+    t3 = time.perf_counter()
     cal = Calibration(
         model_name=chosen.name,
         model=final,
@@ -299,5 +306,10 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
         statistics={"fit": chosen.fit.to_dict(), "cross_validated": chosen.cv.to_dict(), "why": why},
     )
-    timings = {"detect_number_ms": 1e3 * (t1 - t0), "fit_cv_ms": 1e3 * (t2 - t1), "total_ms": 1e3 * (t2 - t0)}
-    return CalibrationResult(cal, pts, final(pts.pixel), scores, chosen, why, timings)
+    timings = {
+        "detect_number_ms": 1e3 * (t1 - t0),
+        "fit_cv_ms": 1e3 * (t2 - t1),
+        "checks_ms": 1e3 * (t3 - t2),
+        "total_ms": 1e3 * (t3 - t0),
+    }
+    return CalibrationResult(cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, height_sd)

@@ -55,7 +55,7 @@ def refine_centres(
     ring = np.maximum(3.0, 0.15 * d)
     radius = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 1], 1e-6, None))
     half = int(np.ceil(np.nanmax(radius + rim + ring) + 1.5))
-    win = _Windows(gray, c, half)
+    win = Windows(gray, c, half)
     inv = np.linalg.inv(4.0 * cov + 1e-6 * np.eye(2))
     r_min = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 0], 1e-6, None))
     r2 = win.quadratic(win.offset, inv)
@@ -72,7 +72,7 @@ def refine_centres(
     return centre, 4.0 * det**0.25, ok
 
 
-class _Windows:
+class Windows:
     """Square windows of one size around each centre, flattened: grey levels (N, P) and the shared
     grid's monomials (P, 6), x and y relative to the window's middle pixel."""
 
@@ -153,7 +153,7 @@ def _shape(image, centre, d, err):
     """Centre and covariance of each circle's pixels darker than half its depth (a disc window)."""
     ring = np.maximum(2.0, 0.15 * d)
     r_in = 0.6 * d + np.maximum(1.5, 0.1 * d) + err
-    win = _Windows(image, centre, int(np.ceil(np.nanmax(r_in + ring) + 1)))
+    win = Windows(image, centre, int(np.ceil(np.nanmax(r_in + ring) + 1)))
     r2 = win.quadratic(win.offset, np.eye(2)[None] / (r_in**2)[:, None, None])
     w, good = win.darkness(r2 <= 1.0, (r2 > 1.0) & (r2 <= ((1.0 + ring / r_in) ** 2)[:, None]), plane=False)
     dark = (w > 0.5 * w.max(axis=1, keepdims=True)).astype(np.float32)
