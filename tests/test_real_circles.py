@@ -23,8 +23,6 @@ CIRCLES = DATA / "circles-opencv"
 IMAGES = [f"opencv_circles{i:02d}.png" for i in range(1, 8)]
 CONFIG = CellConfig(plate=PlateConfig(columns=7, rows=7, pitch_x_mm=10, pitch_y_mm=10, diameter_mm=5))
 PHOTOMETRIC = ["noise", "blur", "glare", "uneven light", "low contrast", "noise+blur+glare"]
-# Photometric damage on top of a geometric variant: the same seed draws the same geometry first.
-ON_GEOMETRIC = {"perspective+glare": "perspective"}
 TOLERANCE_PX = 0.2
 
 
@@ -79,18 +77,10 @@ def test_photometric_variant(name, kind):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", [k for k in VARIANTS if k not in PHOTOMETRIC and k not in ON_GEOMETRIC])
+@pytest.mark.parametrize("kind", [k for k in VARIANTS if k not in PHOTOMETRIC])
 @pytest.mark.parametrize("name", IMAGES)
 def test_geometric_variant(name, kind):
     check_against_opencv(variant(kind, photo(name), seed=IMAGES.index(name)))
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("kind", list(ON_GEOMETRIC))
-@pytest.mark.parametrize("name", IMAGES)
-def test_photometric_on_geometric_variant(name, kind):
-    seed = IMAGES.index(name)
-    check_against_opencv(variant(kind, photo(name), seed), variant(ON_GEOMETRIC[kind], photo(name), seed))
 
 
 def test_a_dot_that_is_not_there_is_reported_missing():

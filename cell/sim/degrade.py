@@ -111,7 +111,6 @@ VARIANTS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] = {
     "crop edges": crop_edges,
     "perspective": perspective,
     "noise+blur+glare": lambda g, rng: noise(glare(blur(g, rng), rng), rng),
-    "perspective+glare": lambda g, rng: glare(perspective(g, rng), rng),
 }
 
 
