@@ -110,6 +110,16 @@ class CalibrationConfig(Strict):
     camera_height_max_mm: float = Field(
         3000.0, gt=0, description="a fitted camera surely farther from the table (3 standard deviations) is refused"
     )
+    camera_height_mm: float | None = Field(
+        None,
+        gt=0,
+        description="the camera's height above the table as installed (the lens's centre, measured), or None: "
+        "the plate's fit alone. Seen nearly straight on, one plate image cannot tell a near camera with a short "
+        "lens from a far one with a long lens; the part-height correction needs the height",
+    )
+    camera_height_sd_mm: float = Field(
+        5.0, gt=0, description="how well camera_height_mm is known (one standard deviation)"
+    )
     max_scale_change_pct: float = Field(
         2.0,
         gt=0,

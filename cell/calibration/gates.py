@@ -37,16 +37,24 @@ def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, 
             f"or X and Y swapped?"
         )
     centre = result.calibration.camera_center_table_mm
-    if centre is None or not np.all(np.isfinite(centre)):
+    if centre is None or not np.all(np.isfinite(centre)) or result.plate_height_mm is None:
         problems.append("no finite camera pose could be fitted")
         return problems
-    height, sd = float(centre[2]), 3.0 * result.camera_height_sd_mm
+    height, sd = result.plate_height_mm, 3.0 * result.plate_height_sd_mm
     if height + sd < limits.camera_height_min_mm or height - sd > limits.camera_height_max_mm:
         problems.append(
-            f"the fitted camera is {height:.0f} +- {sd:.0f} mm (3 standard deviations) above the table, outside "
+            f"the plate puts the camera {height:.0f} +- {sd:.0f} mm (3 standard deviations) above the table, outside "
             f"calibration.camera_height_min_mm {limits.camera_height_min_mm:g} .. camera_height_max_mm "
             f"{limits.camera_height_max_mm:g} (a plate of another size, both pitches wrong by the same factor?)"
         )
+    if limits.camera_height_mm is not None:
+        allowed = 3.0 * math.hypot(result.plate_height_sd_mm, limits.camera_height_sd_mm)
+        if abs(height - limits.camera_height_mm) > allowed:
+            problems.append(
+                f"the plate puts the camera {height:.0f} mm above the table, calibration.camera_height_mm says "
+                f"{limits.camera_height_mm:g} mm (more than {allowed:.0f} mm apart, 3 standard deviations): both "
+                f"pitches wrong by the same factor (that looks like another height), or the camera moved?"
+            )
     return problems
 
 

@@ -12,9 +12,15 @@ import numpy as np
 
 from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
 from cell.calibration.lattice import Numbering, number_lattice
-from cell.calibration.models import camera_height_sd_mm, fit_camera, fit_model, monomial_exponents
+from cell.calibration.models import (
+    CameraMap,
+    fit_camera_pose,
+    fit_model,
+    monomial_exponents,
+)
 from cell.calibration.roundness import PitchRatio, measure_pitch_ratio
 from cell.calibration.store import Calibration
+from cell.camera_model import CameraModel
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
 
@@ -57,7 +63,8 @@ class CalibrationResult:
     why: str
     timings_ms: dict
     pitch_ratio: PitchRatio | None = None  # the configured pitch ratio as the circles see it
-    camera_height_sd_mm: float = 0.0  # how well the plate pins down the fitted camera's height
+    plate_height_mm: float | None = None  # the camera's height above the table from the plate alone
+    plate_height_sd_mm: float = 0.0  # how well the plate pins it down (one standard deviation)
 
 
 def point_numbers(col_row: np.ndarray, plate: PlateConfig) -> np.ndarray:
@@ -278,13 +285,19 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
     why = f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv.rms_mm:.4f} mm" + (
         f" (others: {others} mm)" if others else " (the only model asked for)"
     )
-    final = fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
-    camera = final.camera if chosen.name == "camera" else fit_camera(pts.pixel, pts.table_mm, (w, h))
+    camera, plate_sd = fit_camera_pose(pts.pixel, pts.table_mm, (w, h))
+    plate_height = float(camera.center_table_mm[2])
+    # The camera model's best fit is the profiled one (a free fit stops anywhere along its valley).
+    final = (
+        CameraMap(camera)
+        if chosen.name == "camera"
+        else fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
+    )
+    camera = _with_configured_height(camera, plate_sd, pts, (w, h), config.calibration)
     t2 = time.perf_counter()
     plate = config.plate
     col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
     pitch_ratio = measure_pitch_ratio(to_gray(image), pts.pixel, col_row, plate)
-    height_sd = camera_height_sd_mm(camera, pts.pixel, pts.table_mm)
     t3 = time.perf_counter()
     cal = Calibration(
         model_name=chosen.name,
@@ -312,4 +325,23 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         "checks_ms": 1e3 * (t3 - t2),
         "total_ms": 1e3 * (t3 - t0),
     }
-    return CalibrationResult(cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, height_sd)
+    return CalibrationResult(
+        cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, plate_height, plate_sd
+    )
+
+
+def _with_configured_height(camera, plate_sd: float, pts: PlatePoints, size, limits) -> CameraModel:
+    """The camera pose at the height the plate and the configured height agree on, each weighed by
+    how well it is known; the plate's own pose where no height is configured.
+
+    The plate fixes the scale (height over focal length) well even where it cannot fix the
+    height: so the focal length is moved with the height, and the pose refitted around it.
+    """
+    if limits.camera_height_mm is None:
+        return camera
+    fitted = float(camera.center_table_mm[2])
+    w_plate = 1.0 / max(plate_sd, 1e-6) ** 2 if np.isfinite(plate_sd) else 0.0
+    w_config = 1.0 / limits.camera_height_sd_mm**2
+    height = (w_plate * fitted + w_config * limits.camera_height_mm) / (w_plate + w_config)
+    focal = float(camera.camera_matrix[0, 0]) * height / fitted
+    return fit_camera_pose(pts.pixel, pts.table_mm, size, focal_px=focal)[0]

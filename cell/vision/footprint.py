@@ -33,6 +33,8 @@ class BoltPose:
     angle_deg: float  # axis direction, 0-180, table frame
     shaft_mm: float
     length_mm: float  # overall, head included
+    head_length_mm: float  # along the axis
+    head_across_flats_mm: float
 
 
 def _crossing(pos: np.ndarray, w: np.ndarray, level: float, i: int, j: int) -> float:
@@ -102,4 +104,6 @@ def bolt_pose(
         angle_deg=math.degrees(math.atan2(axis[1], axis[0])) % 180.0,
         shaft_mm=d,
         length_mm=k + L,
+        head_length_mm=k,
+        head_across_flats_mm=across_flats,
     )

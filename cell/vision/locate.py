@@ -18,8 +18,9 @@ from cell.errors import InputError
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, measure, width_profile
-from cell.vision.footprint import bolt_pose
+from cell.vision.footprint import BoltPose, bolt_pose
 from cell.vision.segment import segment, to_gray
+from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
 
@@ -155,8 +156,10 @@ def _place(
     world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof = verdict.profile
-    if verdict.cls == BOLT and verdict.head_width_px is not None:
-        fine = subpixel_outline(*seen, cfg.segment.threshold_fraction)
+    bolt_on_side = verdict.cls == BOLT and verdict.head_width_px is not None
+    needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
+    fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
+    if bolt_on_side:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
@@ -169,6 +172,11 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
+        if correct and fine is not None:
+            # The shadow's centroid places the bolt; its head and grasp point move with it.
+            outline_mm = mapper.pixel_to_table_mm(fine)
+            shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
+            world, head, grasp = world + shift, head + shift, grasp + shift
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
     elif verdict.cls == BOLT:  # paper preset: the centroid, and the axis end to end
         ends_px = np.array([prof.origin_px, prof.origin_px + prof.length_px * prof.axis_px])
@@ -177,6 +185,15 @@ def _place(
         angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
         head = ends[0]
     elif verdict.cls == NUT:
+        if correct and fine is not None:
+            outline_mm = mapper.pixel_to_table_mm(fine)
+            nut = nut_from_outline(
+                outline_mm,
+                verdict.size_mm["across_flats_mm"],
+                cfg.nut.thickness_per_across_flats,
+                mapper.camera.center_table_mm,
+            )
+            world = _from_shadow(nut, outline_mm, mapper, world)
         grasp = world
         jaw = feat.enclosing_diameter_px * scale + cfg.jaw_clearance_mm
     features = {
@@ -202,3 +219,24 @@ def _place(
         head_mm=None if head is None else (float(head[0]), float(head[1])),
         features=features,
     )
+
+
+def _from_shadow(shape: Nut | Bolt, outline_mm: np.ndarray, mapper, start_mm: np.ndarray) -> np.ndarray:
+    """The footprint centre whose shadow (silhouette.py) has the centroid of the outline on the table plane."""
+    _, measured = polygon_moments(outline_mm)
+    return footprint_centre(shape, measured, mapper.camera.center_table_mm, start_mm)
+
+
+def _bolt_shape(pose: BoltPose) -> Bolt:
+    return Bolt(
+        pose.head_across_flats_mm,
+        pose.head_length_mm,
+        pose.shaft_mm,
+        max(pose.length_mm - pose.head_length_mm, 0.1),
+        pose.angle_deg if np.dot(pose.grasp_mm - pose.head_mm, _unit(pose.angle_deg)) >= 0 else pose.angle_deg + 180,
+    )
+
+
+def _unit(angle_deg: float) -> np.ndarray:
+    a = math.radians(angle_deg)
+    return np.array([math.cos(a), math.sin(a)])
