@@ -69,10 +69,11 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
             continue
         scale = float(2**k)
         bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+        contrasty = cv2.compare(cv2.subtract(bright, img), min_contrast, cv2.CMP_GT)
         here = []
         for fraction in dark_fractions:
             labels, stats, centroids, keep = _level_blobs(
-                img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN
+                img, bright, contrasty, fraction, _D_MIN_FIRST if not seen else _D_MIN
             )
             centre = centroids[keep] * scale
             d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
@@ -90,15 +91,13 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
     return Candidates(centre, d, level, depth, levels)
 
 
-def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast: float, d_min: float):
+def _level_blobs(img: np.ndarray, bright: np.ndarray, contrasty: np.ndarray, fraction: float, d_min: float):
     """Labels, stats, centroids of the dark blobs at one level, and which of them are dots.
 
-    `bright`: the paper level around each pixel (a closing wider than the level's dots)."""
-    below = cv2.subtract(bright, img)
-    mask = (img < cv2.convertScaleAbs(bright, alpha=fraction)) & (below > contrast)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(
-        mask.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_BBDT
-    )
+    `bright`: the paper level around each pixel (a closing wider than the level's dots);
+    `contrasty`: 255 where a pixel is far enough below it."""
+    mask = cv2.bitwise_and(cv2.compare(img, cv2.convertScaleAbs(bright, alpha=fraction), cv2.CMP_LT), contrasty)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(mask, 8, cv2.CV_32S, cv2.CCL_BBDT)
     x, y, w, h, area = (stats[:, i] for i in range(5))
     d = np.sqrt(4 * area / np.pi)
     fill = area / np.maximum(w * h, 1)
@@ -123,4 +122,6 @@ def _unseen(centre, labels, kept, scale) -> np.ndarray:
     fine = centre / scale
     ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)
     iy = np.clip(np.round(fine[:, 1]).astype(int), 0, H - 1)
-    return ~np.isin(labels[iy, ix], kept)
+    on_kept = np.zeros(int(kept.max()) + 2 if kept.size else 1, bool)  # the last entry: any label beyond
+    on_kept[kept] = True
+    return ~on_kept[np.minimum(labels[iy, ix], len(on_kept) - 1)]

@@ -161,7 +161,7 @@ def _size_groups(
     of texture) first among them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
-    counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
+    counts = np.count_nonzero(np.abs(logd[:, None] - logd[None, :]) <= width, axis=1)
     groups, centres, used = [], [], np.zeros(len(logd), bool)
     for i in np.argsort(-counts, kind="stable"):
         if used[i] or len(groups) == tries:

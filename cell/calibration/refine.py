@@ -20,6 +20,8 @@ matrix product of the stacked windows with the grid's monomials 1, x, y, x2, xy,
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 _SATURATION = 0.7
@@ -72,6 +74,19 @@ def refine_centres(
     return centre, 4.0 * det**0.25, ok
 
 
+@functools.lru_cache(maxsize=32)
+def _grid(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The monomials 1, x, y, x2, xy, y2 over a (2 half + 1)^2 window, (P, 6) and transposed
+    (read-only: shared by every window of that size)."""
+    off = np.arange(-half, half + 1)
+    yy, xx = np.meshgrid(off, off, indexing="ij")
+    x, y = xx.ravel().astype(np.float32), yy.ravel().astype(np.float32)
+    basis = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    basis_t = np.ascontiguousarray(basis.T)
+    basis.flags.writeable = basis_t.flags.writeable = False
+    return basis, basis_t
+
+
 class Windows:
     """Square windows of one size around each centre, flattened: grey levels (N, P) and the shared
     grid's monomials (P, 6), x and y relative to the window's middle pixel."""
@@ -82,14 +97,17 @@ class Windows:
         self.middle = np.round(safe).astype(int)
         x0, y0 = self.middle[:, 0] - half, self.middle[:, 1] - half
         self.inside = (x0 >= 0) & (y0 >= 0) & (x0 + 2 * half < W) & (y0 + 2 * half < H)
-        off = np.arange(-half, half + 1)
-        ix = np.clip(self.middle[:, 0, None] + off[None, :], 0, W - 1)
-        iy = np.clip(self.middle[:, 1, None] + off[None, :], 0, H - 1)
-        self.grey = image[iy[:, :, None], ix[:, None, :]].reshape(len(safe), -1).astype(np.float32)
-        yy, xx = np.meshgrid(off, off, indexing="ij")
-        x, y = xx.ravel().astype(np.float32), yy.ravel().astype(np.float32)
-        self.basis = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])  # (P, 6)
-        self.basis_t = np.ascontiguousarray(self.basis.T)
+        size = 2 * half + 1
+        if size > min(H, W):  # no window fits: all outside, grey levels of a clipped one
+            off = np.arange(-half, half + 1)
+            ix = np.clip(self.middle[:, 0, None] + off[None, :], 0, W - 1)
+            iy = np.clip(self.middle[:, 1, None] + off[None, :], 0, H - 1)
+            grey = image[iy[:, :, None], ix[:, None, :]]
+        else:  # windows cut by the border are moved inside: they are not `inside`, nothing uses them
+            views = np.lib.stride_tricks.sliding_window_view(image, (size, size))
+            grey = views[np.clip(y0, 0, H - size), np.clip(x0, 0, W - size)]
+        self.grey = grey.reshape(len(safe), -1).astype(np.float32)
+        self.basis, self.basis_t = _grid(half)
         self.offset = safe - self.middle  # each centre in its window's coordinates
 
     def quadratic(self, centre: np.ndarray, inv: np.ndarray) -> np.ndarray:
