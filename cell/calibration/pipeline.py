@@ -26,6 +26,7 @@ from cell.errors import PlateNotFound
 
 log = logging.getLogger(__name__)
 
+_FINEST_COARSE_LEVEL = 2  # refinement never on a level coarser than this (a quarter resolution)
 CANDIDATES = [("quadratic", 2), ("homography", 0), ("polynomial", 3), ("polynomial", 4), ("camera", 0)]
 
 
@@ -104,14 +105,13 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
         raise PlateNotFound(f"found {len(cands)} round dark blobs: no plate in view")
     group, numbering = _number_by_size(cands, plate, det)
     idx, cr = numbering.index, numbering.col_row
-    centres, diam, ok = _refine(group, idx)
+    centres, diam, ok = _refine(group, idx, _lattice_diameter_px(group.centre_px[idx], cr, plate))
     unseen = [tuple(x) for x in cr[~ok]]
     if unseen:
         log.info("circles at (col, row) %s not measured: cut by the image border or no contrast", unseen)
     idx, cr, centres, diam = idx[ok], cr[ok], centres[ok], diam[ok]
     # Size check: each circle against the size the local lattice pitch predicts.
-    pitch_px = _local_pitch_px(centres, cr, plate)
-    expected_d = pitch_px * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
+    expected_d = _lattice_diameter_px(centres, cr, plate)
     size_ok = (diam > det.min_diameter_ratio * expected_d) & (diam < det.max_diameter_ratio * expected_d)
     rejected = [tuple(x) for x in cr[~size_ok]]
     if rejected:
@@ -137,20 +137,29 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
     )
 
 
-def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _refine(group: Candidates, idx: np.ndarray, lattice_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refined centres and diameters (full-resolution px) of the numbered candidates.
 
-    Each is measured on the finest level where the circles are at most 32 px across (full
-    resolution for smaller ones): pyrDown's blur is symmetric, so it moves no centroid, and
-    larger windows would only cost time.
+    Each is measured on the finest level where the circles are at most 24 px across (full
+    resolution for smaller ones), but never coarser than a quarter resolution: pyrDown's blur is
+    symmetric, so it moves no centroid, and larger windows would only cost time; but a centre is
+    good to about 0.015 px of its level, which a coarser level would multiply. The size that decides is the larger of the blob's and
+    the one the lattice pitch predicts (`lattice_d`): a faint circle's blob is only its core.
     """
-    d = group.diameter_px[idx]
-    k = int(np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 16.0)), 0, len(group.pyramid) - 1))
+    d = np.maximum(group.diameter_px[idx], lattice_d)
+    k = int(
+        np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 12.0)), 0, min(_FINEST_COARSE_LEVEL, len(group.pyramid) - 1))
+    )
     s = 2.0**k
     half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
     coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)
     centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error, half_res)
     return centres * s, diam * s, ok
+
+
+def _lattice_diameter_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
+    """Each circle's diameter in pixels as the local lattice pitch predicts it."""
+    return _local_pitch_px(pixel, cr, plate) * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
 
 
 def _size_groups(
