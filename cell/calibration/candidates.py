@@ -80,11 +80,11 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
             ix, iy = np.round(centroids[keep]).astype(int).T
             depth = 1.0 - img[iy, ix] / np.maximum(bright[iy, ix], 1.0)
             for maps in (seen, here):  # the finer level's dots, then this level's first threshold
-                for labels_seen, kept, s in maps:
-                    unseen = _unseen(centre, labels_seen, kept, s)
+                for labels_seen, is_kept, s in maps:
+                    unseen = _unseen(centre, labels_seen, is_kept, s)
                     centre, d, depth = centre[unseen], d[unseen], depth[unseen]
             found.append((centre, d, np.full(len(d), k), depth))
-            here.append((labels, np.flatnonzero(keep), scale))
+            here.append((labels, keep, scale))
         seen = here
     centre = np.concatenate([f[0] for f in found]).reshape(-1, 2)
     d, level, depth = (np.concatenate([f[i] for f in found]) for i in (1, 2, 3))
@@ -108,20 +108,19 @@ def _level_blobs(img: np.ndarray, bright: np.ndarray, contrasty: np.ndarray, fra
     ok[0] = False  # the background
     # A dot wider than the window leaves a ring of dark pixels: its centre is not in the blob.
     idx = np.flatnonzero(ok)
-    cx = np.clip(np.round(centroids[idx, 0]).astype(int), 0, W - 1)
-    cy = np.clip(np.round(centroids[idx, 1]).astype(int), 0, H - 1)
+    cx = np.minimum(np.maximum(np.rint(centroids[idx, 0]).astype(int), 0), W - 1)
+    cy = np.minimum(np.maximum(np.rint(centroids[idx, 1]).astype(int), 0), H - 1)
     ok[idx[labels[cy, cx] != idx]] = False
     return labels, stats, centroids, ok
 
 
-def _unseen(centre, labels, kept, scale) -> np.ndarray:
-    """Which blobs do not lie on a dot already kept in `labels` (an image reduced `scale` times)."""
+def _unseen(centre, labels, is_kept, scale) -> np.ndarray:
+    """Which blobs do not lie on a dot already kept in `labels` (an image reduced `scale` times);
+    `is_kept`: per label of that map, whether it was kept."""
     if not len(centre):
         return np.zeros(0, bool)
     H, W = labels.shape
     fine = centre / scale
-    ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)
-    iy = np.clip(np.round(fine[:, 1]).astype(int), 0, H - 1)
-    on_kept = np.zeros(int(kept.max()) + 2 if kept.size else 1, bool)  # the last entry: any label beyond
-    on_kept[kept] = True
-    return ~on_kept[np.minimum(labels[iy, ix], len(on_kept) - 1)]
+    ix = np.minimum(np.maximum(np.rint(fine[:, 0]).astype(int), 0), W - 1)
+    iy = np.minimum(np.maximum(np.rint(fine[:, 1]).astype(int), 0), H - 1)
+    return ~is_kept[labels[iy, ix]]

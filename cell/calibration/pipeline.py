@@ -141,15 +141,15 @@ def _refine(group: Candidates, idx: np.ndarray, lattice_d: np.ndarray) -> tuple[
     """Refined centres and diameters (full-resolution px) of the numbered candidates.
 
     Each is measured on the finest level where the circles are at most 24 px across (full
-    resolution for smaller ones), but never coarser than a quarter resolution: pyrDown's blur is
-    symmetric, so it moves no centroid, and larger windows would only cost time; but a centre is
-    good to about 0.015 px of its level, which a coarser level would multiply. The size that decides is the larger of the blob's and
-    the one the lattice pitch predicts (`lattice_d`): a faint circle's blob is only its core.
+    resolution for smaller ones), but never coarser than a quarter resolution: pyrDown's blur
+    is symmetric, so it moves no centroid, and larger windows would only cost time; but a
+    centre is good to about 0.015 px of its level, which a coarser level would multiply. The
+    size that decides is the larger of the blob's and the one the lattice pitch predicts
+    (`lattice_d`): a faint circle's blob is only its core.
     """
     d = np.maximum(group.diameter_px[idx], lattice_d)
-    k = int(
-        np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 12.0)), 0, min(_FINEST_COARSE_LEVEL, len(group.pyramid) - 1))
-    )
+    k = min(max(int(np.floor(np.log2(max(float(np.median(d)), 1.0) / 12.0))), 0), _FINEST_COARSE_LEVEL)
+    k = min(k, len(group.pyramid) - 1)
     s = 2.0**k
     half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
     coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)

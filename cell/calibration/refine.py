@@ -47,7 +47,7 @@ def refine_centres(
     c, cov, ok = _shape_at(gray, half_res, np.asarray(centre_px, dtype=np.float64), d, err)
     # A candidate can be part of its circle (a faded half): where the shape fills the window,
     # measure it again in a window sized by what was seen.
-    seen_d = 4.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 1], 0.0, None))
+    seen_d = 4.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 1], 0.0))
     again = ok & (seen_d > 1.15 * d)
     if again.any():
         d = np.where(again, np.maximum(d, 1.2 * seen_d), d)
@@ -55,11 +55,12 @@ def refine_centres(
         c[again], cov[again], ok[again] = c2, cov2, ok2
     rim = np.maximum(1.5, 0.1 * d)
     ring = np.maximum(3.0, 0.15 * d)
-    radius = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 1], 1e-6, None))
+    eig = np.linalg.eigvalsh(cov)
+    radius = 2.0 * np.sqrt(np.maximum(eig[:, 1], 1e-6))
     half = int(np.ceil(np.nanmax(radius + rim + ring) + 1.5))
     win = Windows(gray, c, half)
     inv = np.linalg.inv(4.0 * cov + 1e-6 * np.eye(2))
-    r_min = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 0], 1e-6, None))
+    r_min = 2.0 * np.sqrt(np.maximum(eig[:, 0], 1e-6))
     r2 = win.quadratic(win.offset, inv)
     inner = r2 <= ((1.0 + rim / r_min) ** 2)[:, None]
     ring_px = ~inner & (r2 <= ((1.0 + (rim + ring) / r_min) ** 2)[:, None])
@@ -68,7 +69,7 @@ def refine_centres(
     # inside a faded print must not pull the centre.
     w = np.minimum(w, _SATURATION * w.max(axis=1, keepdims=True))
     centre, cov, total = win.moments(w)
-    det = np.clip(np.linalg.det(cov), 0.0, None)
+    det = np.maximum(np.linalg.det(cov), 0.0)
     shift = np.hypot(*(centre - c).T)
     ok &= win.inside & good & (total > 0) & np.isfinite(centre).all(axis=1) & (shift <= radius)
     return centre, 4.0 * det**0.25, ok
@@ -105,7 +106,7 @@ class Windows:
             grey = image[iy[:, :, None], ix[:, None, :]]
         else:  # windows cut by the border are moved inside: they are not `inside`, nothing uses them
             views = np.lib.stride_tricks.sliding_window_view(image, (size, size))
-            grey = views[np.clip(y0, 0, H - size), np.clip(x0, 0, W - size)]
+            grey = views[np.minimum(np.maximum(y0, 0), H - size), np.minimum(np.maximum(x0, 0), W - size)]
         self.grey = grey.reshape(len(safe), -1).astype(np.float32)
         self.basis, self.basis_t = _grid(half)
         self.offset = safe - self.middle  # each centre in its window's coordinates
