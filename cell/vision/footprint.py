@@ -84,12 +84,16 @@ def bolt_pose(
     head = (head_in + head_out) / 2
     camera = getattr(mapper, "camera", None)
     scale = table_mm_per_px
-    slope = 0.0
+    slope = across = 0.0
     if camera is not None and axis_height_mm > 0:
         c = camera.center_table_mm
         scale *= 1.0 - axis_height_mm / c[2]
-        slope = abs(float(np.dot((head - c[:2]) / (c[2] - axis_height_mm), axis)))
-    e, d = head_width_px * scale, shaft_width_px * scale
+        view = (head - c[:2]) / (c[2] - axis_height_mm)
+        slope = abs(float(np.dot(view, axis)))
+        across = abs(float(view[0] * axis[1] - view[1] * axis[0]))
+    # Seen at a slant across its axis the shaft's silhouette is wider by 1 / cos(slant): the rays
+    # graze the cylinder. The head's is not (a hexagon on a flat, slants under 30 degrees).
+    e, d = head_width_px * scale, shaft_width_px * scale / math.hypot(1.0, across)
     across_flats = head_across_flats_per_width * e
     stretch = across_flats / 2 * slope  # how far each end face tilts out along the axis
     k = max(float(np.dot(head_out - head_in, axis)) - 2 * stretch * (e - d) / e, 0.1)
