@@ -20,12 +20,12 @@ Only the camera centre enters, never the lens.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+_SWEEP_DEG = 12.0  # edges this close to the sweep's direction are the sweep's, not a side's
 _RING = 96  # points on a shaft's rim (as the renderer draws it)
 
 
@@ -40,7 +40,7 @@ def shadow(points_xyz: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
 def polygon_moments(poly: np.ndarray) -> tuple[float, np.ndarray]:
     """Area (positive) and area centroid of a simple polygon (N, 2)."""
     x, y = poly[:, 0], poly[:, 1]
-    xs, ys = np.roll(x, -1), np.roll(y, -1)
+    xs, ys = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))
     cross = x * ys - xs * y
     a = cross.sum() / 2
     if abs(a) < 1e-12:
@@ -124,7 +124,7 @@ def shadow_moments(shape: Shape, centre: np.ndarray, camera_centre: np.ndarray) 
 
 
 def footprint_centre(
-    shape: Shape, measured_mm: np.ndarray, camera_centre: np.ndarray, start_mm: np.ndarray | None = None, steps: int = 3
+    shape: Shape, measured_mm: np.ndarray, camera_centre: np.ndarray, start_mm: np.ndarray | None = None, steps: int = 2
 ) -> np.ndarray:
     """The footprint centre whose shadow's centroid is `measured_mm` (the outline's centroid on
     the table plane); `start_mm` a first guess (default: the measured centroid)."""
@@ -136,46 +136,25 @@ def footprint_centre(
 
 
 def nut_from_outline(outline_mm: np.ndarray, across_flats_mm: float, thickness_ratio: float, camera_centre) -> Nut:
-    """The nut whose shadow best covers this outline (on the table plane): the corner direction
-    first from the outline's sixth harmonic, then the one whose shadow overlaps the outline most
-    (the shadow's stretch skews the harmonic), the across flats from the area (which grows as
-    its square), the thickness `thickness_ratio` times that."""
+    """The nut whose shadow has this outline (on the table plane): the corner direction from the
+    outline's edges, the across flats from its area (which grows as the square), the thickness
+    `thickness_ratio` times that.
+
+    The shadow is the bottom hexagon swept to the top one: its edges run along the hexagon's six
+    sides, and two along the sweep (towards the camera's foot), which are left out. So the sides'
+    direction is the sixth harmonic of the edge directions weighed by length, the sweep's excepted.
+    """
     area, centre = polygon_moments(outline_mm)
-    z = (outline_mm[:, 0] - centre[0]) + 1j * (outline_mm[:, 1] - centre[1])
-    turn = np.angle(np.roll(z, -1) * np.conj(z))
-    corner = -math.degrees(float(np.angle(np.sum(np.abs(z) * np.exp(-6j * np.angle(z)) * turn)))) / 6
-    outline = _hull(outline_mm)
+    edges = np.diff(np.vstack([outline_mm, outline_mm[:1]]), axis=0)
+    length = np.hypot(edges[:, 0], edges[:, 1])
+    direction = np.arctan2(edges[:, 1], edges[:, 0])
+    sweep = math.atan2(centre[1] - camera_centre[1], centre[0] - camera_centre[0])
+    off_sweep = np.abs(np.angle(np.exp(2j * (direction - sweep)))) > np.deg2rad(2 * _SWEEP_DEG)
+    # A side runs at 120 degrees to the corner it leaves: modulo 60 the sides' and corners'
+    # directions are the same.
+    corner = math.degrees(float(np.angle(np.sum(length * off_sweep * np.exp(6j * direction))))) / 6
     af = across_flats_mm
-
-    def miss(corner_deg: float) -> float:
-        """Area of the outline and the shadow outside each other (the shadow placed on the outline's centroid)."""
-        nut = Nut(af, thickness_ratio * af, corner_deg)
-        hull = _hull(shadow(nut.solids(centre)[0], camera_centre))
-        hull += centre - polygon_moments(hull)[1]
-        origin = centre
-        both, _ = cv2.intersectConvexConvex((outline - origin).astype(np.float32), (hull - origin).astype(np.float32))
-        return area + polygon_moments(hull)[0] - 2 * both
-
     for _ in range(2):
         model, _ = shadow_moments(Nut(af, thickness_ratio * af, corner), centre, camera_centre)
         af *= math.sqrt(area / max(model, 1e-9))
-        corner = _golden_minimum(miss, corner - 10.0, corner + 10.0, 10)
-    model, _ = shadow_moments(Nut(af, thickness_ratio * af, corner), centre, camera_centre)
-    af *= math.sqrt(area / max(model, 1e-9))
     return Nut(af, thickness_ratio * af, corner)
-
-
-def _golden_minimum(f: Callable[[float], float], lo: float, hi: float, steps: int) -> float:
-    g = (math.sqrt(5) - 1) / 2
-    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    fa, fb = f(a), f(b)
-    for _ in range(steps):
-        if fa < fb:
-            hi, b, fb = b, a, fa
-            a = hi - g * (hi - lo)
-            fa = f(a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + g * (hi - lo)
-            fb = f(b)
-    return (a + b) / 2
