@@ -14,7 +14,15 @@ import numpy as np
 import pytest
 
 from cell.sim.parts import BOLTS_MM, NUTS_MM, PartSpec
-from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments, shadow
+from cell.vision.silhouette import (
+    Bolt,
+    Nut,
+    footprint_centre,
+    nut_from_outline,
+    polygon_moments,
+    shadow,
+    shadow_moments,
+)
 
 CAMERA_CENTRE = np.array([130.0, 90.0, 300.0])  # table mm: the camera 300 mm above (130, 90)
 
@@ -85,3 +93,37 @@ def test_bolt_centre_from_its_shadow(size, where, angle):
     measured = (a1 * c1 + a2 * c2 - a12 * c12) / (a1 + a2 - a12)
     centre = footprint_centre(bolt, measured, CAMERA_CENTRE, np.array(where) + (1.0, -1.0))
     assert np.hypot(*(centre - part.footprint_centre_mm)) < 0.005
+
+
+RASTER_CASES = [  # (bolt, camera centre): random ones, and one where OpenCV's intersection failed
+    *[(np.random.default_rng(seed), None) for seed in range(6)],
+    (PartSpec("bolt", "M8", 84.925, 98.25, 99.6887, 30.0), np.array([138.9, 96.7, 342.6])),
+]
+
+
+@pytest.mark.parametrize(("case", "camera_centre"), RASTER_CASES)
+def test_bolt_shadow_area_and_centroid_match_a_rasterised_union(case, camera_centre):
+    """The head's and the shaft's shadows share an edge where they join: their union's moments
+    must still be right (OpenCV's convex intersection returned the wrong polygon there)."""
+    import cv2
+
+    if isinstance(case, PartSpec):
+        part = case
+    else:
+        size = str(case.choice(list(BOLTS_MM)))
+        centre = CAMERA_CENTRE[:2] + case.uniform(-60, 60, 2)
+        part = PartSpec("bolt", size, *centre, float(case.uniform(0, 360)), float(case.choice([16, 25, 35])))
+    camera_centre = CAMERA_CENTRE if camera_centre is None else camera_centre
+    solids, _ = part.solids()
+    hulls = [cv2.convexHull(shadow(s, camera_centre).astype(np.float32)).reshape(-1, 2).astype(float) for s in solids]
+    area, centroid = shadow_moments(_vision_shape(part), np.array(part.footprint_centre_mm), camera_centre)
+    scale = 100.0  # raster px per mm
+    lo = np.vstack(hulls).min(axis=0) - 1
+    shape = tuple((np.ceil((np.vstack(hulls).max(axis=0) - lo + 1) * scale)).astype(int)[::-1])
+    mask = np.zeros(shape, np.uint8)
+    for h in hulls:
+        cv2.fillPoly(mask, [np.rint((h - lo) * scale * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+    m = cv2.moments(mask, binaryImage=True)
+    assert area == pytest.approx(m["m00"] / scale**2, rel=0.005)
+    raster = np.array([m["m10"], m["m01"]]) / m["m00"] / scale + lo  # pixel i covers i +- 0.5
+    assert np.hypot(*(centroid - raster)) < 0.01

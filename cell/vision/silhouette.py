@@ -60,13 +60,34 @@ def _union_moments(hulls: list[np.ndarray]) -> tuple[float, np.ndarray]:
     if len(hulls) == 1:
         return moments[0]
     (a1, c1), (a2, c2) = moments
-    origin = hulls[0].mean(axis=0)
-    overlap, inter = cv2.intersectConvexConvex(
-        (hulls[0] - origin).astype(np.float32), (hulls[1] - origin).astype(np.float32)
-    )
-    a12, c12 = (0.0, c1) if inter is None or overlap <= 0 else polygon_moments(inter.reshape(-1, 2) + origin)
+    inter = _intersection(hulls[0], hulls[1])
+    a12, c12 = (0.0, c1) if len(inter) < 3 else polygon_moments(inter)
     area = a1 + a2 - a12
     return area, (a1 * c1 + a2 * c2 - a12 * c12) / max(area, 1e-12)
+
+
+def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The intersection of two convex polygons: `a` clipped by each edge of `b` in turn
+    (Sutherland-Hodgman, float64). OpenCV's intersectConvexConvex returns the wrong polygon for
+    the head's and the shaft's shadows, which share an edge where they join."""
+    if len(b) > len(a):
+        a, b = b, a  # the work grows with the clipping polygon's edges
+    x, y = b[:, 0], b[:, 1]
+    if float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) < 0:
+        b = b[::-1]  # counter-clockwise: inside is to the left of every edge
+    out = a
+    for p, q in zip(b, np.roll(b, -1, axis=0), strict=True):
+        if len(out) < 3:
+            return np.zeros((0, 2))
+        nxt = np.roll(out, -1, axis=0)
+        side = (q[0] - p[0]) * (out[:, 1] - p[1]) - (q[1] - p[1]) * (out[:, 0] - p[0])
+        side_nxt = np.roll(side, -1)
+        inside = side >= 0
+        crossing = inside != (side_nxt >= 0)
+        t = side / np.where(crossing, side - side_nxt, 1.0)
+        cut = out + (nxt - out) * t[:, None]
+        out = np.stack([out, cut], axis=1).reshape(-1, 2)[np.stack([inside, crossing], axis=1).reshape(-1)]
+    return out
 
 
 @dataclass(frozen=True)
