@@ -170,7 +170,8 @@ def _size_groups(
     of texture) first among them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
-    counts = np.count_nonzero(np.abs(logd[:, None] - logd[None, :]) <= width, axis=1)
+    ordered = np.sort(logd)
+    counts = np.searchsorted(ordered, logd + width, "right") - np.searchsorted(ordered, logd - width, "left")
     groups, centres, used = [], [], np.zeros(len(logd), bool)
     for i in np.argsort(-counts, kind="stable"):
         if used[i] or len(groups) == tries:
