@@ -190,7 +190,9 @@ def fit_camera(
     return CameraModel(w, h, K, dist.ravel(), rvecs[0].ravel(), tvecs[0].ravel())
 
 
-PRINCIPAL_POINT_SD = 0.01  # of the image's larger side: how far a camera's principal point strays from the centre
+# How far a camera's principal point strays from the image centre, one standard deviation, as a
+# fraction of the larger side (an assumption: a camera module's is rarely further off).
+PRINCIPAL_POINT_SD = 0.01
 _FOCAL_GRID = np.geomspace(0.3, 4.0, 11)  # focal lengths profiled, in units of the image's larger side
 _GOLDEN = (math.sqrt(5) - 1) / 2
 
@@ -250,16 +252,7 @@ def fit_camera_pose(
     weight = variance / (PRINCIPAL_POINT_SD * max(w, h)) ** 2
     error = lambda f: fitted(f).penalised(weight, centre)[0]  # noqa: E731
     if not focal_px:
-        k = int(np.argmin([error(f) for f in grid]))
-        lo, hi = math.log(grid[max(k - 1, 0)]), math.log(grid[min(k + 1, len(grid) - 1)])
-        a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
-        for _ in range(8):
-            if error(math.exp(a)) < error(math.exp(b)):
-                hi, b = b, a
-                a = hi - _GOLDEN * (hi - lo)
-            else:
-                lo, a = a, b
-                b = lo + _GOLDEN * (hi - lo)
+        _search_around_best(error, grid)
     best = min(fits, key=error)
     fits[best] = _free_from_several_starts(fits[best], pixels, table_mm, image_size, best)
     toward = fits[best].penalised(weight, centre)[1]
@@ -271,6 +264,21 @@ def fit_camera_pose(
         else _height_spread({f: (error(f), fit.free) for f, fit in fits.items()}, error(best) + variance)
     )
     return camera, spread
+
+
+def _search_around_best(error, grid: list[float], steps: int = 8) -> None:
+    """Golden-section search of `error` (in log focal length) between the grid's best point's
+    neighbours; `error` keeps what it evaluates."""
+    k = int(np.argmin([error(f) for f in grid]))
+    lo, hi = math.log(grid[max(k - 1, 0)]), math.log(grid[min(k + 1, len(grid) - 1)])
+    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    for _ in range(steps):
+        if error(math.exp(a)) < error(math.exp(b)):
+            hi, b = b, a
+            a = hi - _GOLDEN * (hi - lo)
+        else:
+            lo, a = a, b
+            b = lo + _GOLDEN * (hi - lo)
 
 
 def _free_from_several_starts(
@@ -291,6 +299,7 @@ def _free_from_several_starts(
 
 
 def squared_error_px2(camera: CameraModel, pixels: np.ndarray, table_mm: np.ndarray) -> float:
+    """Sum of squared reprojection errors of the plate points, px^2."""
     obj = np.column_stack([table_mm, np.zeros(len(table_mm))])
     projected, _ = cv2.projectPoints(obj, camera.rvec, camera.tvec, camera.camera_matrix, camera.dist_coeffs)
     return float(np.sum((projected.reshape(-1, 2) - pixels) ** 2))
