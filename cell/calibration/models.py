@@ -141,7 +141,7 @@ class CameraMap:
 
     @classmethod
     def fit(cls, pixels: np.ndarray, table_mm: np.ndarray, image_size: tuple[int, int]) -> CameraMap:
-        return cls(fit_camera(pixels, table_mm, image_size))
+        return cls(fit_camera(pixels, table_mm, image_size, free_principal=True))
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray:
         return self.camera.pixel_to_table(pixels, 0.0)
@@ -160,11 +160,13 @@ def fit_camera(
     image_size: tuple[int, int],
     focal_px: float | None = None,
     principal_px: tuple[float, float] | None = None,
+    free_principal: bool = False,
     principal_start_px: tuple[float, float] | None = None,
 ) -> CameraModel:
-    """OpenCV calibrateCamera on one view of the plane: focal length, principal point, k1, k2,
-    p1, p2 and pose (square pixels, no k3). `focal_px`, `principal_px`: hold them there;
-    `principal_start_px`: where the principal point's search starts (default: the image centre).
+    """OpenCV calibrateCamera on one view of the plane: focal length, k1, k2, p1, p2 and pose
+    (square pixels, no k3), the principal point held at the image centre. `focal_px`,
+    `principal_px`: hold them there instead; `free_principal`: fit the principal point too,
+    its search starting at `principal_start_px` (default: the image centre).
 
     A real camera's principal point is some pixels off the image centre; held at the centre,
     that offset becomes a wrong tilt, focal length and camera height. But one view of a plane
@@ -175,13 +177,14 @@ def fit_camera(
     obj = np.column_stack([table_mm, np.zeros(len(table_mm))]).astype(np.float32)
     img = pixels.astype(np.float32)
     f0 = focal_px or 1.2 * max(w, h)
-    cx, cy = principal_px or principal_start_px or ((w - 1) / 2, (h - 1) / 2)
+    start = principal_start_px if free_principal else None
+    cx, cy = principal_px or start or ((w - 1) / 2, (h - 1) / 2)
     cx, cy = float(np.clip(cx, 0.0, w - 1.0)), float(np.clip(cy, 0.0, h - 1.0))  # OpenCV refuses any other
     K0 = np.array([[f0, 0, cx], [0, f0, cy], [0, 0, 1]], dtype=np.float64)
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
     if focal_px:
         flags |= cv2.CALIB_FIX_FOCAL_LENGTH
-    if principal_px:
+    if principal_px or not free_principal:
         flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
@@ -239,8 +242,8 @@ def fit_camera_pose(
 
     def fitted(focal: float) -> _FocalFit:
         if focal not in fits:
-            free = fit_camera(pixels, table_mm, image_size, focal_px=focal)
-            centred = fit_camera(pixels, table_mm, image_size, focal_px=focal, principal_px=tuple(centre))
+            free = fit_camera(pixels, table_mm, image_size, focal_px=focal, free_principal=True)
+            centred = fit_camera(pixels, table_mm, image_size, focal_px=focal)
             fits[focal] = _FocalFit(
                 free, squared_error_px2(free, pixels, table_mm), squared_error_px2(centred, pixels, table_mm)
             )
@@ -291,7 +294,7 @@ def _free_from_several_starts(
     step = 0.015 * max(w, h)
     for dx, dy in ((-step, 0), (step, 0), (0, -step), (0, step)):
         start = ((w - 1) / 2 + dx, (h - 1) / 2 + dy)
-        free = fit_camera(pixels, table_mm, image_size, focal_px=focal, principal_start_px=start)
+        free = fit_camera(pixels, table_mm, image_size, focal_px=focal, free_principal=True, principal_start_px=start)
         free_error = squared_error_px2(free, pixels, table_mm)
         if free_error < fit.free_error:
             fit = _FocalFit(free, free_error, fit.centred_error)
