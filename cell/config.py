@@ -99,15 +99,30 @@ class CalibrationConfig(Strict):
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
     backup_dir: Path = Field(Path("calibration/backups"))
-    max_camera_model_ratio: float = Field(
-        5.0,
-        gt=1,
-        description="refused when the physical camera model's CV RMS exceeds the best model's this many "
-        "times (and by max_camera_model_excess_mm): the plate is not the configured one",
+    max_pitch_ratio_error_pct: float = Field(
+        2.5,
+        gt=0,
+        le=50,
+        description="refused when the plate's circles, mapped back through the configured pitches, are this "
+        "much wider than tall (or taller than wide): pitch_x_mm / pitch_y_mm is not the plate's (a wrong pitch, "
+        "X and Y swapped)",
     )
-    max_camera_model_excess_mm: float = Field(0.05, gt=0, le=10)
-    camera_height_min_mm: float = Field(50.0, gt=0, description="a fitted camera closer to the table is refused")
-    camera_height_max_mm: float = Field(3000.0, gt=0, description="a fitted camera farther from the table is refused")
+    camera_height_min_mm: float = Field(
+        50.0, gt=0, description="a fitted camera surely closer to the table (3 standard deviations) is refused"
+    )
+    camera_height_max_mm: float = Field(
+        3000.0, gt=0, description="a fitted camera surely farther from the table (3 standard deviations) is refused"
+    )
+    camera_height_mm: float | None = Field(
+        None,
+        gt=0,
+        description="the camera's height above the table as installed (the lens's centre, measured), or None: "
+        "the plate's fit alone. Seen nearly straight on, one plate image cannot tell a near camera with a short "
+        "lens from a far one with a long lens; the part-height correction needs the height",
+    )
+    camera_height_sd_mm: float = Field(
+        5.0, gt=0, description="how well camera_height_mm is known (one standard deviation)"
+    )
     max_scale_change_pct: float = Field(
         2.0,
         gt=0,

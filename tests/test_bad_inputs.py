@@ -153,9 +153,8 @@ def test_a_plate_with_another_pitch_is_refused(work, tmp_path, capsys):
         ]
     )
     line = one_line(capsys.readouterr().err)
-    assert code == 3 and line.startswith("recalibrate: refused: the physical camera model fits ")
-    assert "the plate's geometry does not agree with the config (plate.pitch_x_mm 22, pitch_y_mm 16" in line
-    assert "above the table, outside calibration.camera_height_min_mm" in line
+    assert code == 3 and line.startswith("recalibrate: refused: the plate's circles are round only if ")
+    assert "pitch_x_mm / pitch_y_mm is 1.25" in line and "not the configured 22 / 16 = 1.375" in line
     assert not out.exists()
 
 

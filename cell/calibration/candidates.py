@@ -70,36 +70,36 @@ def find_candidates(gray: np.ndarray, dark_fractions=(0.8, 0.92), min_contrast: 
             continue
         scale = float(2**k)
         bright = cv2.morphologyEx(img, cv2.MORPH_CLOSE, _KERNEL, borderType=cv2.BORDER_REPLICATE)
+        # (OpenCV takes a scalar for src2; its stubs list arrays only)
+        contrasty = cv2.compare(cv2.subtract(bright, img), min_contrast, cv2.CMP_GT)  # type: ignore[call-overload]
         here: list[tuple[np.ndarray, np.ndarray, float]] = []
         for fraction in dark_fractions:
             labels, stats, centroids, keep = _level_blobs(
-                img, bright, fraction, min_contrast, _D_MIN_FIRST if not seen else _D_MIN
+                img, bright, contrasty, fraction, _D_MIN_FIRST if not seen else _D_MIN
             )
             centre = centroids[keep] * scale
             d = np.sqrt(4 * stats[keep, cv2.CC_STAT_AREA] / np.pi) * scale
             ix, iy = np.round(centroids[keep]).astype(int).T
             depth = 1.0 - img[iy, ix] / np.maximum(bright[iy, ix], 1.0)
             for maps in (seen, here):  # the finer level's dots, then this level's first threshold
-                for labels_seen, kept, s in maps:
-                    unseen = _unseen(centre, labels_seen, kept, s)
+                for labels_seen, is_kept, s in maps:
+                    unseen = _unseen(centre, labels_seen, is_kept, s)
                     centre, d, depth = centre[unseen], d[unseen], depth[unseen]
             found.append((centre, d, np.full(len(d), k), depth))
-            here.append((labels, np.flatnonzero(keep), scale))
+            here.append((labels, keep, scale))
         seen = here
     centre = np.concatenate([f[0] for f in found]).reshape(-1, 2)
     d, level, depth = (np.concatenate([f[i] for f in found]) for i in (1, 2, 3))
     return Candidates(centre, d, level, depth, levels)
 
 
-def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast: float, d_min: float):
+def _level_blobs(img: np.ndarray, bright: np.ndarray, contrasty: np.ndarray, fraction: float, d_min: float):
     """Labels, stats, centroids of the dark blobs at one level, and which of them are dots.
 
-    `bright`: the paper level around each pixel (a closing wider than the level's dots)."""
-    below = cv2.subtract(bright, img)
-    mask = (img < cv2.convertScaleAbs(bright, alpha=fraction)) & (below > contrast)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(
-        mask.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_BBDT
-    )
+    `bright`: the paper level around each pixel (a closing wider than the level's dots);
+    `contrasty`: 255 where a pixel is far enough below it."""
+    mask = cv2.bitwise_and(cv2.compare(img, cv2.convertScaleAbs(bright, alpha=fraction), cv2.CMP_LT), contrasty)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(mask, 8, cv2.CV_32S, cv2.CCL_BBDT)
     x, y, w, h, area = (stats[:, i] for i in range(5))
     d = np.sqrt(4 * area / np.pi)
     fill = area / np.maximum(w * h, 1)
@@ -110,18 +110,19 @@ def _level_blobs(img: np.ndarray, bright: np.ndarray, fraction: float, contrast:
     ok[0] = False  # the background
     # A dot wider than the window leaves a ring of dark pixels: its centre is not in the blob.
     idx = np.flatnonzero(ok)
-    cx = np.clip(np.round(centroids[idx, 0]).astype(int), 0, W - 1)
-    cy = np.clip(np.round(centroids[idx, 1]).astype(int), 0, H - 1)
+    cx = np.minimum(np.maximum(np.rint(centroids[idx, 0]).astype(int), 0), W - 1)
+    cy = np.minimum(np.maximum(np.rint(centroids[idx, 1]).astype(int), 0), H - 1)
     ok[idx[labels[cy, cx] != idx]] = False
     return labels, stats, centroids, ok
 
 
-def _unseen(centre, labels, kept, scale) -> np.ndarray:
-    """Which blobs do not lie on a dot already kept in `labels` (an image reduced `scale` times)."""
+def _unseen(centre, labels, is_kept, scale) -> np.ndarray:
+    """Which blobs do not lie on a dot already kept in `labels` (an image reduced `scale` times);
+    `is_kept`: per label of that map, whether it was kept."""
     if not len(centre):
         return np.zeros(0, bool)
     H, W = labels.shape
     fine = centre / scale
-    ix = np.clip(np.round(fine[:, 0]).astype(int), 0, W - 1)
-    iy = np.clip(np.round(fine[:, 1]).astype(int), 0, H - 1)
-    return ~np.isin(labels[iy, ix], kept)
+    ix = np.minimum(np.maximum(np.rint(fine[:, 0]).astype(int), 0), W - 1)
+    iy = np.minimum(np.maximum(np.rint(fine[:, 1]).astype(int), 0), H - 1)
+    return ~is_kept[labels[iy, ix]]

@@ -2,10 +2,13 @@
 
 A fit can be excellent and still wrong: a plate printed at 20 mm pitch but configured as
 22 mm is fitted to within microns by a polynomial, which simply learns the wrong scale.
-Physics catches it: the camera model (square pixels, a real lens) cannot bend that way,
-so it fits far worse than the best model and lands the camera metres above the table.
-Against the active calibration, a large jump in scale or origin is either a moved camera
-(the operator says so with --accept-change) or a wrong plate.
+The plate's circles catch it: they are round, and mapped back through the configured pitches
+they stay round only if pitch_x_mm / pitch_y_mm is the plate's (roundness.py; no camera model,
+so a real lens with glare, a crop or a bent sheet is judged as surely as a rendered plate).
+A uniform scale error (both pitches off by one factor) cannot be seen in one image: it looks
+like a camera at another height. The fitted height, where the plate pins it down, and against
+the active calibration a jump in scale or origin catch that: a moved camera (the operator says
+so with --accept-change) or a wrong plate.
 """
 
 from __future__ import annotations
@@ -22,26 +25,36 @@ from cell.config import CalibrationConfig, PlateConfig
 def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, plate: PlateConfig) -> list[str]:
     """What makes the fit physically implausible (empty: nothing)."""
     problems = []
-    best = min(s.cv.rms_mm for s in result.scores)
-    camera = next((s for s in result.scores if s.name == "camera"), None)
-    if camera is not None:
-        worst_allowed = max(limits.max_camera_model_ratio * best, best + limits.max_camera_model_excess_mm)
-        if camera.cv.rms_mm > worst_allowed:
-            problems.append(
-                f"the physical camera model fits {camera.cv.rms_mm:.3f} mm RMS (cross-validated) against the best "
-                f"model's {best:.4f} mm: the plate's geometry does not agree with the config (plate.pitch_x_mm "
-                f"{plate.pitch_x_mm:g}, pitch_y_mm {plate.pitch_y_mm:g}; calibration.max_camera_model_ratio "
-                f"{limits.max_camera_model_ratio:g})"
-            )
-    centre = result.calibration.camera_center_table_mm
-    if centre is None or not np.all(np.isfinite(centre)):
-        problems.append("no finite camera pose could be fitted")
-    elif not limits.camera_height_min_mm <= centre[2] <= limits.camera_height_max_mm:
+    ratio = result.pitch_ratio
+    tolerance = 1.0 + limits.max_pitch_ratio_error_pct / 100.0
+    if ratio is not None and not 1.0 / tolerance <= ratio.factor <= tolerance:
+        configured = plate.pitch_x_mm / plate.pitch_y_mm
         problems.append(
-            f"the fitted camera is {centre[2]:.0f} mm above the table, outside calibration.camera_height_min_mm "
-            f"{limits.camera_height_min_mm:g} .. camera_height_max_mm {limits.camera_height_max_mm:g} (a wrong plate "
-            f"pitch or size?)"
+            f"the plate's circles are round only if pitch_x_mm / pitch_y_mm is {configured / ratio.factor:.3f}, "
+            f"not the configured {plate.pitch_x_mm:g} / {plate.pitch_y_mm:g} = {configured:.3f} "
+            f"({100.0 * abs(ratio.factor - 1.0):.1f} % off, median of {ratio.circles} circles; "
+            f"calibration.max_pitch_ratio_error_pct {limits.max_pitch_ratio_error_pct:g}): a wrong pitch, "
+            f"or X and Y swapped?"
         )
+    centre = result.calibration.camera_center_table_mm
+    if centre is None or not np.all(np.isfinite(centre)) or result.plate_height_mm is None:
+        problems.append("no finite camera pose could be fitted")
+        return problems
+    height, sd = result.plate_height_mm, 3.0 * result.plate_height_sd_mm
+    if height + sd < limits.camera_height_min_mm or height - sd > limits.camera_height_max_mm:
+        problems.append(
+            f"the plate puts the camera {height:.0f} +- {sd:.0f} mm (3 standard deviations) above the table, outside "
+            f"calibration.camera_height_min_mm {limits.camera_height_min_mm:g} .. camera_height_max_mm "
+            f"{limits.camera_height_max_mm:g} (a plate of another size, both pitches wrong by the same factor?)"
+        )
+    if limits.camera_height_mm is not None:
+        allowed = 3.0 * math.hypot(result.plate_height_sd_mm, limits.camera_height_sd_mm)
+        if abs(height - limits.camera_height_mm) > allowed:
+            problems.append(
+                f"the plate puts the camera {height:.0f} mm above the table, calibration.camera_height_mm says "
+                f"{limits.camera_height_mm:g} mm (more than {allowed:.0f} mm apart, 3 standard deviations): both "
+                f"pitches wrong by the same factor (that looks like another height), or the camera moved?"
+            )
     return problems
 
 

@@ -10,8 +10,6 @@ calibration is worse than none.
 
 from __future__ import annotations
 
-import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,69 +43,85 @@ def _seed_basis(points: np.ndarray, near: np.ndarray, i: int) -> tuple[tuple, tu
     return None
 
 
+_DIRS = ((1, 0, 1), (1, 0, 2), (-1, 0, 1), (-1, 0, 2), (0, 1, 1), (0, 1, 2), (0, -1, 1), (0, -1, 2))
+_STEP_U = np.array([da * n for da, _, n in _DIRS], dtype=np.float64)  # multiples of the u vector per prediction
+_STEP_V = np.array([db * n for _, db, n in _DIRS], dtype=np.float64)
+_ONE_STEP = np.arange(0, 8, 2)
+
+
 def _grow(points: np.ndarray, neighbours: np.ndarray, sizes, seed: int, tol: float):
     """Lattice nodes reached from `seed`, stepping by the local lattice vectors.
 
     A blob is taken for a node only if it is near the predicted position and, when sizes are
-    given, of a similar size to the blob it was reached from (clutter rarely is both).
+    given, of a similar size to the blob it was reached from (clutter rarely is both). Growth is
+    breadth first, a wave at a time: a node's predictions depend only on its own lattice vectors,
+    so a whole wave's are computed in one step, then taken in queue order.
     """
     basis = _seed_basis(points, neighbours[seed], seed)
     if basis is None:
         return {}, 1
     node_of = {seed: (0, 0)}
     blob_at = {(0, 0): seed}
-    local = {seed: basis}
+    local = {seed: (*basis[0], *basis[1])}  # each reached blob's lattice vectors (ux, uy, vx, vy)
+    xy = points.tolist()
+    xs, ys = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
     conflicts = 0
-    queue = deque([seed])
-    dirs = ((1, 0, 1), (1, 0, 2), (-1, 0, 1), (-1, 0, 2), (0, 1, 1), (0, 1, 2), (0, -1, 1), (0, -1, 2))
-    while queue:
-        p = queue.popleft()
-        a, b = node_of[p]
-        (ux, uy), (vx, vy) = local[p]
-        px, py = points[p]
-        reach = tol * min(math.hypot(ux, uy), math.hypot(vx, vy))
-        # All eight predictions (four directions, one or two steps) against the neighbours at once.
-        steps = (
-            np.array([(da * ux + db * vx, da * uy + db * vy) for da, db, _ in dirs])
-            * np.array([k for *_, k in dirs], dtype=np.float64)[:, None]
-        )
-        cand = neighbours[p]
-        diff = points[cand][None, :, :] - (points[p] + steps)[:, None, :]
-        dist = np.hypot(diff[..., 0], diff[..., 1])
-        best = dist.argmin(axis=1)
-        nearest = cand[best].tolist()
-        far = (dist[np.arange(8), best] > reach).tolist()
-        for i in range(0, 8, 2):  # per direction: one step, else two steps (bridging a gap)
-            for k in (i, i + 1):
-                da, db, n = dirs[k]
-                j = nearest[k]
-                if far[k] or (sizes is not None and not 0.67 < sizes[j] / sizes[p] < 1.5):
+    wave = [seed]
+    while wave:
+        idx = np.array(wave)
+        uv = np.array([local[p] for p in wave])
+        u, v = uv[:, :2], uv[:, 2:]
+        reach2 = tol**2 * np.minimum((u * u).sum(axis=1), (v * v).sum(axis=1))
+        cand = neighbours[idx]  # (k, m)
+        # Per coordinate: the eight predictions (k, 8) against the neighbours (k, m), contiguous.
+        dx = xs[cand][:, None, :] - (xs[idx][:, None] + _STEP_U * u[:, :1] + _STEP_V * v[:, :1])[:, :, None]
+        dy = ys[cand][:, None, :] - (ys[idx][:, None] + _STEP_U * u[:, 1:] + _STEP_V * v[:, 1:])[:, :, None]
+        dist2 = dx * dx + dy * dy  # (k, 8, m)
+        best = dist2.argmin(axis=2)
+        rows = np.arange(len(wave))[:, None]
+        nearest = cand[rows, best]
+        usable = dist2[rows, np.arange(8)[None, :], best] <= reach2[:, None]
+        if sizes is not None:
+            ratio = sizes[nearest] / sizes[idx][:, None]
+            usable &= (ratio > 0.67) & (ratio < 1.5)
+        # Per direction: one step, else two steps (bridging a gap); -1 where neither is usable.
+        take = np.where(usable[:, 0::2], _ONE_STEP, np.where(usable[:, 1::2], _ONE_STEP + 1, -1))
+        nearest_list, take_list = nearest.tolist(), take.tolist()
+        following = []
+        for w, p in enumerate(wave):
+            a, b = node_of[p]
+            px, py = xy[p]
+            for k in take_list[w]:
+                if k < 0:
                     continue
+                da, db, n = _DIRS[k]
+                j = nearest_list[w][k]
                 node = (a + n * da, b + n * db)
                 if j in node_of:
                     if node_of[j] != node:
                         conflicts += 1
-                    break
+                    continue
                 if node in blob_at:
                     conflicts += 1
-                    break
+                    continue
                 node_of[j] = node
                 blob_at[node] = j
                 step = n * (da + db)
-                observed = ((points[j][0] - px) / step, (points[j][1] - py) / step)
-                local[j] = (observed, (vx, vy)) if db == 0 else ((ux, uy), observed)
-                queue.append(j)
-                break
+                ox, oy = (xy[j][0] - px) / step, (xy[j][1] - py) / step
+                local[j] = (ox, oy, *local[p][2:]) if db == 0 else (*local[p][:2], ox, oy)
+                following.append(j)
+        wave = following
     return node_of, conflicts
 
 
 def _neighbours(points: np.ndarray, k: int) -> np.ndarray:
     """Each point's k nearest (itself first)."""
-    dist = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    x, y = points[:, 0], points[:, 1]
+    dist2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
     k = min(len(points), k)
-    near = np.argpartition(dist, k - 1, axis=1)[:, :k]
-    order = np.take_along_axis(dist, near, axis=1).argsort(axis=1)
-    return np.take_along_axis(near, order, axis=1)
+    near = np.argpartition(dist2, k - 1, axis=1)[:, :k]
+    rows = np.arange(len(points))[:, None]
+    return near[rows, dist2[rows, near].argsort(axis=1)]
 
 
 def number_lattice(
@@ -126,7 +140,7 @@ def number_lattice(
     seeds = list(order[:12]) + list(order[12 :: max(1, n // 12)])
     # Steps of one or two pitches stay within a point's 24 nearest neighbours.
     neighbours = _neighbours(points, 25)
-    size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64).tolist()
+    size_list = None if sizes is None else np.asarray(sizes, dtype=np.float64)
     best: dict[int, tuple[int, int]] = {}
     covered: set[int] = set()
     for s in seeds:
@@ -162,7 +176,9 @@ def number_lattice(
     missing = [(c, r) for r in range(plate.rows) for c in range(plate.columns) if (c, r) not in occupied]
     if len(missing) > max_missing:
         raise PlateNotFound(f"{fit} with {len(missing)} circles missing (at most {max_missing} allowed)")
-    strays = np.setdiff1d(np.arange(n), idx)
+    stray = np.ones(n, bool)
+    stray[idx] = False
+    strays = np.flatnonzero(stray)
     return Numbering(idx, col_row, strays, missing)
 
 

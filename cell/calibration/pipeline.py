@@ -12,14 +12,22 @@ import numpy as np
 
 from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
 from cell.calibration.lattice import Numbering, number_lattice
-from cell.calibration.models import fit_camera, fit_model, monomial_exponents
+from cell.calibration.models import (
+    CameraMap,
+    fit_camera_pose,
+    fit_model,
+    monomial_exponents,
+)
+from cell.calibration.roundness import PitchRatio, measure_pitch_ratio
 from cell.calibration.store import Calibration
+from cell.camera_model import CameraModel
 from cell.config import CellConfig, PlateConfig
 from cell.errors import PlateNotFound
 from cell.wording import plural
 
 log = logging.getLogger(__name__)
 
+_FINEST_COARSE_LEVEL = 2  # refinement never on a level coarser than this (a quarter resolution)
 CANDIDATES = [("quadratic", 2), ("homography", 0), ("polynomial", 3), ("polynomial", 4), ("camera", 0)]
 
 
@@ -56,6 +64,9 @@ class CalibrationResult:
     chosen: ModelScore
     why: str
     timings_ms: dict
+    pitch_ratio: PitchRatio | None = None  # the configured pitch ratio as the circles see it
+    plate_height_mm: float | None = None  # the camera's height above the table from the plate alone
+    plate_height_sd_mm: float = 0.0  # how well the plate pins it down (one standard deviation)
 
 
 def point_numbers(col_row: np.ndarray, plate: PlateConfig) -> np.ndarray:
@@ -95,14 +106,13 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
         raise PlateNotFound(f"found {plural(len(cands), 'round dark blob')}: no plate in view")
     group, numbering = _number_by_size(cands, plate, det)
     idx, cr = numbering.index, numbering.col_row
-    centres, diam, ok = _refine(group, idx)
+    centres, diam, ok = _refine(group, idx, _lattice_diameter_px(group.centre_px[idx], cr, plate))
     unseen = [tuple(x) for x in cr[~ok]]
     if unseen:
         log.info("circles at (col, row) %s not measured: cut by the image border or no contrast", unseen)
     idx, cr, centres, diam = idx[ok], cr[ok], centres[ok], diam[ok]
     # Size check: each circle against the size the local lattice pitch predicts.
-    pitch_px = _local_pitch_px(centres, cr, plate)
-    expected_d = pitch_px * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
+    expected_d = _lattice_diameter_px(centres, cr, plate)
     size_ok = (diam > det.min_diameter_ratio * expected_d) & (diam < det.max_diameter_ratio * expected_d)
     rejected = [tuple(x) for x in cr[~size_ok]]
     if rejected:
@@ -128,20 +138,29 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
     )
 
 
-def _refine(group: Candidates, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _refine(group: Candidates, idx: np.ndarray, lattice_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refined centres and diameters (full-resolution px) of the numbered candidates.
 
-    Each is measured on the finest level where the circles are at most 32 px across (full
-    resolution for smaller ones): pyrDown's blur is symmetric, so it moves no centroid, and
-    larger windows would only cost time.
+    Each is measured on the finest level where the circles are at most 24 px across (full
+    resolution for smaller ones), but never coarser than a quarter resolution: pyrDown's blur
+    is symmetric, so it moves no centroid, and larger windows would only cost time; but a
+    centre is good to about 0.015 px of its level, which a coarser level would multiply. The
+    size that decides is the larger of the blob's and the one the lattice pitch predicts
+    (`lattice_d`): a faint circle's blob is only its core.
     """
-    d = group.diameter_px[idx]
-    k = int(np.clip(np.floor(np.log2(max(np.median(d), 1.0) / 16.0)), 0, len(group.pyramid) - 1))
+    d = np.maximum(group.diameter_px[idx], lattice_d)
+    k = min(max(int(np.floor(np.log2(max(float(np.median(d)), 1.0) / 12.0))), 0), _FINEST_COARSE_LEVEL)
+    k = min(k, len(group.pyramid) - 1)
     s = 2.0**k
     half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
     coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)
     centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error, half_res)
     return centres * s, diam * s, ok
+
+
+def _lattice_diameter_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
+    """Each circle's diameter in pixels as the local lattice pitch predicts it."""
+    return _local_pitch_px(pixel, cr, plate) * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
 
 
 def _size_groups(
@@ -152,7 +171,8 @@ def _size_groups(
     of texture) first among them."""
     logd = np.log(diameter_px)
     width = np.log(spread)
-    counts = np.array([np.count_nonzero(np.abs(logd - x) <= width) for x in logd])
+    ordered = np.sort(logd)
+    counts = np.searchsorted(ordered, logd + width, "right") - np.searchsorted(ordered, logd - width, "left")
     groups: list[np.ndarray] = []
     centres: list[float] = []
     used = np.zeros(len(logd), bool)
@@ -278,10 +298,20 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
     why = f"{chosen.label}: lowest cross-validated RMS error, {chosen.cv.rms_mm:.4f} mm" + (
         f" (others: {others} mm)" if others else " (the only model asked for)"
     )
-    final = fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
-    camera = final.camera if chosen.name == "camera" else fit_camera(pts.pixel, pts.table_mm, (w, h))
+    camera, plate_sd = fit_camera_pose(pts.pixel, pts.table_mm, (w, h))
+    plate_height = float(camera.center_table_mm[2])
+    # The camera model's best fit is the profiled one (a free fit stops anywhere along its valley).
+    final = (
+        CameraMap(camera)
+        if chosen.name == "camera"
+        else fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
+    )
+    camera = _with_configured_height(camera, plate_sd, pts, (w, h), config.calibration)
     t2 = time.perf_counter()
     plate = config.plate
+    col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
+    pitch_ratio = measure_pitch_ratio(to_gray(image), pts.pixel, col_row, plate)
+    t3 = time.perf_counter()
     cal = Calibration(
         model_name=chosen.name,
         model=final,
@@ -302,5 +332,29 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
         statistics={"fit": chosen.fit.to_dict(), "cross_validated": chosen.cv.to_dict(), "why": why},
     )
-    timings = {"detect_number_ms": 1e3 * (t1 - t0), "fit_cv_ms": 1e3 * (t2 - t1), "total_ms": 1e3 * (t2 - t0)}
-    return CalibrationResult(cal, pts, final(pts.pixel), scores, chosen, why, timings)
+    timings = {
+        "detect_number_ms": 1e3 * (t1 - t0),
+        "fit_cv_ms": 1e3 * (t2 - t1),
+        "checks_ms": 1e3 * (t3 - t2),
+        "total_ms": 1e3 * (t3 - t0),
+    }
+    return CalibrationResult(
+        cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, plate_height, plate_sd
+    )
+
+
+def _with_configured_height(camera, plate_sd: float, pts: PlatePoints, size, limits) -> CameraModel:
+    """The camera pose at the height the plate and the configured height agree on, each weighed by
+    how well it is known; the plate's own pose where no height is configured.
+
+    The plate fixes the scale (height over focal length) well even where it cannot fix the
+    height: so the focal length is moved with the height, and the pose refitted around it.
+    """
+    if limits.camera_height_mm is None:
+        return camera
+    fitted = float(camera.center_table_mm[2])
+    w_plate = 1.0 / max(plate_sd, 1e-6) ** 2 if np.isfinite(plate_sd) else 0.0
+    w_config = 1.0 / limits.camera_height_sd_mm**2
+    height = (w_plate * fitted + w_config * limits.camera_height_mm) / (w_plate + w_config)
+    focal = float(camera.camera_matrix[0, 0]) * height / fitted
+    return fit_camera_pose(pts.pixel, pts.table_mm, size, focal_px=focal)[0]

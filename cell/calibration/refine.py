@@ -20,6 +20,8 @@ matrix product of the stacked windows with the grid's monomials 1, x, y, x2, xy,
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 _SATURATION = 0.7
@@ -45,7 +47,7 @@ def refine_centres(
     c, cov, ok = _shape_at(gray, half_res, np.asarray(centre_px, dtype=np.float64), d, err)
     # A candidate can be part of its circle (a faded half): where the shape fills the window,
     # measure it again in a window sized by what was seen.
-    seen_d = 4.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 1], 0.0, None))
+    seen_d = 4.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 1], 0.0))
     again = ok & (seen_d > 1.15 * d)
     if again.any():
         d = np.where(again, np.maximum(d, 1.2 * seen_d), d)
@@ -53,11 +55,12 @@ def refine_centres(
         c[again], cov[again], ok[again] = c2, cov2, ok2
     rim = np.maximum(1.5, 0.1 * d)
     ring = np.maximum(3.0, 0.15 * d)
-    radius = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 1], 1e-6, None))
+    eig = np.linalg.eigvalsh(cov)
+    radius = 2.0 * np.sqrt(np.maximum(eig[:, 1], 1e-6))
     half = int(np.ceil(np.nanmax(radius + rim + ring) + 1.5))
-    win = _Windows(gray, c, half)
+    win = Windows(gray, c, half)
     inv = np.linalg.inv(4.0 * cov + 1e-6 * np.eye(2))
-    r_min = 2.0 * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, 0], 1e-6, None))
+    r_min = 2.0 * np.sqrt(np.maximum(eig[:, 0], 1e-6))
     r2 = win.quadratic(win.offset, inv)
     inner = r2 <= ((1.0 + rim / r_min) ** 2)[:, None]
     ring_px = ~inner & (r2 <= ((1.0 + (rim + ring) / r_min) ** 2)[:, None])
@@ -66,13 +69,26 @@ def refine_centres(
     # inside a faded print must not pull the centre.
     w = np.minimum(w, _SATURATION * w.max(axis=1, keepdims=True))
     centre, cov, total = win.moments(w)
-    det = np.clip(np.linalg.det(cov), 0.0, None)
+    det = np.maximum(np.linalg.det(cov), 0.0)
     shift = np.hypot(*(centre - c).T)
     ok &= win.inside & good & (total > 0) & np.isfinite(centre).all(axis=1) & (shift <= radius)
     return centre, 4.0 * det**0.25, ok
 
 
-class _Windows:
+@functools.lru_cache(maxsize=32)
+def _grid(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The monomials 1, x, y, x2, xy, y2 over a (2 half + 1)^2 window, (P, 6) and transposed
+    (read-only: shared by every window of that size)."""
+    off = np.arange(-half, half + 1)
+    yy, xx = np.meshgrid(off, off, indexing="ij")
+    x, y = xx.ravel().astype(np.float32), yy.ravel().astype(np.float32)
+    basis = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    basis_t = np.ascontiguousarray(basis.T)
+    basis.flags.writeable = basis_t.flags.writeable = False
+    return basis, basis_t
+
+
+class Windows:
     """Square windows of one size around each centre, flattened: grey levels (N, P) and the shared
     grid's monomials (P, 6), x and y relative to the window's middle pixel."""
 
@@ -82,14 +98,17 @@ class _Windows:
         self.middle = np.round(safe).astype(int)
         x0, y0 = self.middle[:, 0] - half, self.middle[:, 1] - half
         self.inside = (x0 >= 0) & (y0 >= 0) & (x0 + 2 * half < W) & (y0 + 2 * half < H)
-        off = np.arange(-half, half + 1)
-        ix = np.clip(self.middle[:, 0, None] + off[None, :], 0, W - 1)
-        iy = np.clip(self.middle[:, 1, None] + off[None, :], 0, H - 1)
-        self.grey = image[iy[:, :, None], ix[:, None, :]].reshape(len(safe), -1).astype(np.float32)
-        yy, xx = np.meshgrid(off, off, indexing="ij")
-        x, y = xx.ravel().astype(np.float32), yy.ravel().astype(np.float32)
-        self.basis = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])  # (P, 6)
-        self.basis_t = np.ascontiguousarray(self.basis.T)
+        size = 2 * half + 1
+        if size > min(H, W):  # no window fits: all outside, grey levels of a clipped one
+            off = np.arange(-half, half + 1)
+            ix = np.clip(self.middle[:, 0, None] + off[None, :], 0, W - 1)
+            iy = np.clip(self.middle[:, 1, None] + off[None, :], 0, H - 1)
+            grey = image[iy[:, :, None], ix[:, None, :]]
+        else:  # windows cut by the border are moved inside: they are not `inside`, nothing uses them
+            views = np.lib.stride_tricks.sliding_window_view(image, (size, size))
+            grey = views[np.minimum(np.maximum(y0, 0), H - size), np.minimum(np.maximum(x0, 0), W - size)]
+        self.grey = grey.reshape(len(safe), -1).astype(np.float32)
+        self.basis, self.basis_t = _grid(half)
         self.offset = safe - self.middle  # each centre in its window's coordinates
 
     def quadratic(self, centre: np.ndarray, inv: np.ndarray) -> np.ndarray:
@@ -153,7 +172,7 @@ def _shape(image, centre, d, err):
     """Centre and covariance of each circle's pixels darker than half its depth (a disc window)."""
     ring = np.maximum(2.0, 0.15 * d)
     r_in = 0.6 * d + np.maximum(1.5, 0.1 * d) + err
-    win = _Windows(image, centre, int(np.ceil(np.nanmax(r_in + ring) + 1)))
+    win = Windows(image, centre, int(np.ceil(np.nanmax(r_in + ring) + 1)))
     r2 = win.quadratic(win.offset, np.eye(2)[None] / (r_in**2)[:, None, None])
     w, good = win.darkness(r2 <= 1.0, (r2 > 1.0) & (r2 <= ((1.0 + ring / r_in) ** 2)[:, None]), plane=False)
     dark = (w > 0.5 * w.max(axis=1, keepdims=True)).astype(np.float32)

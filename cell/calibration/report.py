@@ -66,6 +66,28 @@ def write_csv(result: CalibrationResult, path: Path) -> None:
     write_text_atomic(path, buf.getvalue())
 
 
+def _plausibility_lines(result: CalibrationResult) -> list[str]:
+    """What the plausibility gates measured: the pitch ratio the circles see, the camera height the
+    plate alone gives and how surely (part-height correction needs it)."""
+    lines = []
+    if result.pitch_ratio is not None:
+        p = result.calibration.pattern
+        configured = p["pitch_x_mm"] / p["pitch_y_mm"]
+        lines.append(
+            f"pitch ratio the circles see: {configured / result.pitch_ratio.factor:.4f} (configured "
+            f"{configured:.4f}, {result.pitch_ratio.circles} circles)"
+        )
+    if result.plate_height_mm is not None:
+        height, sd = result.plate_height_mm, result.plate_height_sd_mm
+        lines.append(f"camera height from the plate alone: {height:.1f} +- {sd:.1f} mm (one standard deviation)")
+        if not sd <= 0.05 * height:
+            lines.append(
+                "  the plate, seen nearly straight on, does not pin the camera height down: set "
+                "calibration.camera_height_mm (measured) for the part-height correction"
+            )
+    return lines
+
+
 def summary_text(result: CalibrationResult, table: bool = True) -> str:
     """What the operator reads: model choice, fit and cross-validated figures, Table III."""
     cal, pts = result.calibration, result.points
@@ -98,9 +120,10 @@ def summary_text(result: CalibrationResult, table: bool = True) -> str:
     if cal.camera is not None:
         C = cal.camera.center_table_mm
         lines.append(f"camera centre (table frame): X {C[0]:.1f} mm, Y {C[1]:.1f} mm, {C[2]:.1f} mm above the table")
+    lines += _plausibility_lines(result)
     lines.append(
         f"time: detect+number {result.timings_ms['detect_number_ms']:.1f} ms, "
-        f"fit+cross-validate {result.timings_ms['fit_cv_ms']:.1f} ms"
+        f"fit+cross-validate {result.timings_ms['fit_cv_ms']:.1f} ms, checks {result.timings_ms.get('checks_ms', 0.0):.1f} ms"
     )
     if table:
         lines += [

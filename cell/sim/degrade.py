@@ -65,6 +65,40 @@ def crop(gray: np.ndarray, rng: np.random.Generator, keep: float = 0.7) -> np.nd
     return np.ascontiguousarray(gray[y0 : y0 + ch, x0 : x0 + cw])
 
 
+def crop_edges(gray: np.ndarray, rng: np.random.Generator, most: float = 0.15) -> np.ndarray:
+    """Up to `most` of the frame cut from each side, independently: the plate usually stays whole,
+    but the image centre (where a camera model puts the principal point) moves."""
+    h, w = gray.shape
+    left, right = (int(rng.uniform(0, most) * w) for _ in range(2))
+    top, bottom = (int(rng.uniform(0, most) * h) for _ in range(2))
+    return np.ascontiguousarray(gray[top : h - bottom, left : w - right])
+
+
+def perspective(gray: np.ndarray, rng: np.random.Generator, degrees: tuple[float, float] = (4.0, 10.0)) -> np.ndarray:
+    """The camera turned about its centre by a few degrees about a random axis across the view
+    (the homography K R K^-1, a focal length of one image width), then shifted so that the image
+    centre stays in place: keystone, as a hand-held plate seen at another slant. Same size; the
+    border repeats the edge pixels."""
+    h, w = gray.shape
+    f = float(w)
+    K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    a = rng.uniform(0, 2 * np.pi)
+    axis = np.array([np.cos(a), np.sin(a), 0.0]) * np.deg2rad(rng.uniform(*degrees))
+    H = K @ cv2.Rodrigues(axis)[0] @ np.linalg.inv(K)
+    centre = H @ [(w - 1) / 2, (h - 1) / 2, 1.0]
+    H = (
+        np.array(
+            [
+                [1.0, 0.0, (w - 1) / 2 - centre[0] / centre[2]],
+                [0.0, 1.0, (h - 1) / 2 - centre[1] / centre[2]],
+                [0, 0, 1],
+            ]
+        )
+        @ H
+    )
+    return cv2.warpPerspective(gray, H, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+
 VARIANTS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] = {
     "noise": noise,
     "blur": blur,
@@ -74,6 +108,8 @@ VARIANTS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] = {
     "scale 0.75": scaled(0.75),
     "scale 1.5": scaled(1.5),
     "crop": crop,
+    "crop edges": crop_edges,
+    "perspective": perspective,
     "noise+blur+glare": lambda g, rng: noise(glare(blur(g, rng), rng), rng),
 }
 

@@ -41,23 +41,20 @@ class Optics:
     tint_bgr: tuple[float, float, float] = (1.0, 0.95, 0.88)  # cool white LED backlight
 
 
-def table_maps(camera: CameraModel, height_mm: float = 0.0):
-    """(X, Y, J): table mm seen by each pixel at `height_mm`, and the local Jacobian.
-
-    Cached on the camera: a simulated cell renders many frames through one camera.
-    """
-    cache = camera.cache
-    if height_mm not in cache:
-        h, w = camera.height_px, camera.width_px
-        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        xy = camera.pixel_to_table(np.column_stack([u.ravel(), v.ravel()]), height_mm)
-        X = xy[:, 0].reshape(h, w)
-        Y = xy[:, 1].reshape(h, w)
+def _window_maps(camera: CameraModel, boxes: list[tuple[int, int, int, int]], height_mm: float) -> list:
+    """(X, Y, J) per pixel box (x0, y0, x1, y1): table mm seen by each pixel at `height_mm`, and the
+    local Jacobian (dX/du, dX/dv, dY/du, dY/dv). One ray casting for all boxes."""
+    grids = [np.mgrid[y0:y1, x0:x1][::-1].reshape(2, -1).T for x0, y0, x1, y1 in boxes]
+    xy = camera.pixel_to_table(np.concatenate(grids).astype(np.float64), height_mm)
+    out, start = [], 0
+    for x0, y0, x1, y1 in boxes:
+        n = (y1 - y0) * (x1 - x0)
+        X = xy[start : start + n, 0].reshape(y1 - y0, x1 - x0)
+        Y = xy[start : start + n, 1].reshape(y1 - y0, x1 - x0)
+        start += n
         J = np.stack([np.gradient(X, axis=1), np.gradient(X, axis=0), np.gradient(Y, axis=1), np.gradient(Y, axis=0)])
-        if len(cache) >= 4:
-            cache.pop(next(iter(cache)))
-        cache[height_mm] = (X, Y, J)
-    return cache[height_mm]
+        out.append((X, Y, J))
+    return out
 
 
 def circles_coverage(
@@ -66,29 +63,35 @@ def circles_coverage(
     radius_mm: float,
     height_mm: float = 0.0,
 ) -> np.ndarray:
-    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`)."""
-    X, Y, J = table_maps(camera, height_mm)
-    coverage = np.zeros(X.shape, dtype=np.float64)
-    px_mm = float(np.median(np.hypot(J[0], J[2])))
-    margin_mm = radius_mm + 3 * px_mm
-    for cx, cy in np.asarray(centres_table_mm, dtype=np.float64).reshape(-1, 2):
-        # Restrict to a window around the circle's projection.
-        box = np.abs(X - cx) < margin_mm
-        box &= np.abs(Y - cy) < margin_mm
-        rows = np.flatnonzero(box.any(axis=1))
-        cols = np.flatnonzero(box.any(axis=0))
-        if rows.size == 0 or cols.size == 0:
-            continue
-        sl = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        dx, dy = X[sl] - cx, Y[sl] - cy
+    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`).
+
+    Each circle is rendered in the pixel box around its projection (a few pixels beyond its
+    edge, where the coverage is zero): rays are cast only there, not through the whole frame.
+    """
+    h, w = camera.height_px, camera.width_px
+    coverage = np.zeros((h, w), dtype=np.float64)
+    centres = np.asarray(centres_table_mm, dtype=np.float64).reshape(-1, 2)
+    a = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+    rim = np.column_stack([np.cos(a), np.sin(a)]) * radius_mm
+    boxes = []
+    for c in centres:
+        px = camera.project(c + rim, height_mm)
+        x0, y0 = np.floor(px.min(axis=0)).astype(int) - 5
+        x1, y1 = np.ceil(px.max(axis=0)).astype(int) + 6
+        box = (max(x0, 0), max(y0, 0), min(x1, w), min(y1, h))
+        if box[2] - box[0] >= 3 and box[3] - box[1] >= 3:
+            boxes.append((c, box))
+    maps = _window_maps(camera, [box for _, box in boxes], height_mm) if boxes else []
+    for ((cx, cy), (x0, y0, x1, y1)), (X, Y, J) in zip(boxes, maps, strict=True):
+        dx, dy = X - cx, Y - cy
         rho = np.hypot(dx, dy)
         nx, ny = dx / np.maximum(rho, 1e-12), dy / np.maximum(rho, 1e-12)
         # Gradient of the signed distance with respect to pixel coordinates.
-        gu = nx * J[0][sl] + ny * J[2][sl]
-        gv = nx * J[1][sl] + ny * J[3][sl]
+        gu = nx * J[0] + ny * J[2]
+        gv = nx * J[1] + ny * J[3]
         d_px = (rho - radius_mm) / np.maximum(np.hypot(gu, gv), 1e-12)
         cov = np.clip(0.5 - d_px, 0.0, 1.0)
-        coverage[sl] = np.maximum(coverage[sl], cov)
+        np.maximum(coverage[y0:y1, x0:x1], cov, out=coverage[y0:y1, x0:x1])
     return coverage
 
 

@@ -33,6 +33,8 @@ class BoltPose:
     angle_deg: float  # axis direction, 0-180, table frame
     shaft_mm: float
     length_mm: float  # overall, head included
+    head_length_mm: float  # along the axis
+    head_across_flats_mm: float
 
 
 def _crossing(pos: np.ndarray, w: np.ndarray, level: float, i: int, j: int) -> float:
@@ -82,12 +84,16 @@ def bolt_pose(
     head = (head_in + head_out) / 2
     camera = getattr(mapper, "camera", None)
     scale = table_mm_per_px
-    slope = 0.0
+    slope = across = 0.0
     if camera is not None and axis_height_mm > 0:
         c = camera.center_table_mm
         scale *= 1.0 - axis_height_mm / c[2]
-        slope = abs(float(np.dot((head - c[:2]) / (c[2] - axis_height_mm), axis)))
-    e, d = head_width_px * scale, shaft_width_px * scale
+        view = (head - c[:2]) / (c[2] - axis_height_mm)
+        slope = abs(float(np.dot(view, axis)))
+        across = abs(float(view[0] * axis[1] - view[1] * axis[0]))
+    # Seen at a slant across its axis the shaft's silhouette is wider by 1 / cos(slant): the rays
+    # graze the cylinder. The head's is not (a hexagon on a flat, slants under 30 degrees).
+    e, d = head_width_px * scale, shaft_width_px * scale / math.hypot(1.0, across)
     across_flats = head_across_flats_per_width * e
     stretch = across_flats / 2 * slope  # how far each end face tilts out along the axis
     k = max(float(np.dot(head_out - head_in, axis)) - 2 * stretch * (e - d) / e, 0.1)
@@ -102,4 +108,6 @@ def bolt_pose(
         angle_deg=math.degrees(math.atan2(axis[1], axis[0])) % 180.0,
         shaft_mm=d,
         length_mm=k + L,
+        head_length_mm=k,
+        head_across_flats_mm=across_flats,
     )

@@ -12,14 +12,16 @@ import logging
 import math
 import time
 
+import cv2
 import numpy as np
 
 from cell.errors import InputError
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, measure, width_profile
-from cell.vision.footprint import bolt_pose
+from cell.vision.footprint import BoltPose, bolt_pose
 from cell.vision.segment import segment, to_gray
+from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
 
@@ -75,18 +77,19 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
         raise InputError(f"frame is {w}x{h} px but the calibration was made at {cw}x{ch} px")
     t0 = time.perf_counter()
     scale = mapper.mm_per_px((w / 2, h / 2))
+    gray = to_gray(image)
     seg = segment(
         image,
         cfg,
         part_width_px=cfg.max_part_width_mm / scale,
         noise_area_px=cfg.segment.noise_area_mm2 / scale**2,
+        gray=gray,
     )
     warnings = list(seg.warnings)
     correct = cfg.use_height_correction and mapper.camera is not None
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
-    gray = to_gray(image)
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
     found = []
     for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
@@ -161,8 +164,10 @@ def _place(
     world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
-    if verdict.cls == BOLT and prof is not None and head_px is not None and shaft_px is not None:
-        fine = subpixel_outline(*seen, cfg.segment.threshold_fraction)
+    bolt_on_side = verdict.cls == BOLT and head_px is not None
+    needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
+    fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
+    if bolt_on_side and prof is not None and head_px is not None and shaft_px is not None:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
@@ -175,6 +180,11 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
+        if correct and fine is not None:
+            # The shadow's centroid places the bolt; its head and grasp point move with it.
+            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
+            shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
+            world, head, grasp = world + shift, head + shift, grasp + shift
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
     elif verdict.cls == BOLT and prof is not None:  # paper preset: the centroid, and the axis end to end
         ends_px = np.array([prof.origin_px, prof.origin_px + prof.length_px * prof.axis_px])
@@ -183,6 +193,15 @@ def _place(
         angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
         head = ends[0]
     elif verdict.cls == NUT:
+        if correct and fine is not None:
+            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
+            nut = nut_from_outline(
+                outline_mm,
+                verdict.size_mm["across_flats_mm"],
+                cfg.nut.thickness_per_across_flats,
+                mapper.camera.center_table_mm,
+            )
+            world = _from_shadow(nut, outline_mm, mapper, world)
         grasp = world
         jaw = feat.enclosing_diameter_px * scale + cfg.jaw_clearance_mm
     features = {
@@ -208,3 +227,31 @@ def _place(
         head_mm=None if head is None else (float(head[0]), float(head[1])),
         features=features,
     )
+
+
+def _from_shadow(shape: Nut | Bolt, outline_mm: np.ndarray, mapper, start_mm: np.ndarray) -> np.ndarray:
+    """The footprint centre whose shadow (silhouette.py) has the centroid of the outline on the table plane."""
+    _, measured = polygon_moments(outline_mm)
+    return footprint_centre(shape, measured, mapper.camera.center_table_mm, start_mm)
+
+
+def _thinned(outline_px: np.ndarray) -> np.ndarray:
+    """The sub-pixel outline with the points that lie within 0.02 px of a straight run dropped (a
+    polygon's area and centroid barely move; mapping it through a calibration costs per point)."""
+    poly = cv2.approxPolyDP(np.asarray(outline_px, dtype=np.float32).reshape(-1, 1, 2), 0.02, True)
+    return poly.reshape(-1, 2).astype(np.float64) if len(poly) >= 3 else np.asarray(outline_px, dtype=np.float64)
+
+
+def _bolt_shape(pose: BoltPose) -> Bolt:
+    return Bolt(
+        pose.head_across_flats_mm,
+        pose.head_length_mm,
+        pose.shaft_mm,
+        max(pose.length_mm - pose.head_length_mm, 0.1),
+        pose.angle_deg if np.dot(pose.grasp_mm - pose.head_mm, _unit(pose.angle_deg)) >= 0 else pose.angle_deg + 180,
+    )
+
+
+def _unit(angle_deg: float) -> np.ndarray:
+    a = math.radians(angle_deg)
+    return np.array([math.cos(a), math.sin(a)])

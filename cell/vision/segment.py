@@ -47,17 +47,17 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
-def segment(image: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float) -> Segmentation:
-    """Blobs of `image`; `part_width_px` is the widest part's narrow width in pixels."""
+def segment(
+    image: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float, gray: np.ndarray | None = None
+) -> Segmentation:
+    """Blobs of `image`; `part_width_px` is the widest part's narrow width in pixels; `gray`: the
+    image in grey levels where the caller has it already."""
     if config.preset == "paper":
         return _segment_paper(image, config, noise_area_px)
-    return _segment_default(image, config, part_width_px, noise_area_px)
+    return _segment_default(to_gray(image) if gray is None else gray, config, part_width_px, noise_area_px)
 
 
-def _segment_default(
-    image: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float
-) -> Segmentation:
-    gray = to_gray(image)
+def _segment_default(gray: np.ndarray, config: PartsConfig, part_width_px: float, noise_area_px: float) -> Segmentation:
     h, w = gray.shape
     radius_px = max(part_width_px / 2 + 2, 3)
     factor = max(1, int(radius_px // 8))

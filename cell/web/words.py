@@ -183,7 +183,10 @@ _CALIBRATION = _rules(
         ),
     ),
     (
-        r"physical camera model fits|fitted camera is .* above the table|no finite camera pose",
+        (
+            r"physical camera model fits|fitted camera is .* above the table|no finite camera pose"
+            r"|circles are round only if pitch_x_mm / pitch_y_mm|the plate puts the camera .* above the table"
+        ),
         lambda m: (
             "The plate does not match the plate the cell is set up for.",
             "Use the cell's calibration plate; if it is the right one, call an engineer to check its settings.",
