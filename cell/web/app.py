@@ -8,6 +8,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 from collections.abc import AsyncIterator, Callable
 from importlib import resources
 from typing import Any
@@ -28,7 +29,7 @@ from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.camera_check import CameraCheck
 from cell.web.config import WebConfig
 from cell.web.history import HistoryRoutes
-from cell.web.hub import Hub, Screen
+from cell.web.hub import EncodedFrame, Hub, Screen
 from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
@@ -123,13 +124,24 @@ class ScreenApp:
         self.service, self.web, self.access = service, web, access
         self.check = CameraCheck(config)
         self.hub = Hub(
-            service, web.frame_max_width_px, web.jpeg_quality, web.max_screens, web.live_interval_s, self.check
+            service,
+            web.frame_max_width_px,
+            web.jpeg_quality,
+            web.max_screens,
+            web.live_interval_s,
+            self.check,
+            web.max_frame_rate_hz,
         )
         self.desk = RecalibrationDesk(service, config)
         self.metrics = CellMetrics(service)  # /metrics (Prometheus); its own registry
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
         self.max_upload = int(web.max_upload_mb * 1024 * 1024)
+        # Every open stream sends the same text: each state and frame is serialised once, not once per
+        # screen (30 screens would otherwise cost 30 JSON encodings per state change; on the loop only).
+        self._sent_state: tuple[tuple[object, ...], str] | None = None
+        self._sent_frame: tuple[EncodedFrame, str] | None = None
+        self._beat: tuple[float, Snapshot] | None = None  # the keep-alive's snapshot, shared by every stream
         self.history = HistoryRoutes(self._view_refused, service, config)  # the History page and alarm list
 
     # ---- checks ----------------------------------------------------------------------
@@ -235,6 +247,26 @@ class ScreenApp:
     async def state(self, request: Request) -> Response:
         return self._view_refused(request) or JSONResponse(self._state())
 
+    def _state_event(self, snapshot: Snapshot | None) -> str:
+        """The `state` event for `snapshot` (None: the keep-alive's, at most one snapshot a
+        KEEPALIVE_S / 2 for all streams), serialised once for every stream that sends it."""
+        if snapshot is None:
+            now = time.monotonic()
+            if self._beat is None or now - self._beat[0] >= KEEPALIVE_S / 2:
+                self._beat = (now, self.service.snapshot())
+            snapshot = self._beat[1]
+        key = (snapshot, self.desk.open, self.desk.active_pictures, self.check.on)
+        cached = self._sent_state
+        if cached is None or any(a is not b for a, b in zip(cached[0], key, strict=True)):
+            cached = self._sent_state = (key, _sse("state", self._state(snapshot)))
+        return cached[1]
+
+    def _frame_event(self, frame: EncodedFrame) -> str:
+        """The `frame` event, base64 and JSON made once per frame for every stream."""
+        if self._sent_frame is None or self._sent_frame[0] is not frame:
+            self._sent_frame = (frame, _sse("frame", frame.event_json()))
+        return self._sent_frame[1]
+
     async def frame_jpeg(self, request: Request) -> Response:
         if refused := self._view_refused(request):
             return refused
@@ -264,11 +296,11 @@ class ScreenApp:
                 if screen.closed:
                     break
                 snapshot, screen.snapshot = screen.snapshot, None
-                yield _sse("state", self._state(snapshot))
+                yield self._state_event(snapshot)
                 frame, screen.frame = screen.frame, None
                 if frame is not None and frame.seq != sent_seq:
                     sent_seq = frame.seq
-                    yield _sse("frame", frame.event_json())
+                    yield self._frame_event(frame)
         finally:
             self.hub.close_screen(screen)
 

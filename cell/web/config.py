@@ -29,6 +29,13 @@ class WebConfig(Strict):
         le=60,
         description="between jobs and while paused, a live camera frame this often while a screen is open (0: none)",
     )
+    max_frame_rate_hz: float = Field(
+        4.0,
+        ge=0,
+        le=60,
+        description="a running job's frames drawn and sent to the screens at most this often (0: every frame);"
+        " the newest is always shown",
+    )
     max_screens: int = Field(16, ge=1, le=256, description="open screens at once (each holds one event stream)")
     # HTTPS (whenever users are configured; docs/security.md)
     tls_certificate: Path | None = Field(

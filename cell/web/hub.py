@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 _HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits through these for its pick order
 LIVE_ORIGIN = Origin(Interface.SCREEN, "live view", Role.VIEWER)
 _LIVE_ERROR_LOG_S = 60.0  # a camera that keeps failing is logged once a minute, not every frame
+STATE_INTERVAL_S = 0.1  # the screens' state at most ten times a second: the runner changes step far more often
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,7 @@ class Hub:
         max_screens: int,
         live_interval_s: float = 0.0,
         check: CameraCheck | None = None,
+        max_frame_rate_hz: float = 0.0,
     ):
         self.service = service
         self.max_width_px, self.jpeg_quality, self.max_screens = max_width_px, jpeg_quality, max_screens
@@ -129,6 +131,16 @@ class Hub:
         self._live_stop = threading.Event()
         self._live_thread: threading.Thread | None = None
         self._live_error_logged_s = -1e9
+        # A job's frames go through a mailbox (the newest waits, older ones are dropped) to one encoder
+        # thread: nothing is drawn or encoded while no screen is open, and at most max_frame_rate_hz
+        # frames a second are (0: as fast as they come), so the screens never take the cell's CPU.
+        self.min_frame_interval_s = 1.0 / max_frame_rate_hz if max_frame_rate_hz > 0 else 0.0
+        self._mailbox: tuple[FrameRef, tuple[int, ...] | None] | None = None
+        self._mail = threading.Condition()
+        self._encoder_stop = False
+        self._encoder: threading.Thread | None = None
+        self._state_dirty = False  # a state change not yet sent (guarded by _mail)
+        self._stater: threading.Thread | None = None
 
     # ---- life ----------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -143,6 +155,10 @@ class Hub:
                 frames=True,
             ),
         ]
+        self._encoder = threading.Thread(target=self._encode_loop, name="screen-encoder", daemon=True)
+        self._encoder.start()
+        self._stater = threading.Thread(target=self._state_loop, name="screen-state", daemon=True)
+        self._stater.start()
         if self.live_interval_s > 0:
             self._live_thread = threading.Thread(target=self._live_loop, name="screen-live", daemon=True)
             self._live_thread.start()
@@ -155,8 +171,12 @@ class Hub:
             self.service.unsubscribe(sub)
         self._live_stop.set()
         self._live_wake.set()
-        if self._live_thread is not None:
-            self._live_thread.join(timeout=10)
+        with self._mail:
+            self._encoder_stop = True
+            self._mail.notify_all()
+        for thread in (self._live_thread, self._encoder, self._stater):
+            if thread is not None:
+                thread.join(timeout=10)
         if self._loop is not None and not self._loop.is_closed():
             try:
                 self._loop.call_soon_threadsafe(self._close_screens)
@@ -170,7 +190,23 @@ class Hub:
 
     # ---- the subscribers' threads --------------------------------------------------
     def _on_state(self, event: Event) -> None:
-        self._to_loop(self._publish_state, self.service.snapshot())
+        with self._mail:
+            self._state_dirty = True
+            self._mail.notify_all()
+
+    def _state_loop(self) -> None:
+        """Send the state after a change, at most one a STATE_INTERVAL_S: the changes in between are
+        one snapshot (taken here, off the server's loop and off the control thread)."""
+        while True:
+            with self._mail:
+                while not self._encoder_stop and not self._state_dirty:
+                    self._mail.wait()
+                if self._encoder_stop:
+                    return
+                self._state_dirty = False
+            self._to_loop(self._publish_state, self.service.snapshot())
+            if self._live_stop.wait(STATE_INTERVAL_S):
+                return
 
     def _on_frame_event(self, event: Event) -> None:
         """Hold a located frame until its pick order (or until the runner moves on without one)."""
@@ -190,6 +226,30 @@ class Hub:
         ref, self._held = self._held, None
         if ref is None:
             return
+        with self._mail:
+            self._mailbox = (ref, order)  # a frame not yet taken is replaced: the screens show the newest
+            self._mail.notify_all()
+
+    def _encode_loop(self) -> None:
+        """Annotate and encode the newest job frame while a screen is open, at most one a
+        min_frame_interval_s (the frames that arrive meanwhile replace each other)."""
+        last_s = -1e9
+        while True:
+            with self._mail:
+                while not self._encoder_stop and (self._mailbox is None or not self.screens):
+                    self._mail.wait()
+                if self._encoder_stop:
+                    return
+            rest_s = last_s + self.min_frame_interval_s - time.monotonic()
+            if rest_s > 0 and self._live_stop.wait(rest_s):
+                return  # closing
+            with self._mail:
+                taken, self._mailbox = self._mailbox, None
+            if taken is not None:
+                last_s = time.monotonic()
+                self._encode_job_frame(*taken)
+
+    def _encode_job_frame(self, ref: FrameRef, order: tuple[int, ...] | None) -> None:
         try:
             image = annotate(ref.image, ref.result, order or ())
             view = FrameView(next(self._seq), ref.captured_monotonic_s, image, tuple(order or ()))
@@ -266,6 +326,8 @@ class Hub:
         self.screens.add(screen)
         if self.latest is None:
             self._live_wake.set()  # the first screen: a picture now, not after a whole interval
+        with self._mail:
+            self._mail.notify_all()  # a job frame kept while no screen was open is drawn now
         return screen
 
     def close_screen(self, screen: Screen) -> None:
