@@ -8,7 +8,6 @@ import contextlib
 import json
 import logging
 import threading
-import time
 from collections.abc import AsyncIterator, Callable
 from importlib import resources
 from typing import Any
@@ -62,7 +61,7 @@ REFUSAL_STATUS = {  # a refused command's HTTP status
     Refusal.BAD_ARGUMENT: 422,
     Refusal.NOT_RECORDED: 503,
 }
-KEEPALIVE_S = 1.0
+KEEPALIVE_S = 3.0  # a stream that heard nothing sends the last state again (the hub sends one a second)
 PICTURES = {"plate.jpg": "image/jpeg", "deviation.png": "image/png"}
 
 
@@ -141,7 +140,6 @@ class ScreenApp:
         # screen (30 screens would otherwise cost 30 JSON encodings per state change; on the loop only).
         self._sent_state: tuple[tuple[object, ...], str] | None = None
         self._sent_frame: tuple[EncodedFrame, str] | None = None
-        self._beat: tuple[float, Snapshot] | None = None  # the keep-alive's snapshot, shared by every stream
         self.history = HistoryRoutes(self._view_refused, service, config)  # the History page and alarm list
 
     # ---- checks ----------------------------------------------------------------------
@@ -248,13 +246,10 @@ class ScreenApp:
         return self._view_refused(request) or JSONResponse(self._state())
 
     def _state_event(self, snapshot: Snapshot | None) -> str:
-        """The `state` event for `snapshot` (None: the keep-alive's, at most one snapshot a
-        KEEPALIVE_S / 2 for all streams), serialised once for every stream that sends it."""
+        """The `state` event for `snapshot` (None: the last one the hub sent, again), serialised once
+        for every stream that sends it."""
         if snapshot is None:
-            now = time.monotonic()
-            if self._beat is None or now - self._beat[0] >= KEEPALIVE_S / 2:
-                self._beat = (now, self.service.snapshot())
-            snapshot = self._beat[1]
+            snapshot = self.hub.latest_snapshot or self.service.snapshot()
         key = (snapshot, self.desk.open, self.desk.active_pictures, self.check.on)
         cached = self._sent_state
         if cached is None or any(a is not b for a, b in zip(cached[0], key, strict=True)):

@@ -51,6 +51,7 @@ _HELD_THROUGH = frozenset({"verify", "plan"})  # after LOCATE a frame waits thro
 LIVE_ORIGIN = Origin(Interface.SCREEN, "live view", Role.VIEWER)
 _LIVE_ERROR_LOG_S = 60.0  # a camera that keeps failing is logged once a minute, not every frame
 STATE_INTERVAL_S = 0.1  # the screens' state at most ten times a second: the runner changes step far more often
+STATE_REFRESH_S = 1.0  # and at least once a second (the heartbeat), changed or not
 
 
 @dataclass(frozen=True)
@@ -122,6 +123,7 @@ class Hub:
         self.screens: set[Screen] = set()
         self.latest: EncodedFrame | None = None
         self.latest_view: FrameView | None = None
+        self.latest_snapshot: Snapshot | None = None  # the last state sent (set on the loop)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._held: FrameRef | None = None  # located, waiting for PLAN to number its parts
         self._seq = itertools.count(1)  # frames of both kinds, in the order they were taken
@@ -189,21 +191,25 @@ class Hub:
             s.wake.set()
 
     # ---- the subscribers' threads --------------------------------------------------
-    def _on_state(self, event: Event) -> None:
+    def _on_state(self, event: Event | None) -> None:
         with self._mail:
             self._state_dirty = True
             self._mail.notify_all()
 
     def _state_loop(self) -> None:
-        """Send the state after a change, at most one a STATE_INTERVAL_S: the changes in between are
-        one snapshot (taken here, off the server's loop and off the control thread)."""
+        """Send the state after a change, at most one a STATE_INTERVAL_S (the changes in between are
+        one snapshot), and once a STATE_REFRESH_S anyway. Every snapshot the screens get is taken
+        here, one after another, off the server's loop and off the control thread: they arrive in
+        the order they were taken, so a screen never goes back to an older state."""
         while True:
             with self._mail:
-                while not self._encoder_stop and not self._state_dirty:
-                    self._mail.wait()
+                if not self._encoder_stop and not self._state_dirty:
+                    self._mail.wait(STATE_REFRESH_S)
                 if self._encoder_stop:
                     return
                 self._state_dirty = False
+            if not self.screens:
+                continue  # nobody to tell: a screen that opens gets a fresh snapshot of its own
             self._to_loop(self._publish_state, self.service.snapshot())
             if self._live_stop.wait(STATE_INTERVAL_S):
                 return
@@ -300,13 +306,14 @@ class Hub:
 
     # ---- the server's loop ---------------------------------------------------------
     def _publish_state(self, snapshot: Snapshot) -> None:
+        self.latest_snapshot = snapshot
         for s in self.screens:
             s.snapshot = snapshot
             s.wake.set()
 
     def publish_now(self) -> None:
-        """Push the current state to every screen (from the loop: the screen's own news, e.g. a report opened)."""
-        self._publish_state(self.service.snapshot())
+        """Push the current state to every screen soon (the screen's own news, e.g. a report opened)."""
+        self._on_state(None)
 
     def _publish_frame(self, frame: EncodedFrame) -> None:
         latest = self.latest
