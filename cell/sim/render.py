@@ -112,15 +112,24 @@ def backlight(h: int, w: int, vignetting: float, gradient: float, angle_deg: flo
 
     The same for every frame of a camera, so computed once (read-only; two sizes kept).
     """
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u = np.arange(w, dtype=np.float64)[None, :]  # a row and a column, broadcast: two frame-sized arrays at most
+    v = np.arange(h, dtype=np.float64)[:, None]
     ru = (u - w / 2) / (w / 2)
     rv = (v - h / 2) / (w / 2)
-    r2 = (ru**2 + rv**2) / (1 + (h / w) ** 2)
-    light = 1.0 - vignetting * r2
+    light = ru**2 + rv**2
+    light /= 1 + (h / w) ** 2
+    light *= vignetting
+    np.subtract(1.0, light, out=light)  # 1 - vignetting * r2
     a = np.deg2rad(angle_deg)
-    light *= 1.0 + gradient * 0.5 * (np.cos(a) * ru + np.sin(a) * rv * w / h)
+    tilt = np.cos(a) * ru + np.sin(a) * rv * w / h
+    tilt *= gradient * 0.5
+    tilt += 1.0
+    light *= tilt
     light.flags.writeable = False
     return light
+
+
+_BAND_ROWS = 32  # rows exposed at a time: the float temporaries stay a few MB whatever the frame size
 
 
 def expose(
@@ -130,17 +139,40 @@ def expose(
     rng: np.random.Generator | None = None,
     exposure: float = 1.0,
 ) -> np.ndarray:
-    """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque)."""
+    """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque).
+
+    Computed in bands of rows (the noise drawn band after band, the same values in the same
+    order as for the whole frame at once): a 1080p frame needs one float image (the light, blurred
+    in place) beside its result, not the half a gigabyte of float temporaries the whole-frame
+    expressions took.
+    """
     rng = rng or np.random.default_rng(0)
     h, w = opacity.shape
     light = backlight(h, w, optics.vignetting, optics.backlight_gradient, optics.backlight_angle_deg)
-    signal = optics.dark_level + (optics.bright_level - optics.dark_level) * light * (1 - opacity)
-    signal *= exposure
+    signal = np.empty((h, w), dtype=np.float64)
+    for rows in _bands(h):
+        band = optics.dark_level + (optics.bright_level - optics.dark_level) * light[rows] * (1 - opacity[rows])
+        band *= exposure
+        signal[rows] = band
     if optics.blur_sigma_px > 0:
-        signal = cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px)
-    bgr = signal[:, :, None] * np.array(optics.tint_bgr)[None, None, :]
-    bgr += rng.normal(0.0, optics.noise_sigma, bgr.shape)
-    return np.clip(np.rint(bgr), 0, 255).astype(np.uint8)
+        cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px, dst=signal)
+    tint = np.array(optics.tint_bgr)[None, None, :]
+    frame = np.empty((h, w, 3), dtype=np.uint8)
+    noise = np.empty((min(_BAND_ROWS, h), w, 3), dtype=np.float64)
+    for rows in _bands(h):
+        bgr = signal[rows, :, None] * tint
+        z = noise[: rows.stop - rows.start]
+        rng.standard_normal(out=z)  # what rng.normal(0, sigma, ...) draws, in the same order
+        z *= optics.noise_sigma
+        bgr += z
+        np.rint(bgr, out=bgr)
+        np.clip(bgr, 0, 255, out=bgr)
+        frame[rows] = bgr
+    return frame
+
+
+def _bands(h: int) -> list[slice]:
+    return [slice(r, min(r + _BAND_ROWS, h)) for r in range(0, h, _BAND_ROWS)]
 
 
 def render_plate(
