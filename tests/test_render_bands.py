@@ -1,5 +1,5 @@
 """The renderer's exposure in bands of rows gives the very frame the whole-frame formula gives
-(the same noise, drawn in the same order), and the light map, built from a row and a column,
+(each band blurred with the rows its blur reaches, the same noise drawn in the same order), and the light map, built from a row and a column,
 the same values as from two full pixel grids; nearest_outline_mm is the least outline gap."""
 
 from __future__ import annotations
@@ -9,8 +9,10 @@ import pytest
 
 from cell.camera_model import CameraModel
 from cell.sim.cell import nearest_outline_mm, outline_gap_mm
-from cell.sim.parts import PartSpec, random_scene
-from cell.sim.render import Optics, backlight, expose
+from cell.sim.parts import PartSpec, part_coverage, random_scene
+from cell.sim.render import Optics, backlight, circles_coverage, expose
+from cell.sim.sim_camera import SimCamera
+from cell.sim.world import Truth, World
 
 
 def _whole_frame_light(h: int, w: int, vignetting: float, gradient: float, angle_deg: float) -> np.ndarray:
@@ -38,10 +40,15 @@ def _whole_frame_expose(opacity: np.ndarray, optics: Optics, rng: np.random.Gene
     return np.clip(np.rint(bgr), 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("size", [(17, 16), (101, 67), (640, 97)])  # bands of 32 rows: whole, and one cut short
+@pytest.mark.parametrize("size", [(17, 16), (101, 67), (640, 150)])  # bands of 64 rows: one, and the last cut short
 @pytest.mark.parametrize(
     "optics",
-    [Optics(), Optics(blur_sigma_px=0.0), Optics(noise_sigma=0.0, vignetting=0.4, backlight_angle_deg=123.0)],
+    [
+        Optics(),
+        Optics(blur_sigma_px=0.0),
+        Optics(blur_sigma_px=2.6),  # a wider blur reaches further beyond each band
+        Optics(blur_sigma_px=0.3, noise_sigma=0.0, vignetting=0.4, backlight_angle_deg=123.0),
+    ],
 )
 @pytest.mark.parametrize("exposure", [1.0, 1.4])
 def test_exposure_in_bands_is_the_whole_frame_formula(size: tuple[int, int], optics: Optics, exposure: float) -> None:
@@ -80,3 +87,25 @@ def test_nearest_outline_is_the_least_pairwise_gap_to_any_of_the_others() -> Non
         others = parts[:i] + parts[i + 1 :]
         assert nearest_outline_mm(part, others) == min(_pairwise_gap_mm(part, q) for q in others)
         assert outline_gap_mm(part, others[0]) == _pairwise_gap_mm(part, others[0])
+
+
+def test_a_sim_camera_frame_is_the_whole_frame_exposure_of_its_marks_and_parts() -> None:
+    """The camera composes small windows in a buffer it keeps: frame after frame (the parts
+    changing between them), the frame the whole-frame coverage would give."""
+    model = CameraModel.looking_down(320, 200, 1.0, (130.0, 90.0))
+    marks = np.array([(-6.0, -6.0), (270.0, -6.0), (-6.0, 182.0), (270.0, 182.0)])
+    parts = random_scene(3)
+    world = World(parts, Truth(0.0, 0.0, 0.0, 0.0), [])
+    camera = SimCamera(world, model, seed=5, marks_mm=marks, mark_diameter_mm=3.0)
+    rng = np.random.default_rng(5)
+    camera.connect()
+    for _ in range(3):
+        opacity = circles_coverage(model, marks, 1.5)
+        for _, spec in world.table_specs():
+            got = part_coverage(model, spec)
+            if got is not None:
+                (x0, y0), cov = got
+                window = opacity[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+                np.maximum(window, cov, out=window)
+        np.testing.assert_array_equal(camera.capture(), _whole_frame_expose(opacity, Optics(), rng, 1.0))
+        world.parts = world.parts[2:]  # parts leave the table between frames

@@ -63,13 +63,26 @@ def circles_coverage(
     radius_mm: float,
     height_mm: float = 0.0,
 ) -> np.ndarray:
-    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`).
+    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`)."""
+    coverage = np.zeros((camera.height_px, camera.width_px), dtype=np.float64)
+    for (x0, y0), cov in circles_windows(camera, centres_table_mm, radius_mm, height_mm):
+        window = coverage[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        np.maximum(window, cov, out=window)
+    return coverage
 
-    Each circle is rendered in the pixel box around its projection (a few pixels beyond its
-    edge, where the coverage is zero): rays are cast only there, not through the whole frame.
-    """
+
+Window = tuple[tuple[int, int], np.ndarray]  # (x0, y0) of a pixel box, and the coverage in it
+
+
+def circles_windows(
+    camera: CameraModel,
+    centres_table_mm: np.ndarray,
+    radius_mm: float,
+    height_mm: float = 0.0,
+) -> list[Window]:
+    """Each circle's coverage in the pixel box around its projection (a few pixels beyond its
+    edge, where the coverage is zero): rays are cast only there, not through the whole frame."""
     h, w = camera.height_px, camera.width_px
-    coverage = np.zeros((h, w), dtype=np.float64)
     centres = np.asarray(centres_table_mm, dtype=np.float64).reshape(-1, 2)
     a = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
     rim = np.column_stack([np.cos(a), np.sin(a)]) * radius_mm
@@ -82,7 +95,8 @@ def circles_coverage(
         if box[2] - box[0] >= 3 and box[3] - box[1] >= 3:
             boxes.append((c, box))
     maps = _window_maps(camera, [box for _, box in boxes], height_mm) if boxes else []
-    for ((cx, cy), (x0, y0, x1, y1)), (X, Y, J) in zip(boxes, maps, strict=True):
+    windows: list[Window] = []
+    for ((cx, cy), (x0, y0, _, _)), (X, Y, J) in zip(boxes, maps, strict=True):
         dx, dy = X - cx, Y - cy
         rho = np.hypot(dx, dy)
         nx, ny = dx / np.maximum(rho, 1e-12), dy / np.maximum(rho, 1e-12)
@@ -90,9 +104,8 @@ def circles_coverage(
         gu = nx * J[0] + ny * J[2]
         gv = nx * J[1] + ny * J[3]
         d_px = (rho - radius_mm) / np.maximum(np.hypot(gu, gv), 1e-12)
-        cov = np.clip(0.5 - d_px, 0.0, 1.0)
-        np.maximum(coverage[y0:y1, x0:x1], cov, out=coverage[y0:y1, x0:x1])
-    return coverage
+        windows.append(((int(x0), int(y0)), np.clip(0.5 - d_px, 0.0, 1.0)))
+    return windows
 
 
 def plate_centres_mm(plate: PlateGeometry, omit: AbstractSet[tuple[int, int]] = frozenset()) -> np.ndarray:
@@ -129,7 +142,7 @@ def backlight(h: int, w: int, vignetting: float, gradient: float, angle_deg: flo
     return light
 
 
-_BAND_ROWS = 32  # rows exposed at a time: the float temporaries stay a few MB whatever the frame size
+_BAND_ROWS = 64  # rows exposed at a time: the float temporaries stay a few MB whatever the frame size
 
 
 def expose(
@@ -141,38 +154,42 @@ def expose(
 ) -> np.ndarray:
     """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque).
 
-    Computed in bands of rows (the noise drawn band after band, the same values in the same
-    order as for the whole frame at once): a 1080p frame needs one float image (the light, blurred
-    in place) beside its result, not the half a gigabyte of float temporaries the whole-frame
-    expressions took.
+    Computed in bands of rows, each band's light blurred with the rows the blur reaches beyond
+    it and the noise drawn band after band: the same values in the same order as for the whole
+    frame at once, but a 1080p frame needs a few MB of float temporaries beside its result, not
+    the half a gigabyte the whole-frame expressions took (nor OpenCV's frame-sized copy for a blur).
     """
     rng = rng or np.random.default_rng(0)
     h, w = opacity.shape
     light = backlight(h, w, optics.vignetting, optics.backlight_gradient, optics.backlight_angle_deg)
-    signal = np.empty((h, w), dtype=np.float64)
-    for rows in _bands(h):
-        band = optics.dark_level + (optics.bright_level - optics.dark_level) * light[rows] * (1 - opacity[rows])
-        band *= exposure
-        signal[rows] = band
-    if optics.blur_sigma_px > 0:
-        cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px, dst=signal)
+    reach = _blur_reach_rows(optics.blur_sigma_px)
     tint = np.array(optics.tint_bgr)[None, None, :]
     frame = np.empty((h, w, 3), dtype=np.uint8)
     noise = np.empty((min(_BAND_ROWS, h), w, 3), dtype=np.float64)
-    for rows in _bands(h):
-        bgr = signal[rows, :, None] * tint
-        z = noise[: rows.stop - rows.start]
+    for r0 in range(0, h, _BAND_ROWS):
+        r1 = min(r0 + _BAND_ROWS, h)
+        lo, hi = max(r0 - reach, 0), min(r1 + reach, h)  # the band and what its blur reaches
+        signal = optics.dark_level + (optics.bright_level - optics.dark_level) * light[lo:hi] * (1 - opacity[lo:hi])
+        signal *= exposure
+        if reach:
+            signal = cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px)
+        bgr = signal[r0 - lo : r1 - lo, :, None] * tint
+        z = noise[: r1 - r0]
         rng.standard_normal(out=z)  # what rng.normal(0, sigma, ...) draws, in the same order
         z *= optics.noise_sigma
         bgr += z
         np.rint(bgr, out=bgr)
         np.clip(bgr, 0, 255, out=bgr)
-        frame[rows] = bgr
+        frame[r0:r1] = bgr
     return frame
 
 
-def _bands(h: int) -> list[slice]:
-    return [slice(r, min(r + _BAND_ROWS, h)) for r in range(0, h, _BAND_ROWS)]
+def _blur_reach_rows(sigma_px: float) -> int:
+    """Rows a Gaussian blur of float images reaches on either side (OpenCV's kernel: 8 sigma + 1
+    wide, rounded to odd), one spare: 0 without blur."""
+    if sigma_px <= 0:
+        return 0
+    return (int(round(sigma_px * 8 + 1)) | 1) // 2 + 1
 
 
 def render_plate(
