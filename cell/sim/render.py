@@ -145,9 +145,28 @@ def backlight(h: int, w: int, vignetting: float, gradient: float, angle_deg: flo
 _BAND_ROWS = 64  # rows exposed at a time: the float temporaries stay a few MB whatever the frame size
 
 
+class Scene:
+    """A frame's opacity as small windows (marks, parts) on a clear table, made a band of rows
+    at a time as `expose` reads it (`scene[lo:hi]`): no frame-sized image is kept or made."""
+
+    def __init__(self, height_px: int, width_px: int, windows: list[Window]):
+        self.shape = (height_px, width_px)
+        self.windows = windows
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        lo, hi, _ = rows.indices(self.shape[0])
+        band = np.zeros((hi - lo, self.shape[1]), dtype=np.float64)
+        for (x0, y0), cov in self.windows:
+            top, bottom = max(y0, lo), min(y0 + cov.shape[0], hi)
+            if top < bottom:
+                part = band[top - lo : bottom - lo, x0 : x0 + cov.shape[1]]
+                np.maximum(part, cov[top - y0 : bottom - y0], out=part)
+        return band
+
+
 def expose(
     camera: CameraModel,
-    opacity: np.ndarray,
+    opacity: np.ndarray | Scene,
     optics: Optics = Optics(),
     rng: np.random.Generator | None = None,
     exposure: float = 1.0,

@@ -3,9 +3,9 @@
 Each part's silhouette is rendered once and kept while the part stays put; a capture
 composes the kept silhouettes and exposes them (light fall-off, blur, fresh noise), so a
 frame costs one exposure, not a re-render of every part. The silhouettes and the marks are
-kept as small windows, composed into one frame-sized buffer the camera keeps: a capture
-allocates its frame and a few MB, not frame-sized float images. `render_s` adds up the time
-spent, which the cell reports apart from its own software time.
+kept as small windows and exposed band by band (render.Scene): a capture allocates its frame
+and a few MB, never a frame-sized float image. `render_s` adds up the time spent, which the
+cell reports apart from its own software time.
 
 The table may carry printed reference marks (dark dots that never move), and the camera
 may be bumped: from a chosen frame on, it sees through a moved camera model.
@@ -13,14 +13,13 @@ may be bumped: from a chosen frame on, it sees through a moved camera model.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 
 from cell.camera_model import CameraModel
 from cell.sim.parts import part_coverage
-from cell.sim.render import Optics, Window, circles_windows, expose
+from cell.sim.render import Optics, Scene, Window, circles_windows, expose
 from cell.sim.world import World
 from drivers.cameras.base import Camera
 
@@ -53,8 +52,6 @@ class SimCamera(Camera):
         self.mark_radius_mm = mark_diameter_mm / 2
         self.bump = bump
         self._marks: list[Window] | None = None
-        self._opacity: np.ndarray | None = None  # the composed scene, reused frame after frame
-        self._lock = threading.Lock()  # one capture at a time in the buffer
 
     def connect(self) -> None:
         self._connected = True
@@ -67,25 +64,19 @@ class SimCamera(Camera):
         return self._connected
 
     def _grab(self) -> np.ndarray:
-        with self._lock:
-            t0 = time.perf_counter()
-            if self.bump is not None and self.frames + 1 >= self.bump[0]:
-                self.model, self.bump = self.bump[1], None
-                self._silhouettes, self._marks = {}, None  # everything is seen from elsewhere now
-            if self._marks is None:
-                self._marks = circles_windows(self.model, self.marks_mm, self.mark_radius_mm)
-            frame = expose(self.model, self._compose(), self.optics, self.rng)
-            self.render_s += time.perf_counter() - t0
-            self.frames += 1
-            return frame
+        t0 = time.perf_counter()
+        if self.bump is not None and self.frames + 1 >= self.bump[0]:
+            self.model, self.bump = self.bump[1], None
+            self._silhouettes, self._marks = {}, None  # everything is seen from elsewhere now
+        if self._marks is None:
+            self._marks = circles_windows(self.model, self.marks_mm, self.mark_radius_mm)
+        frame = expose(self.model, self._scene(), self.optics, self.rng)
+        self.render_s += time.perf_counter() - t0
+        self.frames += 1
+        return frame
 
-    def _compose(self) -> np.ndarray:
-        """The scene's opacity: the marks and every part on the table, in the camera's buffer."""
-        shape = (self.model.height_px, self.model.width_px)
-        if self._opacity is None or self._opacity.shape != shape:
-            self._opacity = np.zeros(shape, dtype=np.float64)
-        else:
-            self._opacity.fill(0.0)
+    def _scene(self) -> Scene:
+        """The marks and every part on the table (each part's silhouette rendered once, while it stays put)."""
         keep = {}
         windows = list(self._marks or [])
         for part_id, spec in self.world.table_specs():
@@ -95,7 +86,4 @@ class SimCamera(Camera):
             if got is not None:
                 windows.append(got)
         self._silhouettes = keep
-        for (x0, y0), cov in windows:
-            window = self._opacity[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
-            np.maximum(window, cov, out=window)
-        return self._opacity
+        return Scene(self.model.height_px, self.model.width_px, windows)
