@@ -130,6 +130,11 @@ class SimConfig(Strict):
     perfect_calibration: bool = Field(
         False, description="use the camera model itself instead of calibrating the rendered plate"
     )
+    plate_cache: bool = Field(
+        True,
+        description="keep the rendered plate's fitted calibration in $XDG_CACHE_HOME/pick-cell/sim, keyed by the "
+        "camera, the plate, the settings and the code that fit it: later dry runs start without fitting it again",
+    )
     camera_bumped_mm: tuple[float, float] = Field(
         (0.0, 0.0),
         description="move the camera this far (table X, Y) after the plate was calibrated: a stale calibration",

@@ -1,14 +1,18 @@
 """Soak: a simulated shift of at least --picks picks through `run-cell serve`, driven over OPC UA.
 
 Starts `run-cell serve --dry-run --config <shift>` in a subprocess (the built-in simulated
-cell at 960 x 540 to keep frames cheap, the feeder at 6 parts per simulated minute with
-time running 60x: 360 parts a minute, more than the cell picks, so it never idles), calls
+cell, its camera `--camera` pixels, the feeder at 6 parts per simulated minute with time
+running 60x: 360 parts a minute, more than the cell picks, so it never idles), calls
 StartContinuous, and samples the server process (RSS, threads, open fds, child processes)
 from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log and the history
 store (data/history.sqlite: picked rows, unique ids, PRAGMA integrity_check) checked against
 the counters.
 
-    .venv/bin/python scripts/bench_soak.py [--picks 2000] [--timeout-s 1800]
+At 1920 x 1080 (the built-in camera) the cell runs as shipped: the drift watch on, over the
+simulated table's reference marks. Smaller cameras do not resolve the 1.5 mm marks (run-cell
+neither), so there the shift config turns them off.
+
+    .venv/bin/python scripts/bench_soak.py [--picks 2000] [--camera 1920x1080] [--timeout-s 3600]
 """
 
 from __future__ import annotations
@@ -36,17 +40,35 @@ from cell.audit import read_events  # noqa: E402
 
 SHIFT_TOML = """\
 [camera]
-width_px = 960
-height_px = 540
+width_px = {width}
+height_px = {height}
 [service]
 capture_interval_s = 60.0   # simulated: 1 s of wall time at speed_factor 60
 [sim]
 speed_factor = 60.0
-reference_marks_mm = []     # the drift watch does not find its marks at 960 x 540 (run-cell neither)
+{marks}
 [sim.feeder]
 parts_per_minute = 6.0
 max_on_table = 25
 """
+FULL_HD = (1920, 1080)  # the built-in simulated camera, the default config's
+
+
+def shift_toml(width: int, height: int) -> str:
+    """The soak's config: the shipped simulated shift at this camera size, faster."""
+    marks = "" if (width, height) == FULL_HD else "reference_marks_mm = []  # too small to find at this size"
+    return SHIFT_TOML.format(width=width, height=height, marks=marks)
+
+
+def camera_size(text: str) -> tuple[int, int]:
+    """`--camera WIDTHxHEIGHT`, e.g. 1920x1080."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give the camera size as WIDTHxHEIGHT, e.g. 1920x1080") from None
+    if not (16 <= width <= 20000 and 16 <= height <= 20000):
+        raise argparse.ArgumentTypeError(f"{text!r}: each side 16-20000 px (camera.width_px, camera.height_px)")
+    return width, height
 
 
 def proc_figures(pid: int) -> dict:
@@ -58,6 +80,14 @@ def proc_figures(pid: int) -> dict:
         len(Path(f"/proc/{pid}/task/{t}/children").read_text().split()) for t in os.listdir(f"/proc/{pid}/task")
     )
     return {"rss_mb": rss_kb / 1024, "threads": threads, "fds": fds, "children": children}
+
+
+def memory_kinds(pid: int) -> str:
+    """RSS by kind (/proc/PID/smaps_rollup): anonymous memory (the heap, arrays) and file-backed
+    (code, shared libraries)."""
+    rows = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:])
+    mb = {k: int(rows[k].split()[0]) / 1024 for k in ("Rss", "Anonymous")}
+    return f"anonymous {mb['Anonymous']:.1f} MB, file-backed and shared {mb['Rss'] - mb['Anonymous']:.1f} MB"
 
 
 def free_port() -> int:
@@ -77,7 +107,7 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, A
         async def total():
             return await read("PickedBolts") + await read("PickedNuts")
 
-        out: dict[str, Any] = {"start": proc_figures(pid)}
+        out: dict[str, Any] = {"start": proc_figures(pid), "start_kinds": memory_kinds(pid)}
         t0 = time.monotonic()
         await cell.call_method(f"{ns}:StartContinuous")
         states, last_print, samples = set(), 0, []  # (picks, RSS MB) four times a second
@@ -109,6 +139,7 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, A
         out["peak_early"], out["peak_late"] = max(early), max(late)
         out["median_early"], out["median_late"] = statistics.median(early), statistics.median(late)
         out["end"] = proc_figures(pid)
+        out["end_kinds"] = memory_kinds(pid)
         out["states"] = states
         out["counters"] = {
             name: await read(name)
@@ -138,11 +169,19 @@ def history_figures(path: Path) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--picks", type=int, default=2000)
-    ap.add_argument("--timeout-s", type=float, default=1800.0)
+    ap.add_argument(
+        "--camera",
+        type=camera_size,
+        default=(960, 540),
+        help="the simulated camera's size, WIDTHxHEIGHT (default 960x540; 1920x1080 is the shipped cell, drift watch on)",
+    )
+    ap.add_argument("--timeout-s", type=float, default=3600.0)
     args = ap.parse_args()
+    load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
         tmp = Path(tmp_name)
-        (tmp / "shift.toml").write_text(SHIFT_TOML)
+        (tmp / "shift.toml").write_text(shift_toml(*args.camera))
+        print(f"camera {args.camera[0]} x {args.camera[1]}; drift watch {'on' if args.camera == FULL_HD else 'off'}")
         port = free_port()
         cmd = [
             sys.executable,
@@ -165,7 +204,7 @@ def main() -> int:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
-            env={**os.environ, "PYTHONPATH": str(REPO)},
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))},
         )
         out = proc.stdout
         assert out is not None  # stdout=PIPE
@@ -176,6 +215,7 @@ def main() -> int:
                     raise SystemExit(f"serve did not start: {line}")
                 line = out.readline()
             print(line.strip())
+            print(f"RSS at ready {proc_figures(proc.pid)['rss_mb']:.1f} MB ({memory_kinds(proc.pid)})", flush=True)
             r = asyncio.run(drive(f"opc.tcp://127.0.0.1:{port}/cell", proc.pid, args.picks, args.timeout_s))
         finally:
             if proc.poll() is None:
@@ -204,6 +244,7 @@ def main() -> int:
         f"({100 * (r['peak_late'] / r['peak_early'] - 1):+.1f} %), median {r['median_early']:.1f} -> "
         f"{r['median_late']:.1f} MB ({100 * (r['median_late'] / r['median_early'] - 1):+.1f} %)"
     )
+    print(f"RSS by kind at start: {r['start_kinds']}; at the end: {r['end_kinds']}")
     print(
         f"threads start {s['threads']}, at pick 100 {a['threads']}, end {e['threads']}; "
         f"fds start {s['fds']}, at pick 100 {a['fds']}, end {e['fds']}; child processes at end {e['children']}"
@@ -226,6 +267,11 @@ def main() -> int:
         and e["threads"] <= a["threads"]
         and e["fds"] <= a["fds"]
         and r["peak_late"] < 1.05 * r["peak_early"]
+    )
+    load_end = os.getloadavg()
+    print(
+        f"load average (1, 5, 15 min): at start {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}, "
+        f"at end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}"
     )
     print("PASS" if ok else "FAIL")
     return 0 if ok else 1

@@ -245,6 +245,7 @@ def test_a_stop_signal_during_plate_calibration(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(simcell, "calibrate", hung_up)
     monkeypatch.setattr(simcell, "_PLATE_FITS", {})  # fit now, not from an earlier run's cache
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # nor from an earlier process's
     cfg = fast_config(tmp_path, "dynamixel")
     cfg.write_text(cfg.read_text().replace("perfect_calibration = true\n", ""))
     sim = capture_sim(monkeypatch)
@@ -269,6 +270,7 @@ def test_sigusr1_during_plate_calibration_pauses_before_the_first_motion(tmp_pat
 
     monkeypatch.setattr(simcell, "calibrate", paused)
     monkeypatch.setattr(simcell, "_PLATE_FITS", {})  # fit now, not from an earlier run's cache
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # nor from an earlier process's
     FullDiskAt(None, hook=lambda count, data: at_pause(data)).install(monkeypatch)
     sim = capture_sim(monkeypatch)
     cfg = fast_config(tmp_path, "serial")

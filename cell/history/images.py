@@ -3,7 +3,8 @@ part, a fault and parts left unknown, in the data folder, linked from the rows b
 
 Bounded work: an image waits in a queue of `history.images_queue`; when that is full the
 newest is dropped and counted, so the saver never falls behind the picks without end nor
-holds frames in memory. Retention: after each save, files older than `images_max_days`
+holds frames in memory; once the queue is empty the encoders' buffers are given back to the
+system (cell.memory), not kept by the saver's thread. Retention: after each save, files older than `images_max_days`
 and then the oldest until the folder is under `images_max_mb` are deleted (their rows
 marked deleted). Below `min_free_mb` of free disk no image is written and a warning alarm
 is raised (cleared once there is room again): images never fill the disk.
@@ -30,6 +31,7 @@ from cell.atomicfile import write_bytes_atomic
 from cell.events import FrameRef
 from cell.history.config import HistoryConfig
 from cell.history.rows import ImageWanted, Op
+from cell.memory import release_free_memory
 
 log = logging.getLogger(__name__)
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # lossless; level 1: 3-4x faster than the default for 10-20 % more bytes
@@ -102,7 +104,10 @@ class ImageSaver:
             finally:
                 with self._cond:
                     self._busy = False
+                    drained = not self._queue
                     self._cond.notify_all()
+            if drained:  # a rare burst of PNG work done: its buffers go back to the system, not kept
+                release_free_memory()
 
     def _room(self) -> bool:
         try:

@@ -4,9 +4,10 @@ Vision) in it, fast: the XML import is done once and its result cached.
 `import_xml` of the two NodeSets costs about as much CPU as the standard address space itself
 (most of it asyncua adding references one at a time). The cold path does exactly that, then
 pickles the whole address space (standard nodes, DI, Machine Vision) into the cache folder
-under a name keyed by the NodeSet files' hash, asyncua's version and Python's. The warm path
-unpickles it in place of asyncua's standard address space, inside `Server.init()`, with the
-garbage collector paused (pickle builds a few hundred thousand small objects; the collector
+under a name keyed by the NodeSet files' hash, asyncua's version and Python's, in chunks of
+nodes (so that loading it leaves no holes behind: _cache_payload). The warm path unpickles it
+in place of asyncua's standard address space, inside `Server.init()`, with the garbage
+collector paused (pickle builds a few hundred thousand small objects; the collector
 would otherwise run over them again and again).
 
 What cannot be pickled by name, the structure and enumeration classes asyncua generates from
@@ -29,7 +30,6 @@ import gc
 import hashlib
 import io
 import logging
-import os
 import pickle
 import sys
 import time
@@ -44,6 +44,7 @@ from asyncua import Server, ua
 from asyncua.server.address_space import AddressSpace, AttributeValue, NodeData
 
 from cell.atomicfile import write_bytes_atomic
+from cell.cachedir import user_cache_dir
 from cell.errors import OutputError
 from cell.service.mv_config import MachineVisionConfig
 from cell.service.ua_values import node_id
@@ -56,7 +57,8 @@ NODESET_FILES = ("Opc.Ua.Di.NodeSet2.xml", "Opc.Ua.MachineVision.NodeSet2.xml") 
 MODEL_URIS = (DI_URI, MV_URI)
 # After Server.init() the namespace array is [OPC UA, the application URI]; the models come next.
 EXPECTED_NAMESPACES = {DI_URI: 2, MV_URI: 3}
-_FORMAT = 2  # bump when what the cache holds changes
+_FORMAT = 3  # bump when what the cache holds changes
+_CHUNK_NODES = 256  # nodes per pickle in the cache (see _cache_payload)
 _MAGIC = b"pick-cell aspace cache\n"
 _DYNAMIC_MODULE = "asyncua.common.structures104"  # where asyncua puts the classes it generates
 
@@ -86,8 +88,7 @@ def cache_key(folder: Path | None = None) -> str:
 
 
 def default_cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "pick-cell" / "opcua"
+    return user_cache_dir("opcua")
 
 
 def cache_dir_for(mv: MachineVisionConfig) -> Path | None:
@@ -322,7 +323,7 @@ def _write_cache(server: Server, path: Path, namespaces: dict[str, int]) -> None
     aspace = server.iserver.aspace
     try:
         with _values_swapped(aspace):
-            payload = pickle.dumps({"namespaces": namespaces, "nodes": aspace._nodes}, protocol=pickle.HIGHEST_PROTOCOL)
+            payload = _cache_payload(namespaces, aspace._nodes)
     except Exception as e:  # noqa: BLE001 - a cache we cannot make is only slower starts
         log.warning("address space cache not written (%s): %s", path, e)
         return
@@ -339,6 +340,41 @@ def _write_cache(server: Server, path: Path, namespaces: dict[str, int]) -> None
     log.info("address space cache written: %s (%d kB)", path, len(payload) // 1024)
 
 
+def _cache_payload(namespaces: dict[str, int], nodes: dict[ua.NodeId, NodeData]) -> bytes:
+    """The address space as a header and then one pickle per _CHUNK_NODES nodes.
+
+    One pickle of the whole address space made its load hold every temporary object the
+    unpickler makes (hundreds of thousands of small tuples and dicts, the slots' state), all
+    remembered until the end and then freed among the live nodes: about 120 MB that stayed in
+    the process, in holes, for good. Chunk by chunk, each chunk's temporaries are freed before
+    the next chunk is read, which builds its nodes in their place."""
+    out = io.BytesIO()
+    items = list(nodes.items())
+    chunks = [items[i : i + _CHUNK_NODES] for i in range(0, len(items), _CHUNK_NODES)]
+    pickle.dump({"namespaces": namespaces, "chunks": len(chunks)}, out, protocol=pickle.HIGHEST_PROTOCOL)
+    for chunk in chunks:
+        pickle.dump(chunk, out, protocol=pickle.HIGHEST_PROTOCOL)
+    return out.getvalue()
+
+
+def _load_payload(payload: bytes) -> dict[str, Any]:
+    """What _cache_payload wrote: {"namespaces", "nodes"}; ValueError when it is not that."""
+    stream = io.BytesIO(payload)
+    head = _Unpickler(stream).load()
+    if not isinstance(head, dict) or set(head) != {"namespaces", "chunks"} or not isinstance(head["chunks"], int):
+        raise ValueError("unexpected content")
+    nodes: dict[Any, Any] = {}
+    for _ in range(head["chunks"]):
+        chunk = _Unpickler(stream).load()  # a fresh memo each: the last chunk's temporaries are gone
+        if not isinstance(chunk, list):
+            raise ValueError("unexpected content")
+        nodes.update(chunk)
+        del chunk
+    if stream.read(1):
+        raise ValueError("unexpected content after the last chunk")
+    return {"namespaces": head["namespaces"], "nodes": nodes}
+
+
 def read_cache(path: Path) -> dict[str, Any]:
     """The cache's content, checked; ValueError (or an unpickling error) when it is not one:
     `init_server_with_models` then rebuilds it."""
@@ -348,8 +384,9 @@ def read_cache(path: Path) -> dict[str, Any]:
     digest, payload = data[len(_MAGIC) : len(_MAGIC) + 32], data[len(_MAGIC) + 32 :]
     if hashlib.sha256(payload).digest() != digest:
         raise ValueError("checksum mismatch (truncated or corrupt)")
+    del data
     with _gc_paused():
-        content = _Unpickler(io.BytesIO(payload)).load()
+        content = _load_payload(payload)
     return _check_shape(content)
 
 

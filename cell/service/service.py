@@ -57,6 +57,7 @@ from cell.events import (
     VisionStateChanged,
     new_job_id,
 )
+from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
 from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
 from cell.runner import Runner
@@ -573,6 +574,8 @@ class LineService:
                 with self._lock:
                     self._end_job(job, "fault", "internal error outside the runner (details in the log)")
                 self._changed("alarm")
+            job = None  # its runner, last frame and what was found on it: not kept until the next job
+            release_free_memory()  # at rest: what the job's frames used goes back to the system
 
     def _run_job(self, job: _Job) -> None:
         outcome, reason, counts = "fault", "", {}

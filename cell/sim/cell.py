@@ -10,6 +10,7 @@ the real serial or Dynamixel driver against its emulated firmware on a pseudo-te
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import json
 import logging
@@ -26,6 +27,7 @@ from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.sim.emulated_arm import EmulatedArm, emulated_arm
 from cell.sim.parts import PartSpec, random_scene
+from cell.sim.platefit import cached_fit, default_dir
 from cell.sim.render import plate_centres_mm, render_plate
 from cell.sim.rig import default_camera
 from cell.sim.sim_arm import SimArm
@@ -78,17 +80,34 @@ class SimCell:
         return self.arm.motion_time_s if isinstance(self.arm, SimArm) else 0.0
 
 
+_EDGE_STEPS = np.linspace(0, 1, 8, endpoint=False)[:, None, None]
+
+
+@functools.lru_cache(maxsize=256)
+def _dense_outline(p: PartSpec) -> np.ndarray:
+    """The top-view outline with 8 samples along each edge (read-only; a part's is kept while it is used)."""
+    poly = p.top_view_outline_mm()
+    nxt = np.roll(poly, -1, axis=0)
+    dense = (poly + _EDGE_STEPS * (nxt - poly)).reshape(-1, 2)
+    dense.flags.writeable = False
+    return dense
+
+
 def outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
     """Smallest distance between two top-view outlines (sampled), mm."""
+    return nearest_outline_mm(a, [b])
 
-    def dense(p: PartSpec) -> np.ndarray:
-        poly = p.top_view_outline_mm()
-        nxt = np.roll(poly, -1, axis=0)
-        t = np.linspace(0, 1, 8, endpoint=False)[:, None, None]
-        return (poly + t * (nxt - poly)).reshape(-1, 2)
 
-    pa, pb = dense(a), dense(b)
-    return float(np.sqrt(((pa[:, None, :] - pb[None, :, :]) ** 2).sum(-1)).min())
+def nearest_outline_mm(a: PartSpec, others: list[PartSpec]) -> float:
+    """Smallest distance between a's top-view outline and any of the others' (sampled), mm: the
+    least of outline_gap_mm(a, q) over them, in one step."""
+    pa, pb = _dense_outline(a), np.concatenate([_dense_outline(q) for q in others])
+    dx = pa[:, 0, None] - pb[None, :, 0]
+    dy = pa[:, 1, None] - pb[None, :, 1]
+    dx *= dx
+    dy *= dy
+    dx += dy
+    return float(np.sqrt(dx.min()))  # the square root of the least square: the least distance
 
 
 def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None) -> list[PartSpec]:
@@ -113,7 +132,7 @@ def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None
         others = [q for j, q in enumerate(parts) if j != i]
 
         def room(c: PartSpec) -> float:
-            return min(outline_gap_mm(c, q) for q in others)
+            return nearest_outline_mm(c, others)
 
         if base_table_mm is None:
             parts[i] = max(
@@ -177,7 +196,8 @@ def plate_calibration(config: CellConfig, model: CameraModel) -> tuple[Calibrati
 
     The fit depends only on the camera, the seed and the plate, detection and calibration
     settings, so a process that builds the cell again (a line service starting job after
-    job, the test suite) renders and fits it once.
+    job, the test suite) renders and fits it once, and with `sim.plate_cache` later processes
+    load it from the user's cache folder (cell/sim/platefit.py).
     """
     key = json.dumps(
         [
@@ -189,11 +209,15 @@ def plate_calibration(config: CellConfig, model: CameraModel) -> tuple[Calibrati
         ]
     )
     if key not in _PLATE_FITS:
-        result = calibrate(render_plate(model, config.plate, seed=config.sim.seed), config)
-        model.cache.clear()  # the plate's ray maps are not needed again
+
+        def fit() -> tuple[Calibration, str]:
+            result = calibrate(render_plate(model, config.plate, seed=config.sim.seed), config)
+            model.cache.clear()  # the plate's ray maps are not needed again
+            return result.calibration, result.why
+
         if len(_PLATE_FITS) >= 4:
             _PLATE_FITS.pop(next(iter(_PLATE_FITS)))
-        _PLATE_FITS[key] = (result.calibration, result.why)
+        _PLATE_FITS[key] = cached_fit(key, default_dir() if config.sim.plate_cache else None, fit)
     return _PLATE_FITS[key]
 
 

@@ -63,13 +63,26 @@ def circles_coverage(
     radius_mm: float,
     height_mm: float = 0.0,
 ) -> np.ndarray:
-    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`).
+    """Fraction of each pixel covered by any of the circles (flat discs at `height_mm`)."""
+    coverage = np.zeros((camera.height_px, camera.width_px), dtype=np.float64)
+    for (x0, y0), cov in circles_windows(camera, centres_table_mm, radius_mm, height_mm):
+        window = coverage[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        np.maximum(window, cov, out=window)
+    return coverage
 
-    Each circle is rendered in the pixel box around its projection (a few pixels beyond its
-    edge, where the coverage is zero): rays are cast only there, not through the whole frame.
-    """
+
+Window = tuple[tuple[int, int], np.ndarray]  # (x0, y0) of a pixel box, and the coverage in it
+
+
+def circles_windows(
+    camera: CameraModel,
+    centres_table_mm: np.ndarray,
+    radius_mm: float,
+    height_mm: float = 0.0,
+) -> list[Window]:
+    """Each circle's coverage in the pixel box around its projection (a few pixels beyond its
+    edge, where the coverage is zero): rays are cast only there, not through the whole frame."""
     h, w = camera.height_px, camera.width_px
-    coverage = np.zeros((h, w), dtype=np.float64)
     centres = np.asarray(centres_table_mm, dtype=np.float64).reshape(-1, 2)
     a = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
     rim = np.column_stack([np.cos(a), np.sin(a)]) * radius_mm
@@ -82,7 +95,8 @@ def circles_coverage(
         if box[2] - box[0] >= 3 and box[3] - box[1] >= 3:
             boxes.append((c, box))
     maps = _window_maps(camera, [box for _, box in boxes], height_mm) if boxes else []
-    for ((cx, cy), (x0, y0, x1, y1)), (X, Y, J) in zip(boxes, maps, strict=True):
+    windows: list[Window] = []
+    for ((cx, cy), (x0, y0, _, _)), (X, Y, J) in zip(boxes, maps, strict=True):
         dx, dy = X - cx, Y - cy
         rho = np.hypot(dx, dy)
         nx, ny = dx / np.maximum(rho, 1e-12), dy / np.maximum(rho, 1e-12)
@@ -90,9 +104,8 @@ def circles_coverage(
         gu = nx * J[0] + ny * J[2]
         gv = nx * J[1] + ny * J[3]
         d_px = (rho - radius_mm) / np.maximum(np.hypot(gu, gv), 1e-12)
-        cov = np.clip(0.5 - d_px, 0.0, 1.0)
-        np.maximum(coverage[y0:y1, x0:x1], cov, out=coverage[y0:y1, x0:x1])
-    return coverage
+        windows.append(((int(x0), int(y0)), np.clip(0.5 - d_px, 0.0, 1.0)))
+    return windows
 
 
 def plate_centres_mm(plate: PlateGeometry, omit: AbstractSet[tuple[int, int]] = frozenset()) -> np.ndarray:
@@ -112,35 +125,90 @@ def backlight(h: int, w: int, vignetting: float, gradient: float, angle_deg: flo
 
     The same for every frame of a camera, so computed once (read-only; two sizes kept).
     """
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u = np.arange(w, dtype=np.float64)[None, :]  # a row and a column, broadcast: two frame-sized arrays at most
+    v = np.arange(h, dtype=np.float64)[:, None]
     ru = (u - w / 2) / (w / 2)
     rv = (v - h / 2) / (w / 2)
-    r2 = (ru**2 + rv**2) / (1 + (h / w) ** 2)
-    light = 1.0 - vignetting * r2
+    light = ru**2 + rv**2
+    light /= 1 + (h / w) ** 2
+    light *= vignetting
+    np.subtract(1.0, light, out=light)  # 1 - vignetting * r2
     a = np.deg2rad(angle_deg)
-    light *= 1.0 + gradient * 0.5 * (np.cos(a) * ru + np.sin(a) * rv * w / h)
+    tilt = np.cos(a) * ru + np.sin(a) * rv * w / h
+    tilt *= gradient * 0.5
+    tilt += 1.0
+    light *= tilt
     light.flags.writeable = False
     return light
 
 
+_BAND_ROWS = 64  # rows exposed at a time: the float temporaries stay a few MB whatever the frame size
+
+
+class Scene:
+    """A frame's opacity as small windows (marks, parts) on a clear table, made a band of rows
+    at a time as `expose` reads it (`scene[lo:hi]`): no frame-sized image is kept or made."""
+
+    def __init__(self, height_px: int, width_px: int, windows: list[Window]):
+        self.shape = (height_px, width_px)
+        self.windows = windows
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        lo, hi, _ = rows.indices(self.shape[0])
+        band = np.zeros((hi - lo, self.shape[1]), dtype=np.float64)
+        for (x0, y0), cov in self.windows:
+            top, bottom = max(y0, lo), min(y0 + cov.shape[0], hi)
+            if top < bottom:
+                part = band[top - lo : bottom - lo, x0 : x0 + cov.shape[1]]
+                np.maximum(part, cov[top - y0 : bottom - y0], out=part)
+        return band
+
+
 def expose(
     camera: CameraModel,
-    opacity: np.ndarray,
+    opacity: np.ndarray | Scene,
     optics: Optics = Optics(),
     rng: np.random.Generator | None = None,
     exposure: float = 1.0,
 ) -> np.ndarray:
-    """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque)."""
+    """BGR uint8 frame of a backlight seen through `opacity` (0 clear, 1 opaque).
+
+    Computed in bands of rows, each band's light blurred with the rows the blur reaches beyond
+    it and the noise drawn band after band: the same values in the same order as for the whole
+    frame at once, but a 1080p frame needs a few MB of float temporaries beside its result, not
+    the half a gigabyte the whole-frame expressions took (nor OpenCV's frame-sized copy for a blur).
+    """
     rng = rng or np.random.default_rng(0)
     h, w = opacity.shape
     light = backlight(h, w, optics.vignetting, optics.backlight_gradient, optics.backlight_angle_deg)
-    signal = optics.dark_level + (optics.bright_level - optics.dark_level) * light * (1 - opacity)
-    signal *= exposure
-    if optics.blur_sigma_px > 0:
-        signal = cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px)
-    bgr = signal[:, :, None] * np.array(optics.tint_bgr)[None, None, :]
-    bgr += rng.normal(0.0, optics.noise_sigma, bgr.shape)
-    return np.clip(np.rint(bgr), 0, 255).astype(np.uint8)
+    reach = _blur_reach_rows(optics.blur_sigma_px)
+    tint = np.array(optics.tint_bgr)[None, None, :]
+    frame = np.empty((h, w, 3), dtype=np.uint8)
+    noise = np.empty((min(_BAND_ROWS, h), w, 3), dtype=np.float64)
+    for r0 in range(0, h, _BAND_ROWS):
+        r1 = min(r0 + _BAND_ROWS, h)
+        lo, hi = max(r0 - reach, 0), min(r1 + reach, h)  # the band and what its blur reaches
+        signal = optics.dark_level + (optics.bright_level - optics.dark_level) * light[lo:hi] * (1 - opacity[lo:hi])
+        signal *= exposure
+        if reach:
+            signal = cv2.GaussianBlur(signal, (0, 0), optics.blur_sigma_px)
+        bgr = signal[r0 - lo : r1 - lo, :, None] * tint
+        z = noise[: r1 - r0]
+        rng.standard_normal(out=z)  # what rng.normal(0, sigma, ...) draws, in the same order
+        z *= optics.noise_sigma
+        bgr += z
+        np.rint(bgr, out=bgr)
+        np.clip(bgr, 0, 255, out=bgr)
+        frame[r0:r1] = bgr
+    return frame
+
+
+def _blur_reach_rows(sigma_px: float) -> int:
+    """Rows a Gaussian blur of float images reaches on either side (OpenCV's kernel: 8 sigma + 1
+    wide, rounded to odd), one spare: 0 without blur."""
+    if sigma_px <= 0:
+        return 0
+    return (int(round(sigma_px * 8 + 1)) | 1) // 2 + 1
 
 
 def render_plate(

@@ -2,8 +2,10 @@
 
 Each part's silhouette is rendered once and kept while the part stays put; a capture
 composes the kept silhouettes and exposes them (light fall-off, blur, fresh noise), so a
-frame costs one exposure, not a re-render of every part. `render_s` adds up the time
-spent, which the cell reports apart from its own software time.
+frame costs one exposure, not a re-render of every part. The silhouettes and the marks are
+kept as small windows and exposed band by band (render.Scene): a capture allocates its frame
+and a few MB, never a frame-sized float image. `render_s` adds up the time spent, which the
+cell reports apart from its own software time.
 
 The table may carry printed reference marks (dark dots that never move), and the camera
 may be bumped: from a chosen frame on, it sees through a moved camera model.
@@ -17,7 +19,7 @@ import numpy as np
 
 from cell.camera_model import CameraModel
 from cell.sim.parts import part_coverage
-from cell.sim.render import Optics, circles_coverage, expose
+from cell.sim.render import Optics, Scene, Window, circles_windows, expose
 from cell.sim.world import World
 from drivers.cameras.base import Camera
 
@@ -49,7 +51,7 @@ class SimCamera(Camera):
         self.marks_mm = np.zeros((0, 2)) if marks_mm is None else np.asarray(marks_mm, dtype=np.float64).reshape(-1, 2)
         self.mark_radius_mm = mark_diameter_mm / 2
         self.bump = bump
-        self._marks: np.ndarray | None = None
+        self._marks: list[Window] | None = None
 
     def connect(self) -> None:
         self._connected = True
@@ -67,20 +69,21 @@ class SimCamera(Camera):
             self.model, self.bump = self.bump[1], None
             self._silhouettes, self._marks = {}, None  # everything is seen from elsewhere now
         if self._marks is None:
-            self._marks = circles_coverage(self.model, self.marks_mm, self.mark_radius_mm)
-        opacity = self._marks.copy()
+            self._marks = circles_windows(self.model, self.marks_mm, self.mark_radius_mm)
+        frame = expose(self.model, self._scene(), self.optics, self.rng)
+        self.render_s += time.perf_counter() - t0
+        self.frames += 1
+        return frame
+
+    def _scene(self) -> Scene:
+        """The marks and every part on the table (each part's silhouette rendered once, while it stays put)."""
         keep = {}
+        windows = list(self._marks or [])
         for part_id, spec in self.world.table_specs():
             key = (part_id, spec)
             got = self._silhouettes[key] if key in self._silhouettes else part_coverage(self.model, spec)
             keep[key] = got
-            if got is None:
-                continue
-            (x0, y0), cov = got
-            sl = (slice(y0, y0 + cov.shape[0]), slice(x0, x0 + cov.shape[1]))
-            np.maximum(opacity[sl], cov, out=opacity[sl])
+            if got is not None:
+                windows.append(got)
         self._silhouettes = keep
-        frame = expose(self.model, opacity, self.optics, self.rng)
-        self.render_s += time.perf_counter() - t0
-        self.frames += 1
-        return frame
+        return Scene(self.model.height_px, self.model.width_px, windows)

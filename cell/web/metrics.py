@@ -38,6 +38,10 @@ CYCLE_BUCKETS_S = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 30.0, 60.0)
 LATENCY_BUCKETS_S = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 
 
+def _is_located(event: Event) -> bool:
+    return isinstance(event, FrameLocated)
+
+
 class CellMetrics:
     """The registry /metrics serves, fed by one bus subscriber and the snapshot at scrape time."""
 
@@ -67,14 +71,15 @@ class CellMetrics:
     def start(self) -> None:
         """Count events from now on (the screen's lifespan: with the server)."""
         if self._sub is None:
-            # frames: the latency needs the frame's capture time (its `ref`); frames coalesce, so the queue
-            # holds one at most, and only a reference to the image the runner already keeps
+            # frames: the latency needs a located frame's capture time (its `ref`). Only FrameLocated's:
+            # those coalesce, so the queue holds one at most; a verdict's or a failure's frame would be
+            # kept for every queued event while this thread lags (6 MB each at 1080p)
             self._sub = self.service.subscribe(
                 "metrics",
                 self.handle,
                 kinds=(PickVerified, PartFailed, AlarmRaised, FrameLocated),
                 maxsize=10_000,
-                frames=True,
+                frames=_is_located,
             )
 
     def handle(self, event: Event) -> None:

@@ -1,0 +1,17 @@
+"""Where the cell keeps what it can rebuild: the user's cache folder (XDG), pick-cell's part of it.
+
+Only speed-ups live there (the OPC UA address space, the simulated plate's calibration): each
+file is keyed by what it was made from, checked when read, and made again when it is missing,
+stale or damaged.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def user_cache_dir(*parts: str) -> Path:
+    """$XDG_CACHE_HOME/pick-cell/<parts> (default ~/.cache/pick-cell/<parts>)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base, "pick-cell", *parts)
