@@ -13,28 +13,9 @@ from zoneinfo import ZoneInfo
 
 from cell.config import CellConfig, load_config
 from cell.errors import InputError
+from cell.history.query import OUTCOMES, PICK_COLUMNS
 
-OUTCOMES = ("picked", "missed", "failed", "rehearsed", "placed")
-CSV_COLUMNS = (
-    "id",
-    "job_id",
-    "time_utc",
-    "class",
-    "track",
-    "attempt",
-    "pixel_x",
-    "pixel_y",
-    "table_x_mm",
-    "table_y_mm",
-    "robot_x_mm",
-    "robot_y_mm",
-    "robot_z_mm",
-    "jaw_angle_deg",
-    "calibration_id",
-    "outcome",
-    "cycle_ms",
-    "image_id",
-)
+CSV_COLUMNS = tuple(c for c in PICK_COLUMNS if c != "cell")  # the store's, but the cell (one per CLI)
 
 
 def add_store_arguments(p: argparse.ArgumentParser) -> None:
