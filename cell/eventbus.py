@@ -9,6 +9,10 @@
   newest events once its queue is full, one that raises is logged; both are counted
   (`stats()`), and neither ever delays or faults a pick. Frames (FrameLocated) coalesce:
   a subscriber that has not taken the last frame yet gets the newer one in its place.
+  A subscriber that needs no event at once (a screen, /metrics) names a `batch_s`: its thread
+  wakes at most once a batch_s and takes what came meanwhile in one go, in order. Every wake
+  of a subscriber's thread takes Python's interpreter lock from the control thread for a
+  moment; a runner step emits several events, so waking for each would cost picks.
 """
 
 from __future__ import annotations
@@ -59,7 +63,9 @@ class Subscription:
         maxsize: int,
         coalesce: frozenset[type[Event]],
         frames: bool | Callable[[Event], bool] = False,
+        batch_s: float = 0.0,
     ):
+        self.batch_s = batch_s  # > 0: wake at most once a batch_s, taking every event queued meanwhile
         self.name, self.handler, self.kinds, self.maxsize, self.coalesce = name, handler, kinds, maxsize, coalesce
         self.frames = frames  # False: events reach it without their frame (`ref`), so its queue holds no images
         self.delivered = self.dropped = self.failed = 0
@@ -68,6 +74,7 @@ class Subscription:
         self._cond = threading.Condition()
         self._busy = False
         self._closing = False
+        self._closed = threading.Event()  # ends a batch's wait at once
         self._last_log = {"dropped": -_LOG_EVERY_S, "failed": -_LOG_EVERY_S}
         self._thread = threading.Thread(target=self._run, name=f"events-{name}", daemon=True)
         self._thread.start()
@@ -106,19 +113,26 @@ class Subscription:
                     self._cond.wait()
                 if not self._queue:
                     return
-                box = self._queue.popleft()
-                box.taken = True
                 self._busy = True
-            try:
-                self.handler(box.event)
-                self.delivered += 1
-            except Exception:
-                self.failed += 1
-                self._note("failed", "handler raised on a %s event (%d so far)", box.event.kind, self.failed, exc=True)
-            finally:
+            if self.batch_s > 0:
+                self._closed.wait(self.batch_s)  # let the batch gather (emit's notify wakes nobody meanwhile)
+            while True:
                 with self._cond:
-                    self._busy = False
-                    self._cond.notify_all()
+                    if not self._queue:
+                        self._busy = False
+                        self._cond.notify_all()
+                        break
+                    box = self._queue.popleft()
+                    box.taken = True
+                self._handle(box.event)
+
+    def _handle(self, event: Event) -> None:
+        try:
+            self.handler(event)
+            self.delivered += 1
+        except Exception:
+            self.failed += 1
+            self._note("failed", "handler raised on a %s event (%d so far)", event.kind, self.failed, exc=True)
 
     def _note(self, what: str, message: str, *args: object, exc: bool = False) -> None:
         now = time.monotonic()
@@ -143,6 +157,7 @@ class Subscription:
         with self._cond:
             self._closing = True
             self._cond.notify_all()
+        self._closed.set()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout_s)
         if self._thread.is_alive():  # too slow to finish: what it has not taken is dropped, so its thread ends
@@ -192,12 +207,13 @@ class EventBus:
         maxsize: int = 1024,
         coalesce: Iterable[type[Event]] = (FrameLocated,),
         frames: bool | Callable[[Event], bool] = False,
+        batch_s: float = 0.0,
     ) -> Subscription:
         """`frames`: the subscriber uses the images events carry (the screen), or those of the events
         it names (the history store: failures only); the others get the events without them, so a
-        queue that backs up holds no frame it does not need."""
+        queue that backs up holds no frame it does not need. `batch_s`: see the module's text."""
         kind_set = None if kinds is None else frozenset(kinds)
-        sub = Subscription(name, handler, kind_set, maxsize, frozenset(coalesce), frames)
+        sub = Subscription(name, handler, kind_set, maxsize, frozenset(coalesce), frames, batch_s)
         with self._lock:
             self._subs = (*self._subs, sub)
         return sub

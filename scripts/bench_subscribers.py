@@ -8,8 +8,11 @@ turns, shift after shift:
 
 - none: the service's own subscribers only (ledger, history);
 - slow + raising: a subscriber that sleeps 2 s on every event and one that raises on every event;
-- 1 slow screen / 30 slow screens: the operator screen served over HTTP with 1 or 30 event
-  streams open, each read 1 KiB a second (far slower than the screen sends).
+- screen, none open: the operator screen's server running (as `run-cell serve` runs it), no
+  screen open;
+- 1 slow screen / 30 slow screens: the screen's server with 1 or 30 event streams open, each
+  read 1 KiB a second (far slower than the screen sends), from another process (as browsers
+  are: readers inside the cell's process would take its interpreter lock, which no browser does).
 
 Picks per minute is counted over --picks picks after the first --warmup (the job's start, the
 screens' first frames and the feeder filling the table are left out). Wall time on a shared
@@ -26,6 +29,7 @@ import contextlib
 import os
 import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -59,6 +63,23 @@ def config(log_dir: Path) -> CellConfig:
     return cfg
 
 
+def slow_readers(port: int, count: int) -> subprocess.Popen:
+    """`count` slow readers of the event stream in a process of their own, until its stdin closes."""
+    return subprocess.Popen(
+        [sys.executable, __file__, "--readers", str(port), str(count)], stdin=subprocess.PIPE, cwd=Path(__file__).parent
+    )
+
+
+def readers_main(port: int, count: int) -> int:
+    stop = threading.Event()
+    threads = [threading.Thread(target=slow_reader, args=(port, stop), daemon=True) for _ in range(count)]
+    for t in threads:
+        t.start()
+    sys.stdin.read()  # the bench closes it
+    stop.set()
+    return 0
+
+
 def slow_reader(port: int, stop: threading.Event) -> None:
     with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
@@ -73,7 +94,6 @@ def slow_reader(port: int, stop: threading.Event) -> None:
 def one_job(setup: str, work: Path, picks: int, warmup: int) -> float:
     """Picks per minute of a continuous shift with `setup` beside it, over `picks` picks after `warmup`."""
     cfg = config(work / setup.replace(" ", "-") / str(time.monotonic_ns()))
-    stop = threading.Event()
     stamps: list[float] = []
     with contextlib.ExitStack() as stack:
         service = open_service(cfg, True, stack)
@@ -86,19 +106,19 @@ def one_job(setup: str, work: Path, picks: int, warmup: int) -> float:
         if setup == "slow + raising":
             service.subscribe("slow", lambda e: time.sleep(2.0))
             service.subscribe("raising", lambda e: 1 / 0)
-        elif setup.endswith(("slow screens", "slow screen")):
+        elif "screen" in setup:
             from cell.web.server import screen_server
 
             server = screen_server(service, cfg)
             server.start()
             stack.callback(server.stop)
-            readers = [
-                threading.Thread(target=slow_reader, args=(server.port, stop), daemon=True)
-                for _ in range(int(setup.split()[0]))
-            ]
-            for r in readers:
-                r.start()
-            stack.callback(stop.set)
+            count = 0 if "none open" in setup else int(setup.split()[0])
+            if count:
+                readers = slow_readers(server.port, count)
+                stack.callback(readers.wait, 30)
+                stack.callback(readers.stdin.close)  # type: ignore[union-attr]
+                while len(server.app.screen.hub.screens) < count:  # every stream open before the job starts
+                    time.sleep(0.05)
         service.command(Command.START_CONTINUOUS)
         deadline = time.monotonic() + 600
         while len(stamps) < warmup + picks:
@@ -114,12 +134,14 @@ def one_job(setup: str, work: Path, picks: int, warmup: int) -> float:
 
 
 def main() -> int:
+    if sys.argv[1:2] == ["--readers"]:
+        return readers_main(int(sys.argv[2]), int(sys.argv[3]))
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--jobs", type=int, default=5, help="shifts per set-up (taking turns)")
     ap.add_argument("--picks", type=int, default=60, help="picks counted per shift")
     ap.add_argument("--warmup", type=int, default=10, help="picks left out at the start of each shift")
     args = ap.parse_args()
-    setups = ["none", "slow + raising", "1 slow screen", "30 slow screens"]
+    setups = ["none", "slow + raising", "screen, none open", "1 slow screen", "30 slow screens"]
     rates: dict[str, list[float]] = {s: [] for s in setups}
     with tempfile.TemporaryDirectory() as tmp:
         for n in range(args.jobs):
@@ -128,13 +150,17 @@ def main() -> int:
                 rates[setup].append(rate)
                 print(f"shift {n + 1} {setup}: {rate:.1f} picks/min over {args.picks} picks", flush=True)
     base = statistics.median(rates["none"])
+    served = statistics.median(rates["screen, none open"])
     print()
     print(f"load average at the end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
-    print("| listeners beside the cell | picks/min median | worst shift | median vs none |")
-    print("|---|---|---|---|")
+    print(
+        "| listeners beside the cell | picks/min median | worst shift | median vs none | vs the screen with none open |"
+    )
+    print("|---|---|---|---|---|")
     for setup in setups:
         med = statistics.median(rates[setup])
-        print(f"| {setup} | {med:.1f} | {min(rates[setup]):.1f} | {100.0 * (med / base - 1.0):+.1f} % |")
+        vs_served = f"{100.0 * (med / served - 1.0):+.1f} %" if "slow screen" in setup else ""
+        print(f"| {setup} | {med:.1f} | {min(rates[setup]):.1f} | {100.0 * (med / base - 1.0):+.1f} % | {vs_served} |")
     return 0
 
 

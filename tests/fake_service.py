@@ -138,8 +138,8 @@ class FakeLineService:
                 recipe=self.recipe,
             )
 
-    def subscribe(self, name, handler, *, kinds=None, maxsize=1024, frames=False):
-        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
+    def subscribe(self, name, handler, *, kinds=None, maxsize=1024, frames=False, batch_s=0.0):
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames, batch_s=batch_s)
 
     def unsubscribe(self, subscription) -> None:
         self.bus.unsubscribe(subscription)

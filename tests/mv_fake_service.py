@@ -140,8 +140,9 @@ class FakeLineService:
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
         frames: bool = False,
+        batch_s: float = 0.0,
     ) -> Subscription:
-        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames)
+        return self.bus.subscribe(name, handler, kinds=kinds, maxsize=maxsize, frames=frames, batch_s=batch_s)
 
     def unsubscribe(self, subscription: Subscription) -> None:
         self.bus.unsubscribe(subscription)

@@ -63,6 +63,29 @@ def test_the_bus_never_blocks_the_emitter_and_counts_what_it_drops():
     bus.close()
 
 
+def test_a_batching_subscriber_takes_what_came_meanwhile_in_one_wake_in_order():
+    """batch_s: the thread waits that long after the first event and then takes everything queued
+    meanwhile; nothing is lost or reordered, and closing does not wait out the batch."""
+    bus = EventBus()
+    seen: list[str] = []
+    threads: set[int] = set()
+    waking = threading.Event()
+
+    def handler(e):
+        seen.append(e.what)
+        threads.add(threading.get_ident())
+        waking.set()
+
+    sub = bus.subscribe("screen", handler, batch_s=3600.0)  # one batch for the whole test
+    for i in range(50):
+        bus.emit(SnapshotChanged(what=str(i)))
+    assert not waking.wait(0.2) and sub.stats().queued == 50  # gathering: nothing handled yet
+    assert not sub.wait_idle(0.1)  # what is queued is not handled yet
+    bus.close(timeout_s=30)  # ends the batch's wait: everything queued is delivered, in order
+    assert seen == [str(i) for i in range(50)] and len(threads) == 1
+    assert sub.stats().delivered == 50 and sub.stats().dropped == 0
+
+
 def test_frames_coalesce_a_slow_subscriber_sees_the_newest(tmp_path):
     from cell.events import FrameLocated
 

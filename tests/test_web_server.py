@@ -213,3 +213,45 @@ def test_screen_beyond_loopback_without_credentials_is_refused(service):
     config.service.host = "0.0.0.0"
     with pytest.raises(ConfigError, match="beyond loopback"):
         screen_server(service, config)
+
+
+def test_frames_are_drawn_only_while_a_screen_can_take_one(service):
+    """A screen whose stream is stuck in a send (a slow or gone reader) asks for no frame: after the
+    one it was given nothing more is drawn, however many the cell locates; once it has sent that
+    frame (`want_frame`, as the stream does), the next is drawn."""
+    import asyncio
+
+    from cell.events import FrameLocated
+    from cell.service.api import Command
+    from cell.web.hub import Hub
+
+    loop = asyncio.new_event_loop()
+    runner = threading.Thread(target=loop.run_forever, daemon=True)
+    runner.start()
+    hub = Hub(service, 960, 80, 4, max_frame_rate_hz=0.0)  # every frame a screen can take, none withheld by rate
+    located = []
+    sub = service.subscribe("located", located.append, kinds=(FrameLocated,))
+    try:
+        hub.start(loop)
+
+        async def open_one():
+            return hub.open_screen()
+
+        screen = asyncio.run_coroutine_threadsafe(open_one(), loop).result(10)
+        assert screen is not None
+        service.command(Command.START_CONTINUOUS)
+        deadline = time.monotonic() + 30
+        while len(located) < 12 or hub.frames_drawn < 1:
+            assert time.monotonic() < deadline, f"{len(located)} frames located, {hub.frames_drawn} drawn in 30 s"
+            time.sleep(0.02)
+        assert hub.frames_drawn == 1, f"{hub.frames_drawn} frames drawn for a screen that took one"
+        hub.want_frame()  # the stream handed its frame to the socket and waits for the next
+        while hub.frames_drawn < 2:
+            assert time.monotonic() < deadline, "no frame drawn once the screen asked for one"
+            time.sleep(0.02)
+        assert sub.wait_idle(10)
+    finally:
+        hub.close()
+        loop.call_soon_threadsafe(loop.stop)
+        runner.join(10)
+        loop.close()

@@ -348,10 +348,12 @@ class LineServiceAPI(Protocol):
         kinds: Iterable[type[Event]] | None = None,
         maxsize: int = 1024,
         frames: bool | Callable[[Event], bool] = False,
+        batch_s: float = 0.0,
     ) -> Subscription:
         """`handler` gets every event (of `kinds`), on its own thread behind its own bounded queue;
-        with `frames` the images events carry too (otherwise `ref` is None); `unsubscribe(subscription)`
-        ends it."""
+        with `frames` the images events carry too (otherwise `ref` is None); with `batch_s` it wakes at
+        most once a batch_s and takes the events of the meantime in one go (a screen: fewer wakes of
+        a thread beside the control thread); `unsubscribe(subscription)` ends it."""
         ...
 
     def unsubscribe(self, subscription: Subscription) -> None: ...

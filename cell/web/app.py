@@ -293,9 +293,11 @@ class ScreenApp:
                 snapshot, screen.snapshot = screen.snapshot, None
                 yield self._state_event(snapshot)
                 frame, screen.frame = screen.frame, None
-                if frame is not None and frame.seq != sent_seq:
-                    sent_seq = frame.seq
-                    yield self._frame_event(frame)
+                if frame is not None:
+                    if frame.seq != sent_seq:
+                        sent_seq = frame.seq
+                        yield self._frame_event(frame)  # returns once the frame is handed to the socket
+                    self.hub.want_frame()  # a stream stuck in a send (a slow reader) asks for none
         finally:
             self.hub.close_screen(screen)
 

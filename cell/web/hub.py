@@ -7,6 +7,10 @@ as a JPEG once, and handed to the loop. Each screen keeps only the newest state 
 a slow screen skips frames, it never holds up the cell or the other screens, and a frame
 the subscriber has not drawn yet is replaced by the next (the bus coalesces frames).
 
+Frames are drawn on demand: only when a screen has sent the last one it was given and waits for
+the next (`want_frame`). A screen whose reader is slow or gone (its stream stuck in a send)
+asks for nothing, so screens that cannot take frames cost the cell no drawing at all.
+
 Between jobs (and while paused) a third thread asks the service for a live camera frame every
 `live_interval_s` while a screen is open (`preview_frame`: the service takes it under its device
 lock, only at rest), encoded the same way and marked live; a job's annotated frames take over as
@@ -52,6 +56,7 @@ LIVE_ORIGIN = Origin(Interface.SCREEN, "live view", Role.VIEWER)
 _LIVE_ERROR_LOG_S = 60.0  # a camera that keeps failing is logged once a minute, not every frame
 STATE_INTERVAL_S = 0.1  # the screens' state at most ten times a second: the runner changes step far more often
 STATE_REFRESH_S = 1.0  # and at least once a second (the heartbeat), changed or not
+FRAME_BATCH_S = 0.05  # the frame events' thread wakes at most 20 times a second (a runner step emits several)
 
 
 @dataclass(frozen=True)
@@ -142,19 +147,28 @@ class Hub:
         self._encoder_stop = False
         self._encoder: threading.Thread | None = None
         self._state_dirty = False  # a state change not yet sent (guarded by _mail)
+        self._frame_wanted = False  # a screen sent its last frame and waits for the next (guarded by _mail)
+        self.frames_drawn = 0  # job and live frames annotated/encoded for the screens (for /metrics and tests)
         self._stater: threading.Thread | None = None
 
     # ---- life ----------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
         self._subs = [
-            self.service.subscribe("screen-state", self._on_state, kinds=(SnapshotChanged, StateChanged), maxsize=256),
+            self.service.subscribe(
+                "screen-state",
+                self._on_state,
+                kinds=(SnapshotChanged, StateChanged),
+                maxsize=256,
+                batch_s=STATE_INTERVAL_S,  # the state goes out at most that often anyway
+            ),
             self.service.subscribe(
                 "screen-frames",
                 self._on_frame_event,
                 kinds=(FrameLocated, PickOrderChosen, StateChanged, RunEnded),
                 maxsize=256,
                 frames=True,
+                batch_s=FRAME_BATCH_S,
             ),
         ]
         self._encoder = threading.Thread(target=self._encode_loop, name="screen-encoder", daemon=True)
@@ -192,6 +206,8 @@ class Hub:
 
     # ---- the subscribers' threads --------------------------------------------------
     def _on_state(self, event: Event | None) -> None:
+        if not self.screens:
+            return  # nobody to tell: a screen that opens gets a fresh snapshot of its own
         with self._mail:
             self._state_dirty = True
             self._mail.notify_all()
@@ -242,7 +258,7 @@ class Hub:
         last_s = -1e9
         while True:
             with self._mail:
-                while not self._encoder_stop and (self._mailbox is None or not self.screens):
+                while not self._encoder_stop and (self._mailbox is None or not self._frame_wanted or not self.screens):
                     self._mail.wait()
                 if self._encoder_stop:
                     return
@@ -251,6 +267,7 @@ class Hub:
                 return  # closing
             with self._mail:
                 taken, self._mailbox = self._mailbox, None
+                self._frame_wanted = taken is None and self._frame_wanted
             if taken is not None:
                 last_s = time.monotonic()
                 self._encode_job_frame(*taken)
@@ -264,6 +281,7 @@ class Hub:
             log.warning("screen: frame not shown: %s", e)
             return
         self.latest_view = view
+        self.frames_drawn += 1
         self._to_loop(self._publish_frame, encoded)
 
     def _live_loop(self) -> None:
@@ -273,7 +291,7 @@ class Hub:
             self._live_wake.clear()
             if self._live_stop.is_set():
                 return
-            if self.screens:
+            if self.screens and self._frame_wanted:
                 self._take_live()
 
     def _take_live(self) -> None:
@@ -290,7 +308,16 @@ class Hub:
                 self._live_error_logged_s = now
                 log.warning("screen: no live frame: %s", e)
             return
+        with self._mail:
+            self._frame_wanted = False
+        self.frames_drawn += 1
         self._to_loop(self._publish_frame, encoded)
+
+    def want_frame(self) -> None:
+        """A screen sent the frame it was given (or just opened) and can take the next: draw one."""
+        with self._mail:
+            self._frame_wanted = True
+            self._mail.notify_all()
 
     def live_now(self) -> None:
         """Take a live frame now rather than at the next interval (e.g. the camera check was switched on)."""
@@ -333,8 +360,7 @@ class Hub:
         self.screens.add(screen)
         if self.latest is None:
             self._live_wake.set()  # the first screen: a picture now, not after a whole interval
-        with self._mail:
-            self._mail.notify_all()  # a job frame kept while no screen was open is drawn now
+        self.want_frame()  # a job frame kept while no screen was open is drawn now
         return screen
 
     def close_screen(self, screen: Screen) -> None:

@@ -80,6 +80,7 @@ class CellMetrics:
                 kinds=(PickVerified, PartFailed, AlarmRaised, FrameLocated),
                 maxsize=10_000,
                 frames=_is_located,
+                batch_s=0.25,  # a scrape is seconds apart: no need to wake for every event
             )
 
     def handle(self, event: Event) -> None:

@@ -338,6 +338,9 @@ class Waiting:
         return iter([c for m in self._by_address.values() for c in m])
 
 
+TICK_S = 1.0  # uvicorn's housekeeping tick (the Date header, should_exit): 0.1 s in uvicorn
+
+
 class LimitedServer(uvicorn.Server):
     """A uvicorn server whose connections pass a Gate: limits and deadlines, and TLS when given a context."""
 
@@ -353,6 +356,28 @@ class LimitedServer(uvicorn.Server):
         self.admission = Admission(limits)
         self.tally = Tally(name)
         self.waiting = Waiting(self.tally)
+        self._tick_loop: asyncio.AbstractEventLoop | None = None
+        self._tick_wake: asyncio.Event | None = None
+
+    async def main_loop(self) -> None:
+        """uvicorn's, ticking once a TICK_S rather than ten times a second (each tick takes Python's
+        interpreter lock from the control thread for a moment); `request_exit` ends it at once."""
+        self._tick_loop, self._tick_wake = asyncio.get_running_loop(), asyncio.Event()
+        counter = 0
+        should_exit = await self.on_tick(counter)
+        while not should_exit:
+            counter = (counter + 10) % 864000  # on_tick refreshes the Date header when counter % 10 == 0
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._tick_wake.wait(), TICK_S)
+            should_exit = await self.on_tick(counter)
+
+    def request_exit(self) -> None:
+        """From any thread: stop serving now (uvicorn's should_exit, and the tick woken)."""
+        self.should_exit = True
+        loop, wake = self._tick_loop, self._tick_wake
+        if loop is not None and wake is not None:
+            with contextlib.suppress(RuntimeError):  # the loop already ended
+                loop.call_soon_threadsafe(wake.set)
 
     def make_room(self, address: str) -> bool:
         """Whether a connection from `address` may come in, evicting the oldest waiting one if all places are taken."""
@@ -473,7 +498,7 @@ class ServerThread:
             raise ConfigError(f"{self.name}: the HTTP server on {self.url} did not start within {timeout_s:g} s")
 
     def stop(self) -> None:
-        self.server.should_exit = True
+        self.server.request_exit()
         if self._thread is not None:
             self._thread.join(timeout=10)
             if self._thread.is_alive():
