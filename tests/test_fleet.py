@@ -80,8 +80,17 @@ def test_five_cells_one_broker_every_pick_counted_per_cell(tmp_path):
                 start_job(procs[node].url)
             for node in nodes:
                 url = procs[node].url
+                # /metrics counts picks in its own subscriber, which may lag the state a little: wait until
+                # it has counted what the shift's counters say
                 own = wait_for(
-                    lambda u=url: (c := own_counts(u)).get("state:Ready") and c.get("picked") and c, 300, f"{node} done"
+                    lambda u=url: (
+                        (c := own_counts(u)).get("state:Ready")
+                        and c.get("picked")
+                        and c["picked"] == c.get("shift_picked")
+                        and c
+                    ),
+                    300,
+                    f"{node} done, its /metrics caught up",
                 )
                 wait_for(lambda n=node, c=own: picks_seen(listener, n) >= c["picked"], 60, f"{node}'s picks published")
                 assert picks_seen(listener, node) == own["picked"] == own["shift_picked"] == 17, node
