@@ -250,6 +250,20 @@ def test_frames_are_drawn_only_while_a_screen_can_take_one(service):
             assert time.monotonic() < deadline, "no frame drawn once the screen asked for one"
             time.sleep(0.02)
         assert sub.wait_idle(10)
+
+        # the same for the state: a screen stuck in a send gets no new snapshot taken for it
+        screen.sending = True
+        taken = hub.snapshots_taken
+        while len(located) < 40:  # the job goes on changing state many times
+            assert time.monotonic() < deadline + 30, "the job stopped locating frames"
+            time.sleep(0.02)
+        # one snapshot may have been on its way when the screen got stuck; none after it
+        assert hub.snapshots_taken - taken <= 1, "snapshots taken for a screen that cannot take them"
+        screen.sending = False
+        hub.screen_idle()  # the stream sent what it had and waits again
+        while hub.snapshots_taken == taken:
+            assert time.monotonic() < deadline + 60, "no snapshot taken once the screen could take one"
+            time.sleep(0.02)
     finally:
         hub.close()
         loop.call_soon_threadsafe(loop.stop)

@@ -291,13 +291,16 @@ class ScreenApp:
                 if screen.closed:
                     break
                 snapshot, screen.snapshot = screen.snapshot, None
+                screen.sending = True  # each yield returns once its event is handed to the socket
                 yield self._state_event(snapshot)
                 frame, screen.frame = screen.frame, None
+                if frame is not None and frame.seq != sent_seq:
+                    sent_seq = frame.seq
+                    yield self._frame_event(frame)
+                screen.sending = False
                 if frame is not None:
-                    if frame.seq != sent_seq:
-                        sent_seq = frame.seq
-                        yield self._frame_event(frame)  # returns once the frame is handed to the socket
                     self.hub.want_frame()  # a stream stuck in a send (a slow reader) asks for none
+                self.hub.screen_idle()
         finally:
             self.hub.close_screen(screen)
 

@@ -108,6 +108,7 @@ class Screen:
     snapshot: Snapshot | None = None
     frame: EncodedFrame | None = None
     closed: bool = False
+    sending: bool = False  # the stream is handing an event to its socket (stuck there while the reader is slow)
 
 
 class Hub:
@@ -148,6 +149,7 @@ class Hub:
         self._encoder: threading.Thread | None = None
         self._state_dirty = False  # a state change not yet sent (guarded by _mail)
         self._frame_wanted = False  # a screen sent its last frame and waits for the next (guarded by _mail)
+        self.snapshots_taken = 0  # states taken for the screens (for tests)
         self.frames_drawn = 0  # job and live frames annotated/encoded for the screens (for /metrics and tests)
         self._stater: threading.Thread | None = None
 
@@ -219,16 +221,31 @@ class Hub:
         the order they were taken, so a screen never goes back to an older state."""
         while True:
             with self._mail:
-                if not self._encoder_stop and not self._state_dirty:
-                    self._mail.wait(STATE_REFRESH_S)
+                while not self._encoder_stop:
+                    idle = self._any_idle()
+                    if idle and self._state_dirty:
+                        break
+                    if not self._mail.wait(STATE_REFRESH_S) and idle:
+                        break  # the heartbeat
                 if self._encoder_stop:
                     return
                 self._state_dirty = False
-            if not self.screens:
-                continue  # nobody to tell: a screen that opens gets a fresh snapshot of its own
             self._to_loop(self._publish_state, self.service.snapshot())
+            self.snapshots_taken += 1
             if self._live_stop.wait(STATE_INTERVAL_S):
                 return
+
+    def _any_idle(self) -> bool:
+        """Whether a screen could take a new state now: one is open and not still sending what it got.
+        A screen whose reader is slow or gone sits in a send: while every open one does, no snapshot
+        is taken (the state stays marked as changed and goes out once one is free)."""
+        return any(not s.sending for s in list(self.screens))
+
+    def screen_idle(self) -> None:
+        """A stream finished sending and waits for news: the state thread may have some for it."""
+        with self._mail:
+            if self._state_dirty:
+                self._mail.notify_all()
 
     def _on_frame_event(self, event: Event) -> None:
         """Hold a located frame until its pick order (or until the runner moves on without one)."""
