@@ -13,7 +13,7 @@ from asyncua import Server, ua
 from cell.config import CellConfig
 from cell.recipes import RecipeBook
 from cell.service.machinevision import MachineVisionServer
-from cell.service.mv_addressspace import ModelLoad, init_server_with_models
+from cell.service.mv_addressspace import ModelLoad, cache_key, init_server_with_models
 from cell.service.results import ResultFilter
 from tests.mv_fake_service import FakeLineService
 from tests.serve_process import free_port
@@ -102,11 +102,14 @@ def shared_cache_dir(tmp_path_factory) -> Path:
     under a lock, so the other tests start warm."""
     import fcntl
 
-    root = tmp_path_factory.getbasetemp().parent / "mv-aspace-cache"
+    # the folder outlives the run (every xdist worker finds it): one per cache key, so a run of other
+    # code (another checkout) never finds a cache that is not its own, nor deletes this one's
+    key = cache_key()
+    root = tmp_path_factory.getbasetemp().parent / f"mv-aspace-cache-{key[:16]}"
     root.mkdir(exist_ok=True)
     with open(root / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not any(root.glob("aspace-*.pickle")):
+        if not (root / f"aspace-{key}.pickle").exists():
 
             async def build() -> None:
                 await init_server_with_models(Server(), root)

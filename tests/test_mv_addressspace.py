@@ -91,7 +91,7 @@ def _damage(path: Path, damage: str) -> None:
     ["truncated", "flipped byte", "not ours", "valid checksum, wrong content", "unknown class in the pickle"],
 )
 def test_a_damaged_cache_is_refused_before_anything_is_loaded(damage: str, cache_dir: Path, tmp_path: Path) -> None:
-    (original,) = cache_dir.glob("aspace-*.pickle")
+    original = cache_dir / f"aspace-{mva.cache_key()}.pickle"
     path = tmp_path / original.name
     shutil.copyfile(original, path)
     assert set(mva.read_cache(path)) == {"namespaces", "nodes"}, "the undamaged copy reads"
@@ -106,8 +106,9 @@ def test_a_bad_or_stale_cache_is_rebuilt_not_a_failed_start(
     cache_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     mine = tmp_path / "cache"
-    shutil.copytree(cache_dir, mine, ignore=shutil.ignore_patterns(".lock"))
-    (path,) = mine.glob("aspace-*.pickle")
+    mine.mkdir()
+    path = mine / f"aspace-{mva.cache_key()}.pickle"
+    shutil.copyfile(cache_dir / path.name, path)
     stale = mine / "aspace-000000000000000000000000.pickle"  # another NodeSet or asyncua version's
     shutil.copyfile(path, stale)
     _damage(path, "truncated")
