@@ -29,11 +29,13 @@ def bus():
 
 
 def wait_still(emu) -> None:
-    """Arrival is within tolerance: let the emulated servos finish their last ticks."""
-    deadline = time.monotonic() + 1.0
+    """Arrival is within tolerance: let the emulated servos finish their last ticks (exactly on their
+    goals, not only within the half tick their position register rounds to: the register and the
+    emulator's own pose then agree)."""
+    deadline = time.monotonic() + 10.0
     while time.monotonic() < deadline:
         with emu.lock:
-            if all(round(s.position) == s.get(116, 4) or not s.torque for s in emu.servos.values()):
+            if all(s.position == s.get(116, 4) or not s.torque for s in emu.servos.values()):
                 return
         time.sleep(0.005)
 
