@@ -36,6 +36,33 @@ import threading
 import time
 from pathlib import Path
 
+
+def slow_reader(port: int, stop: threading.Event) -> None:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.sendall(b"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        s.settimeout(2.0)
+        while not stop.wait(1.0):
+            with contextlib.suppress(OSError):
+                if not s.recv(1024):
+                    return
+
+
+def readers_main(port: int, count: int) -> int:
+    stop = threading.Event()
+    threads = [threading.Thread(target=slow_reader, args=(port, stop), daemon=True) for _ in range(count)]
+    for t in threads:
+        t.start()
+    sys.stdin.read()  # the bench closes it
+    stop.set()
+    return 0
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["--readers"]:
+    # the readers' process imports nothing of the cell: a browser shares nothing with it (an early
+    # version imported the whole cell here, and that process's threads took a fifth of the picks)
+    sys.exit(readers_main(int(sys.argv[2]), int(sys.argv[3])))
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.commands.serve import open_service  # noqa: E402
@@ -68,27 +95,6 @@ def slow_readers(port: int, count: int) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, __file__, "--readers", str(port), str(count)], stdin=subprocess.PIPE, cwd=Path(__file__).parent
     )
-
-
-def readers_main(port: int, count: int) -> int:
-    stop = threading.Event()
-    threads = [threading.Thread(target=slow_reader, args=(port, stop), daemon=True) for _ in range(count)]
-    for t in threads:
-        t.start()
-    sys.stdin.read()  # the bench closes it
-    stop.set()
-    return 0
-
-
-def slow_reader(port: int, stop: threading.Event) -> None:
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        s.sendall(b"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
-        s.settimeout(2.0)
-        while not stop.wait(1.0):
-            with contextlib.suppress(OSError):
-                if not s.recv(1024):
-                    return
 
 
 def one_job(setup: str, work: Path, picks: int, warmup: int) -> float:
@@ -134,8 +140,6 @@ def one_job(setup: str, work: Path, picks: int, warmup: int) -> float:
 
 
 def main() -> int:
-    if sys.argv[1:2] == ["--readers"]:
-        return readers_main(int(sys.argv[2]), int(sys.argv[3]))
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--jobs", type=int, default=5, help="shifts per set-up (taking turns)")
     ap.add_argument("--picks", type=int, default=60, help="picks counted per shift")
