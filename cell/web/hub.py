@@ -150,7 +150,7 @@ class Hub:
         self._state_dirty = False  # a state change not yet sent (guarded by _mail)
         self._frame_wanted = False  # a screen sent its last frame and waits for the next (guarded by _mail)
         self.snapshots_taken = 0  # states taken for the screens (for tests)
-        self.frames_drawn = 0  # job and live frames annotated/encoded for the screens (for /metrics and tests)
+        self.frames_drawn = 0  # job and live frames annotated/encoded for the screens (for tests)
         self._stater: threading.Thread | None = None
 
     # ---- life ----------------------------------------------------------------------
@@ -222,11 +222,10 @@ class Hub:
         while True:
             with self._mail:
                 while not self._encoder_stop:
-                    idle = self._any_idle()
-                    if idle and self._state_dirty:
+                    if self._state_dirty and self._any_idle():
                         break
-                    if not self._mail.wait(STATE_REFRESH_S) and idle:
-                        break  # the heartbeat
+                    if not self._mail.wait(STATE_REFRESH_S) and self._any_idle():
+                        break  # the heartbeat (a screen free to take it now, not before the wait)
                 if self._encoder_stop:
                     return
                 self._state_dirty = False
