@@ -160,6 +160,34 @@ def test_stop_ends_streams_and_threads_and_unsubscribes(service):
         httpx.get(srv.url, timeout=2)
 
 
+def test_stop_ends_a_stream_whose_reader_takes_nothing_without_a_traceback(service, caplog):
+    """A browser that stopped reading leaves its stream stuck in a send: stopping the server resets
+    that connection and the stream ends cleanly, with no error logged (uvicorn would wait out its
+    grace period, cancel the stream and log a traceback for it)."""
+    from cell.service.api import Command
+
+    srv = WebServer(service, CellConfig(), WebConfig(send_buffer_kb=16), "127.0.0.1", 0)
+    srv.start()
+    reader = socket.create_connection(("127.0.0.1", srv.port), timeout=10)
+    try:
+        reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        reader.sendall(b"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # and never read
+        service.command(Command.START_CONTINUOUS)  # frames for the screen, far more than it takes
+        connections = srv.serving.server.server_state.connections
+        deadline = time.monotonic() + 30
+        while not any(c.flow.write_paused for c in list(connections)):
+            assert time.monotonic() < deadline, "the stream never filled its send buffer"
+            time.sleep(0.02)
+        with caplog.at_level("WARNING"):
+            srv.stop()
+        assert not srv.app.screen.hub.screens, "the stuck stream did not end"
+        logged = [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.levelname in ("WARNING", "ERROR")]
+        assert logged == [], logged
+    finally:
+        reader.close()
+        srv.stop()
+
+
 def test_port_in_use_is_a_clear_error(service):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

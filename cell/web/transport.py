@@ -191,6 +191,16 @@ class LimitedH11Protocol(H11Protocol):
         _cancel(self._stall_timer)
         self._stall_timer = None
 
+    def shutdown(self) -> None:
+        """The server is stopping: a response stuck in a send to a client that does not read (an event
+        stream whose reader is slow or gone) is reset now, so that it ends cleanly; otherwise uvicorn's,
+        which waits for the response to finish and, past its grace period, cancels it and logs a
+        traceback for each one."""
+        if self.cycle is not None and not self.cycle.response_complete and self.flow.write_paused:
+            self.evict()
+            return
+        super().shutdown()
+
     def _cut(self, reason: str) -> None:
         self.tally.note(reason, self.ticket.address)
         self.evict()
