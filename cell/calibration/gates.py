@@ -55,6 +55,20 @@ def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, 
                 f"{limits.camera_height_mm:g} mm (more than {allowed:.0f} mm apart, 3 standard deviations): both "
                 f"pitches wrong by the same factor (that looks like another height), or the camera moved?"
             )
+    raised = result.raised
+    if raised is not None:
+        others = [("the plate alone", height, result.plate_height_sd_mm)]
+        if limits.camera_height_mm is not None:
+            others.append(("calibration.camera_height_mm", limits.camera_height_mm, limits.camera_height_sd_mm))
+        for name, other, other_sd in others:
+            allowed = 3.0 * math.hypot(other_sd, raised.sd_mm)
+            if abs(other - raised.height_mm) > allowed:
+                problems.append(
+                    f"the plate raised on the {raised.spacer_mm:g} mm spacer puts the camera {raised.height_mm:.0f} mm "
+                    f"above the table, {name} {other:.0f} mm (more than {allowed:.0f} mm apart, 3 standard "
+                    f"deviations): the spacer's thickness wrong, or both pitches wrong by the same factor (the raised "
+                    f"plate measures the height in true mm, the flat plate in the configured pitch's)?"
+                )
     return problems
 
 

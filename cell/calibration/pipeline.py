@@ -18,11 +18,12 @@ from cell.calibration.models import (
     fit_model,
     monomial_exponents,
 )
+from cell.calibration.raised import RaisedHeight, height_from_raised_plate
 from cell.calibration.roundness import PitchRatio, measure_pitch_ratio
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig, PlateConfig
-from cell.errors import PlateNotFound
+from cell.errors import CalibrationRejected, PlateNotFound
 from cell.wording import plural
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,7 @@ class CalibrationResult:
     pitch_ratio: PitchRatio | None = None  # the configured pitch ratio as the circles see it
     plate_height_mm: float | None = None  # the camera's height above the table from the plate alone
     plate_height_sd_mm: float = 0.0  # how well the plate pins it down (one standard deviation)
+    raised: RaisedHeight | None = None  # the height measured from the plate raised on a spacer, when given
 
 
 def point_numbers(col_row: np.ndarray, plate: PlateConfig) -> np.ndarray:
@@ -272,14 +274,33 @@ def _parameters(name: str, degree: int) -> int:
     return {"homography": 4, "camera": 8}[name]
 
 
-def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -> CalibrationResult:
-    """Detect, number, fit every candidate model, cross-validate, choose, and package."""
+@dataclass(frozen=True)
+class RaisedPlate:
+    """A second image of the plate lying on a spacer `spacer_mm` thick: it gives the camera's height."""
+
+    image: np.ndarray
+    spacer_mm: float
+    source: str = "the raised plate image"
+
+
+def _points(image: np.ndarray, config: CellConfig) -> PlatePoints:
+    return find_points_paper(image, config) if config.detection.preset == "paper" else find_points(image, config)
+
+
+def calibrate(
+    image: np.ndarray, config: CellConfig, model: str | None = None, raised: RaisedPlate | None = None
+) -> CalibrationResult:
+    """Detect, number, fit every candidate model, cross-validate, choose, and package; with `raised`,
+    the camera's height measured from the plate raised on a spacer (cell.calibration.raised)."""
     t0 = time.perf_counter()
     h, w = image.shape[:2]
-    if config.detection.preset == "paper":
-        pts = find_points_paper(image, config)
-    else:
-        pts = find_points(image, config)
+    if raised is not None and raised.image.shape[:2] != (h, w):
+        rh, rw = raised.image.shape[:2]
+        raise CalibrationRejected(
+            f"{raised.source}: {rw} x {rh} px, the plate image {w} x {h}: not the same camera",
+            hint="take both images with the same camera at the same resolution",
+        )
+    pts = _points(image, config)
     t1 = time.perf_counter()
     want = model or config.calibration.model
     candidates = [c for c in CANDIDATES if want in ("auto", c[0])]
@@ -306,7 +327,10 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         if chosen.name == "camera"
         else fit_model(chosen.name, pts.pixel, pts.table_mm, (w, h), chosen.degree)
     )
-    camera = _with_configured_height(camera, plate_sd, pts, (w, h), config.calibration)
+    raised_height = None
+    if raised is not None:
+        raised_height = height_from_raised_plate(raised.image, final, config.plate, raised.spacer_mm, raised.source)
+    camera = _with_known_height(camera, plate_sd, pts, (w, h), config.calibration, raised_height)
     t2 = time.perf_counter()
     plate = config.plate
     col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
@@ -330,7 +354,12 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         },
         image_sha256=hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest(),
         created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-        statistics={"fit": chosen.fit.to_dict(), "cross_validated": chosen.cv.to_dict(), "why": why},
+        statistics={
+            "fit": chosen.fit.to_dict(),
+            "cross_validated": chosen.cv.to_dict(),
+            "why": why,
+            **({"raised_plate": raised_height.to_dict()} if raised_height is not None else {}),
+        },
     )
     timings = {
         "detect_number_ms": 1e3 * (t1 - t0),
@@ -339,22 +368,28 @@ def calibrate(image: np.ndarray, config: CellConfig, model: str | None = None) -
         "total_ms": 1e3 * (t3 - t0),
     }
     return CalibrationResult(
-        cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, plate_height, plate_sd
+        cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, plate_height, plate_sd, raised_height
     )
 
 
-def _with_configured_height(camera, plate_sd: float, pts: PlatePoints, size, limits) -> CameraModel:
-    """The camera pose at the height the plate and the configured height agree on, each weighed by
-    how well it is known; the plate's own pose where no height is configured.
+def _with_known_height(
+    camera, plate_sd: float, pts: PlatePoints, size, limits, raised: RaisedHeight | None = None
+) -> CameraModel:
+    """The camera pose at the height the plate, the raised plate and the configured height agree on,
+    each weighed by how well it is known; the plate's own pose where neither of the others is given.
 
     The plate fixes the scale (height over focal length) well even where it cannot fix the
     height: so the focal length is moved with the height, and the pose refitted around it.
     """
-    if limits.camera_height_mm is None:
+    if raised is None and limits.camera_height_mm is None:
         return camera
     fitted = float(camera.center_table_mm[2])
-    w_plate = 1.0 / max(plate_sd, 1e-6) ** 2 if np.isfinite(plate_sd) else 0.0
-    w_config = 1.0 / limits.camera_height_sd_mm**2
-    height = (w_plate * fitted + w_config * limits.camera_height_mm) / (w_plate + w_config)
+    known = [(fitted, plate_sd)] if np.isfinite(plate_sd) else []
+    if raised is not None:
+        known.append((raised.height_mm, raised.sd_mm))
+    if limits.camera_height_mm is not None:
+        known.append((limits.camera_height_mm, limits.camera_height_sd_mm))
+    weights = [1.0 / max(sd, 1e-6) ** 2 for _, sd in known]
+    height = sum(wt * z for wt, (z, _) in zip(weights, known, strict=True)) / sum(weights)
     focal = float(camera.camera_matrix[0, 0]) * height / fitted
     return fit_camera_pose(pts.pixel, pts.table_mm, size, focal_px=focal)[0]

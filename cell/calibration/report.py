@@ -80,10 +80,20 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
     if result.plate_height_mm is not None:
         height, sd = result.plate_height_mm, result.plate_height_sd_mm
         lines.append(f"camera height from the plate alone: {height:.1f} +- {sd:.1f} mm (one standard deviation)")
-        if not sd <= 0.05 * height:
+        if result.raised is not None:
+            r = result.raised
+            lines.append(
+                f"camera height from the plate raised on the {r.spacer_mm:g} mm spacer: {r.height_mm:.1f} +- "
+                f"{r.sd_mm:.1f} mm ({r.points} circles, scale {r.scale:.5f}, residual {r.residual_rms_mm:.3f} mm RMS)"
+            )
+            used = result.calibration.camera_center_table_mm
+            if used is not None:
+                lines.append(f"camera height used: {used[2]:.1f} mm")
+        elif not sd <= 0.05 * height:
             lines.append(
                 "  the plate, seen nearly straight on, does not pin the camera height down: set "
-                "calibration.camera_height_mm (measured) for the part-height correction"
+                "calibration.camera_height_mm (measured), or add an image of the plate raised on a "
+                "spacer (--raised-image, --spacer-mm), for the part-height correction"
             )
     return lines
 

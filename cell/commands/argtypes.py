@@ -15,3 +15,11 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
     return value
+
+
+def positive_mm(text: str) -> float:
+    """A length in mm above zero (a spacer's thickness)."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be above 0 mm: {text!r}")
+    return value

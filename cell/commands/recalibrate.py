@@ -16,9 +16,10 @@ from pathlib import Path
 from typing import get_args
 
 from cell.assembly import capture_plate
-from cell.calibration.pipeline import calibrate
+from cell.calibration.pipeline import RaisedPlate, calibrate
 from cell.calibration.recalibrate import check_image_size, replace_active
 from cell.calibration.report import summary_text, write_report
+from cell.commands.argtypes import positive_mm
 from cell.config import ModelName, load_config
 from cell.errors import REPORTED_ERRORS, CalibrationRejected, InputError, OutputError, describe_os_error, exit_code
 from cell.imageio import read_image
@@ -66,6 +67,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--preset", choices=get_args(Preset), help="detector preset (overrides the config)")
     p.add_argument(
+        "--raised-image",
+        type=Path,
+        help="a second image of the plate lying on a spacer (with --spacer-mm): it measures the camera's height, "
+        "which one flat plate seen nearly straight down cannot (`run-cell camera --snapshot FILE` takes it)",
+    )
+    p.add_argument(
+        "--spacer-mm", type=positive_mm, help="thickness of the spacer under the plate in --raised-image, in mm"
+    )
+    p.add_argument(
         "--report-dir", type=Path, help="write table3.csv, plate_numbered.png, deviation.png, report.txt here"
     )
     p.add_argument("--log", type=Path, default=Path("logs/cell.log"), help="operator log (default: logs/cell.log)")
@@ -90,7 +100,16 @@ def run(args: argparse.Namespace, controls: Controls | None = None) -> int:
     want = (config.camera.width_px, config.camera.height_px)
     image = read_image(args.image, config.camera.max_image_px, want) if args.image else capture_plate(config)
     check_image_size(image, config, str(args.image or "camera frame"))
-    result = calibrate(image, config, args.model)
+    raised = None
+    if (args.raised_image is None) != (args.spacer_mm is None):
+        raise InputError(
+            "--raised-image and --spacer-mm go together",
+            hint="give the image of the plate on the spacer and the spacer's thickness, or neither",
+        )
+    if args.raised_image is not None:
+        raised_image = read_image(args.raised_image, config.camera.max_image_px, want)
+        raised = RaisedPlate(raised_image, args.spacer_mm, str(args.raised_image))
+    result = calibrate(image, config, args.model, raised)
     print(summary_text(result, table=not args.quiet))
     if args.report_dir:
         for p in write_report(image, result, args.report_dir):

@@ -219,9 +219,13 @@ def render_plate(
     omit: AbstractSet[tuple[int, int]] = frozenset(),
     extra_opacity: np.ndarray | None = None,
     exposure: float = 1.0,
+    height_mm: float = 0.0,
+    offset_mm: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """The backlit plate as the camera sees it (BGR uint8)."""
-    opacity = circles_coverage(camera, plate_centres_mm(plate, omit), plate.diameter_mm / 2)
+    """The backlit plate as the camera sees it (BGR uint8); `height_mm` above the table (raised on a
+    spacer), moved by `offset_mm` on it."""
+    centres = plate_centres_mm(plate, omit) + np.asarray(offset_mm, dtype=np.float64)
+    opacity = circles_coverage(camera, centres, plate.diameter_mm / 2, height_mm)
     if extra_opacity is not None:
         opacity = np.maximum(opacity, extra_opacity)
     return expose(camera, opacity, optics, np.random.default_rng(seed), exposure)
