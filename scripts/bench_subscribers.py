@@ -111,7 +111,7 @@ def one_job(setup: str, work: Path, picks: int, warmup: int) -> tuple[float, int
     stamps: list[float] = []
     waits: list[int] = []  # the picks made before each wait
 
-    def count(e: object) -> None:
+    def note(e: object) -> None:
         if isinstance(e, PickVerified) and e.result == "picked":
             stamps.append(time.monotonic())
         elif isinstance(e, StateChanged) and e.target == "wait":
@@ -120,7 +120,7 @@ def one_job(setup: str, work: Path, picks: int, warmup: int) -> tuple[float, int
     with contextlib.ExitStack() as stack:
         service = open_service(cfg, True, stack)
         service.start()
-        service.subscribe("picks", count, kinds=(PickVerified, StateChanged))
+        service.subscribe("picks", note, kinds=(PickVerified, StateChanged))
         if setup == "slow + raising":
             service.subscribe("slow", lambda e: time.sleep(2.0))
             service.subscribe("raising", lambda e: 1 / 0)
