@@ -140,6 +140,9 @@ def assemble(
     camera = make_camera(config.camera)
     cell = Cell(config, camera, make_arm(arm_cfg), calibration, not dry_run)
     cell.plate_image = lambda: _capture(camera)
+    doubt = calibration.height_doubt()
+    if doubt is not None:
+        cell.notes.append(f"warning: {doubt[0]} (hint: {doubt[1]})")
     return cell
 
 

@@ -116,3 +116,28 @@ def test_a_spacer_of_another_thickness_than_told_is_refused_against_the_measured
     problems = plausibility_problems(wrong, c.calibration, c.plate)
     assert len(problems) == 1, problems
     assert "raised on the 25 mm spacer" in problems[0] and "calibration.camera_height_mm" in problems[0]
+
+
+def test_the_calibration_says_how_well_it_knows_the_height(images):
+    """Stored with the calibration: the height used, how well it is known and from what. A height
+    known worse than 5 % is a doubt the cell reports (run-cell's notes, the service's warning)."""
+    _, config, flat, raised = images
+    alone = calibrate(flat, config).calibration
+    known = alone.statistics["camera_height"]
+    assert known["from"] == "the plate alone"
+    assert known["sd_mm"] is None or known["sd_mm"] > 0.05 * known["height_mm"]
+    doubt = alone.height_doubt()
+    assert doubt is not None and "camera's height above the table" in doubt[0] and "--raised-image" in doubt[1]
+
+    with_raised = calibrate(flat, config, raised=RaisedPlate(raised, SPACER_MM)).calibration
+    known = with_raised.statistics["camera_height"]
+    assert "raised on a 20 mm spacer" in known["from"] and known["sd_mm"] < 0.01 * known["height_mm"]
+    assert with_raised.height_doubt() is None
+
+
+def test_a_calibration_that_does_not_say_raises_no_doubt(images):
+    """Calibrations written before the height was recorded: nothing to report, nothing invented."""
+    _, config, flat, _ = images
+    cal = calibrate(flat, config).calibration
+    del cal.statistics["camera_height"]
+    assert cal.height_doubt() is None

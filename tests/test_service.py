@@ -372,3 +372,23 @@ def test_a_full_disk_faults_the_job_and_nothing_starts_until_the_record_can_be_w
     assert len(files) >= 2  # the broken file was left for a new one
     verified = [e for e in read_shift(logs) if e["kind"] == "verify" and e["result"] == "picked"]
     assert len(verified) >= before + 1
+
+
+def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one_is_installed(tmp_path):
+    """The part-height correction needs the camera's height: while the active calibration does not
+    know it to 5 %, the service shows a warning alarm (no Reset needed); a calibration that knows it
+    clears the warning."""
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        cal = service.cell.calibration
+        info = service.snapshot().calibration
+        stats = {**cal.statistics, "camera_height": {"height_mm": 300.0, "sd_mm": None, "from": "the plate alone"}}
+        unsure = replace(cal, statistics=stats, created_utc="2026-12-02T08:00:00+00:00")
+        service.install_calibration(unsure, replace(info, calibration_id=unsure.content_id))
+        warnings = service.snapshot().warnings
+        assert [w.source for w in warnings] == ["calibration"], warnings
+        assert "camera's height above the table is not known at all" in warnings[0].reason
+        stats = {**cal.statistics, "camera_height": {"height_mm": 300.0, "sd_mm": 1.5, "from": "the plate raised"}}
+        sure = replace(cal, statistics=stats, created_utc="2026-12-02T08:01:00+00:00")
+        service.install_calibration(sure, replace(info, calibration_id=sure.content_id))
+        assert service.snapshot().warnings == ()

@@ -4,13 +4,22 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
+from typing import Any
 
 import numpy as np
 
-from cell.calibration.detect import Candidates, detect_paper, find_candidates, refine_centres, to_gray
+from cell.calibration.detect import (
+    Candidates,
+    detect_paper,
+    find_candidates,
+    refine_candidates,
+    size_groups,
+    to_gray,
+)
 from cell.calibration.lattice import Numbering, number_lattice
 from cell.calibration.models import (
     CameraMap,
@@ -28,7 +37,6 @@ from cell.wording import plural
 
 log = logging.getLogger(__name__)
 
-_FINEST_COARSE_LEVEL = 2  # refinement never on a level coarser than this (a quarter resolution)
 CANDIDATES = [("quadratic", 2), ("homography", 0), ("polynomial", 3), ("polynomial", 4), ("camera", 0)]
 
 
@@ -108,7 +116,7 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
         raise PlateNotFound(f"found {plural(len(cands), 'round dark blob')}: no plate in view")
     group, numbering = _number_by_size(cands, plate, det)
     idx, cr = numbering.index, numbering.col_row
-    centres, diam, ok = _refine(group, idx, _lattice_diameter_px(group.centre_px[idx], cr, plate))
+    centres, diam, ok = refine_candidates(group, idx, _lattice_diameter_px(group.centre_px[idx], cr, plate))
     unseen = [tuple(x) for x in cr[~ok]]
     if unseen:
         log.info("circles at (col, row) %s not measured: cut by the image border or no contrast", unseen)
@@ -140,60 +148,15 @@ def find_points(image: np.ndarray, config: CellConfig) -> PlatePoints:
     )
 
 
-def _refine(group: Candidates, idx: np.ndarray, lattice_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Refined centres and diameters (full-resolution px) of the numbered candidates.
-
-    Each is measured on the finest level where the circles are at most 24 px across (full
-    resolution for smaller ones), but never coarser than a quarter resolution: pyrDown's blur
-    is symmetric, so it moves no centroid, and larger windows would only cost time; but a
-    centre is good to about 0.015 px of its level, which a coarser level would multiply. The
-    size that decides is the larger of the blob's and the one the lattice pitch predicts
-    (`lattice_d`): a faint circle's blob is only its core.
-    """
-    d = np.maximum(group.diameter_px[idx], lattice_d)
-    k = min(max(int(np.floor(np.log2(max(float(np.median(d)), 1.0) / 12.0))), 0), _FINEST_COARSE_LEVEL)
-    k = min(k, len(group.pyramid) - 1)
-    s = 2.0**k
-    half_res = group.pyramid[k + 1] if k + 1 < len(group.pyramid) else None
-    coarse_error = np.maximum(0.5 * 2.0 ** group.level[idx] / s, 1.0)
-    centres, diam, ok = refine_centres(group.pyramid[k], group.centre_px[idx] / s, d / s, coarse_error, half_res)
-    return centres * s, diam * s, ok
-
-
 def _lattice_diameter_px(pixel: np.ndarray, cr: np.ndarray, plate: PlateConfig) -> np.ndarray:
     """Each circle's diameter in pixels as the local lattice pitch predicts it."""
     return _local_pitch_px(pixel, cr, plate) * plate.diameter_mm / np.sqrt(plate.pitch_x_mm * plate.pitch_y_mm)
 
 
-def _size_groups(
-    diameter_px: np.ndarray, depth: np.ndarray, need: int, tries: int = 6, spread: float = 1.8
-) -> list[np.ndarray]:
-    """Blob index sets of similar size: the plate's circles are one of them. Those with at least
-    `need` blobs come first (fewer cannot be the plate), the deepest (printed dots, not specks
-    of texture) first among them."""
-    logd = np.log(diameter_px)
-    width = np.log(spread)
-    ordered = np.sort(logd)
-    counts = np.searchsorted(ordered, logd + width, "right") - np.searchsorted(ordered, logd - width, "left")
-    groups: list[np.ndarray] = []
-    centres: list[float] = []
-    used = np.zeros(len(logd), bool)
-    for i in np.argsort(-counts, kind="stable"):
-        if used[i] or len(groups) == tries:
-            continue
-        centre = np.median(logd[np.abs(logd - logd[i]) <= width])  # one mean-shift step onto the crowd
-        members = np.abs(logd - centre) <= width
-        used |= members
-        if all(abs(centre - c) > width / 2 for c in centres):
-            groups.append(np.flatnonzero(members))
-            centres.append(centre)
-    return sorted(groups, key=lambda g: (len(g) < need, -float(np.median(depth[g]))))
-
-
 def _number_by_size(cands: Candidates, plate: PlateConfig, det) -> tuple[Candidates, Numbering]:
     """Number the first size group that forms the whole plate; else fail with what the first one tried showed."""
     errors = []
-    for members in _size_groups(cands.diameter_px, cands.depth, plate.count - det.max_missing):
+    for members in size_groups(cands.diameter_px, cands.depth, plate.count - det.max_missing):
         group = cands.subset(members)
         try:
             return group, number_lattice(
@@ -330,7 +293,7 @@ def calibrate(
     raised_height = None
     if raised is not None:
         raised_height = height_from_raised_plate(raised.image, final, config.plate, raised.spacer_mm, raised.source)
-    camera = _with_known_height(camera, plate_sd, pts, (w, h), config.calibration, raised_height)
+    camera, height = _with_known_height(camera, plate_sd, pts, (w, h), config.calibration, raised_height)
     t2 = time.perf_counter()
     plate = config.plate
     col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
@@ -358,6 +321,7 @@ def calibrate(
             "fit": chosen.fit.to_dict(),
             "cross_validated": chosen.cv.to_dict(),
             "why": why,
+            "camera_height": height,
             **({"raised_plate": raised_height.to_dict()} if raised_height is not None else {}),
         },
     )
@@ -374,22 +338,33 @@ def calibrate(
 
 def _with_known_height(
     camera, plate_sd: float, pts: PlatePoints, size, limits, raised: RaisedHeight | None = None
-) -> CameraModel:
+) -> tuple[CameraModel, dict[str, Any]]:
     """The camera pose at the height the plate, the raised plate and the configured height agree on,
     each weighed by how well it is known; the plate's own pose where neither of the others is given.
+    And that height: {"height_mm", "sd_mm", "from"} (what knew it).
 
     The plate fixes the scale (height over focal length) well even where it cannot fix the
     height: so the focal length is moved with the height, and the pose refitted around it.
     """
-    if raised is None and limits.camera_height_mm is None:
-        return camera
     fitted = float(camera.center_table_mm[2])
-    known = [(fitted, plate_sd)] if np.isfinite(plate_sd) else []
+    known = [("the plate", fitted, plate_sd)] if np.isfinite(plate_sd) else []
     if raised is not None:
-        known.append((raised.height_mm, raised.sd_mm))
+        known.append((f"the plate raised on a {raised.spacer_mm:g} mm spacer", raised.height_mm, raised.sd_mm))
     if limits.camera_height_mm is not None:
-        known.append((limits.camera_height_mm, limits.camera_height_sd_mm))
-    weights = [1.0 / max(sd, 1e-6) ** 2 for _, sd in known]
-    height = sum(wt * z for wt, (z, _) in zip(weights, known, strict=True)) / sum(weights)
+        known.append(("calibration.camera_height_mm", limits.camera_height_mm, limits.camera_height_sd_mm))
+    if raised is None and limits.camera_height_mm is None:
+        sd = plate_sd if np.isfinite(plate_sd) else None  # JSON has no infinity: None is "not known at all"
+        return camera, {
+            "height_mm": round(fitted, 2),
+            "sd_mm": None if sd is None else round(sd, 3),
+            "from": "the plate alone",
+        }
+    weights = [1.0 / max(sd, 1e-6) ** 2 for _, _, sd in known]
+    height = sum(wt * z for wt, (_, z, _) in zip(weights, known, strict=True)) / sum(weights)
     focal = float(camera.camera_matrix[0, 0]) * height / fitted
-    return fit_camera_pose(pts.pixel, pts.table_mm, size, focal_px=focal)[0]
+    used = {
+        "height_mm": round(height, 2),
+        "sd_mm": round(1.0 / math.sqrt(sum(weights)), 3),
+        "from": " and ".join(k[0] for k in known),
+    }
+    return fit_camera_pose(pts.pixel, pts.table_mm, size, focal_px=focal)[0], used

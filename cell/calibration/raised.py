@@ -25,9 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.calibration.candidates import find_candidates
-from cell.calibration.detect import to_gray
-from cell.calibration.refine import refine_centres
+from cell.calibration.candidates import Candidates, find_candidates
+from cell.calibration.detect import refine_candidates, size_groups, to_gray
 from cell.config import PlateConfig
 from cell.errors import CalibrationRejected, PlateNotFound
 
@@ -86,21 +85,19 @@ def raised_circles(
     is not numbered as the flat plate is: its circles are mapped onto the table first, where they
     form the plate's lattice grown by the unknown scale, and numbered there along the two steps
     its circles' neighbours show."""
-    gray = to_gray(image)
-    cands = find_candidates(gray)
+    cands = find_candidates(to_gray(image))
     if len(cands) < MIN_CIRCLES:
         raise PlateNotFound(f"{where}: {len(cands)} round dark blobs, too few for the plate")
-    coarse_error = np.maximum(0.5 * 2.0**cands.level, 1.0)
-    centres, diam, ok = refine_centres(gray, cands.centre_px, cands.diameter_px, coarse_error)
-    centres, diam = centres[ok], diam[ok]
-    on_table = to_table_mm(centres)
-    # each circle's size on the table: the local scale from a step of half its diameter
-    edge = to_table_mm(centres + np.column_stack([diam / 2, np.zeros(len(diam))]))
-    d_mm = 2.0 * np.hypot(*(edge - on_table).T)
-    size_ok = (d_mm > 0.8 * plate.diameter_mm) & (d_mm < 1.6 * plate.diameter_mm)  # raised: 1.0-1.4 x larger
-    on_table = on_table[size_ok]
-    if len(on_table) < MIN_CIRCLES:
-        raise PlateNotFound(f"{where}: {len(on_table)} circles of the plate's size, too few")
+    best = np.zeros((0, 2))
+    for members in size_groups(cands.diameter_px, cands.depth, MIN_CIRCLES):  # refined a size at a time
+        if len(members) < MIN_CIRCLES:
+            break  # the groups with enough blobs come first
+        found = _circles_on_table(cands, members, to_table_mm, plate)
+        if len(found) > len(best):
+            best = found
+    if len(best) < MIN_CIRCLES:
+        raise PlateNotFound(f"{where}: {len(best)} circles of the plate's size, too few")
+    on_table = best
     u, v, pitch_u, pitch_v = _lattice_steps(on_table, plate, where)
     basis = np.column_stack([u, v])
     seed = int(np.argmin(np.hypot(*(on_table - np.median(on_table, axis=0)).T)))
@@ -113,6 +110,36 @@ def raised_circles(
     handed = 1.0 if np.linalg.det(basis) > 0 else -1.0  # the lattice's steps as the table's axes turn
     grid = np.column_stack([mn[:, 0] * pitch_u, handed * mn[:, 1] * pitch_v])
     return on_table[keep], grid[keep]
+
+
+def _circles_on_table(
+    cands: Candidates, members: np.ndarray, to_table_mm: Callable[[np.ndarray], np.ndarray], plate: PlateConfig
+) -> np.ndarray:
+    """The centres (table mm) of the blobs in `members` that are the plate's circles by their size
+    on the table, one per circle."""
+    centres, diam, ok = refine_candidates(cands, members, cands.diameter_px[members])
+    centres, diam = centres[ok], diam[ok]
+    if not len(centres):
+        return np.zeros((0, 2))
+    on_table = to_table_mm(centres)
+    # each circle's size on the table: the local scale from a step of half its diameter
+    edge = to_table_mm(centres + np.column_stack([diam / 2, np.zeros(len(diam))]))
+    d_mm = 2.0 * np.hypot(*(edge - on_table).T)
+    size_ok = (d_mm > 0.8 * plate.diameter_mm) & (d_mm < 1.6 * plate.diameter_mm)  # raised: 1.0-1.4 x larger
+    return _one_per_circle(on_table[size_ok], d_mm[size_ok], 0.4 * min(plate.pitch_x_mm, plate.pitch_y_mm))
+
+
+def _one_per_circle(points: np.ndarray, d_mm: np.ndarray, apart_mm: float) -> np.ndarray:
+    """One blob per circle: of blobs closer than `apart_mm` (a circle's dark core found beside the
+    whole circle, under uneven light), the largest."""
+    near = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1)) < apart_mm
+    taken = np.zeros(len(points), bool)
+    keep = []
+    for i in np.argsort(-d_mm):
+        if not taken[i]:
+            keep.append(int(i))
+            taken |= near[i]
+    return points[sorted(keep)]
 
 
 def _lattice_steps(points: np.ndarray, plate: PlateConfig, where: str) -> tuple[np.ndarray, np.ndarray, float, float]:

@@ -23,6 +23,7 @@ from cell.errors import InputError
 SCHEMA = "pick-cell/calibration"
 SCHEMA_VERSION = 1
 MIN_IMAGE_PX, MAX_IMAGE_PX = 16, 20000  # as camera.width_px / height_px allow
+HEIGHT_DOUBT_FRACTION = 0.05  # a camera height known worse than this is reported (part-height correction)
 
 
 @dataclass
@@ -52,6 +53,24 @@ class Calibration:
             raise InputError("height correction needs the camera pose, which this calibration lacks")
         C = self.camera.center_table_mm
         return C[:2] + (on_table - C[:2]) * (1.0 - height_mm / C[2])
+
+    def height_doubt(self) -> tuple[str, str] | None:
+        """(reason, hint) when the camera's height above the table, which the part-height correction
+        needs, is not known to HEIGHT_DOUBT_FRACTION (a camera seen straight down, calibrated on one
+        flat plate image); None when it is, or when the file does not say (older calibrations)."""
+        known = self.statistics.get("camera_height")
+        if not isinstance(known, dict) or not isinstance(known.get("height_mm"), int | float):
+            return None
+        height, sd = float(known["height_mm"]), known.get("sd_mm")
+        if isinstance(sd, int | float) and sd <= HEIGHT_DOUBT_FRACTION * height:
+            return None
+        how = "not known at all" if not isinstance(sd, int | float) else f"known only to +- {sd:.0f} mm"
+        return (
+            f"calibration: the camera's height above the table is {how} (from {known.get('from', '?')}; "
+            f"{height:.0f} mm used): parts' centres may be off by a millimetre or more",
+            "measure the height into calibration.camera_height_mm, or recalibrate with an image of the plate "
+            "raised on a spacer (run-cell recalibrate --raised-image FILE --spacer-mm MM; docs/commissioning.md)",
+        )
 
     @property
     def camera_center_table_mm(self) -> np.ndarray | None:

@@ -146,6 +146,9 @@ class _Job:
     fault: tuple[str, str, str] | None = None  # (reason, hint, source) of a fault raised from outside the job
 
 
+HEIGHT_WARNING = "camera-height"  # the warning alarm's key while the calibration's camera height is in doubt
+
+
 class LineService:
     """Implements cell.service.api.LineServiceAPI."""
 
@@ -195,6 +198,7 @@ class LineService:
             )
         )
         self.bus.emit(self._calibration_event(self._vision, None))
+        self._warn_of_height(self._vision.calibration)
         self._worker.start()
         self._set_state(V.READY, "service started")
 
@@ -462,6 +466,16 @@ class LineService:
             self._vision = vision  # locate and the drift watch change together, at rest
             self._emit_best_effort(self._calibration_event(vision, origin))
         self._changed("calibration")
+        self._warn_of_height(calibration)
+
+    def _warn_of_height(self, calibration: Calibration) -> None:
+        """A warning alarm while the active calibration does not know the camera's height well
+        enough for the part-height correction (Calibration.height_doubt)."""
+        doubt = calibration.height_doubt()
+        if doubt is None:
+            self.clear_warning(HEIGHT_WARNING)
+        else:
+            self.raise_warning(HEIGHT_WARNING, *doubt, "calibration")
 
     def _calibration_event(self, vision: Vision, origin: Origin | None) -> CalibrationInstalled:
         i = vision.info
