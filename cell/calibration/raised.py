@@ -88,16 +88,16 @@ def raised_circles(
     cands = find_candidates(to_gray(image))
     if len(cands) < MIN_CIRCLES:
         raise PlateNotFound(f"{where}: {len(cands)} round dark blobs, too few for the plate")
-    best = np.zeros((0, 2))
-    for members in size_groups(cands.diameter_px, cands.depth, MIN_CIRCLES):  # refined a size at a time
-        if len(members) < MIN_CIRCLES:
-            break  # the groups with enough blobs come first
-        found = _circles_on_table(cands, members, to_table_mm, plate)
-        if len(found) > len(best):
-            best = found
-    if len(best) < MIN_CIRCLES:
-        raise PlateNotFound(f"{where}: {len(best)} circles of the plate's size, too few")
-    on_table = best
+    found = [  # refined a size group at a time (one window size fits blobs of one size)
+        _circles_on_table(cands, members, to_table_mm, plate)
+        for members in size_groups(cands.diameter_px, cands.depth, MIN_CIRCLES)
+        if len(members) >= MIN_CIRCLES
+    ]
+    points = np.concatenate([f[0] for f in found]) if found else np.zeros((0, 2))
+    sizes = np.concatenate([f[1] for f in found]) if found else np.zeros(0)
+    on_table = _one_per_circle(points, sizes, 0.4 * min(plate.pitch_x_mm, plate.pitch_y_mm))
+    if len(on_table) < MIN_CIRCLES:
+        raise PlateNotFound(f"{where}: {len(on_table)} circles of the plate's size, too few")
     u, v, pitch_u, pitch_v = _lattice_steps(on_table, plate, where)
     basis = np.column_stack([u, v])
     seed = int(np.argmin(np.hypot(*(on_table - np.median(on_table, axis=0)).T)))
@@ -114,19 +114,19 @@ def raised_circles(
 
 def _circles_on_table(
     cands: Candidates, members: np.ndarray, to_table_mm: Callable[[np.ndarray], np.ndarray], plate: PlateConfig
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """The centres (table mm) of the blobs in `members` that are the plate's circles by their size
-    on the table, one per circle."""
+    on the table, and those sizes (mm)."""
     centres, diam, ok = refine_candidates(cands, members, cands.diameter_px[members])
     centres, diam = centres[ok], diam[ok]
     if not len(centres):
-        return np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros(0)
     on_table = to_table_mm(centres)
     # each circle's size on the table: the local scale from a step of half its diameter
     edge = to_table_mm(centres + np.column_stack([diam / 2, np.zeros(len(diam))]))
     d_mm = 2.0 * np.hypot(*(edge - on_table).T)
     size_ok = (d_mm > 0.8 * plate.diameter_mm) & (d_mm < 1.6 * plate.diameter_mm)  # raised: 1.0-1.4 x larger
-    return _one_per_circle(on_table[size_ok], d_mm[size_ok], 0.4 * min(plate.pitch_x_mm, plate.pitch_y_mm))
+    return on_table[size_ok], d_mm[size_ok]
 
 
 def _one_per_circle(points: np.ndarray, d_mm: np.ndarray, apart_mm: float) -> np.ndarray:

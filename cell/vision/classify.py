@@ -53,7 +53,7 @@ def classify(
     if len(feat.holes) == 1:
         return _classify_holed(feat, mm_per_px, config, view_slope)
     if feat.elongation >= config.nut.max_elongation:
-        return _classify_elongated(feat, outline, mm_per_px, config)
+        return _classify_elongated(feat, outline, mm_per_px, config, view_slope)
     if feat.roundness >= _ROUND:
         return Verdict(UNKNOWN, "round without a hole (a coin or a plug?)")
     if feat.hexagonality >= config.nut.min_hexagonality and feat.roundness >= _HEXAGON_ROUNDNESS:
@@ -61,6 +61,18 @@ def classify(
     if feat.solidity >= 0.85:
         return Verdict(UNKNOWN, "compact, no hole, not hexagonal (a nut on its side?)")
     return Verdict(UNKNOWN, f"matches no part (solidity {feat.solidity:.2f}: touching parts or debris?)")
+
+
+_ISO_HOLE_RATIO = 0.5  # an ISO nut's hole / across flats, about
+
+
+def _seen_through(offset_per_hole: float) -> float:
+    """How much of a hole one sees through a nut at a slope, as a fraction of its diameter (equal
+    areas): its top and bottom openings, shifted by thickness x slope (here per hole diameter),
+    overlap only in a lens; 1 straight down, 0 once the shift reaches the hole's width."""
+    u = min(max(offset_per_hole, 0.0), 1.0)
+    lens = 0.5 * math.acos(u) - 0.5 * u * math.sqrt(1.0 - u * u)  # two circles of diameter 1, u apart
+    return math.sqrt(lens / (math.pi / 4.0))
 
 
 def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig, view_slope: float) -> Verdict:
@@ -83,7 +95,9 @@ def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig, view_
             f"across flats {across_flats_mm:.1f} mm outside {cfg.across_flats_mm[0]:g}-{cfg.across_flats_mm[1]:g} mm",
         ),
         (
-            cfg.hole_ratio[0] <= hole_mm / across_flats_mm <= cfg.hole_ratio[1],
+            cfg.hole_ratio[0] * _seen_through(cfg.thickness_per_across_flats * view_slope / _ISO_HOLE_RATIO)
+            <= hole_mm / across_flats_mm
+            <= cfg.hole_ratio[1],
             f"hole {hole_mm:.1f} mm does not fit a nut of {across_flats_mm:.1f} mm",
         ),
         (offset_mm <= cfg.max_hole_offset * across_flats_mm, f"hole off centre by {offset_mm:.1f} mm"),
@@ -94,7 +108,12 @@ def _classify_holed(feat: Features, mm_per_px: float, config: PartsConfig, view_
     return Verdict(NUT, f"hexagon with a round hole, {across_flats_mm:.1f} mm across flats", size)
 
 
-def _classify_elongated(feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig) -> Verdict:
+def _classify_elongated(
+    feat: Features, outline: np.ndarray, mm_per_px: float, config: PartsConfig, view_slope: float = 0.0
+) -> Verdict:
+    """Seen at a slope, a lying bolt's head (about as tall as it is wide) throws its top edge over
+    the shaft by its height x slope, and the shaft its own over its end: those stretches are
+    neither head nor shaft wide, and are left out of the shaft's evenness check."""
     cfg = config.bolt
     prof = width_profile(outline, feat.centroid_px, feat.axis_px)
     w = prof.widths_px
@@ -112,7 +131,11 @@ def _classify_elongated(feat: Features, outline: np.ndarray, mm_per_px: float, c
     ratio = head_px / max(shaft_px, 1e-9)
     if ratio < cfg.min_head_to_shaft:
         return Verdict(UNKNOWN, f"elongated without a head (a nut on its side?): head/shaft {ratio:.2f}", size)
-    shaft = w[head_len : max(head_len, n - 2)]
+    # px along the axis, at the table's scale: the head's top edge over the shaft, the shaft's over its end
+    start, end = head_len + int(math.ceil(head_px * view_slope)), n - 2 - int(math.ceil(shaft_px * view_slope))
+    if end - start < 3:
+        start, end = head_len, n - 2
+    shaft = w[start : max(start, end)]
     misfit = float(np.mean(np.abs(shaft - shaft_px) > max(0.2 * shaft_px, 1.5))) if shaft.size else 1.0
     checks = [
         (cfg.length_mm[0] <= size["length_mm"] <= cfg.length_mm[1], f"length {size['length_mm']:.1f} mm out of range"),
