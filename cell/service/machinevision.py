@@ -43,6 +43,7 @@ from asyncua.common.instantiate_util import instantiate
 from asyncua.server.event_generator import EventGenerator
 from asyncua.server.internal_session import InternalSession
 
+from cell.asyncwait import wait_event
 from cell.config import CellConfig
 from cell.eventbus import Subscription
 from cell.events import (
@@ -924,8 +925,7 @@ class MachineVisionServer:
     async def _publish(self) -> None:
         assert self._wake is not None
         while True:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), timeout=1.0)
+            await wait_event(self._wake, 1.0)
             self._wake.clear()
             while self._queue:
                 item = self._queue[0]

@@ -22,6 +22,7 @@ from typing import Any
 from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
+from cell.asyncwait import wait_event
 from cell.config import CellConfig
 from cell.errors import ConfigError
 from cell.eventbus import Subscription
@@ -282,10 +283,7 @@ class OpcUaServer:
         """Write every value that changed (the heartbeat at least once a second). A failed write is
         logged (once a minute at most) and retried on the next round; the task never dies of it."""
         while True:
-            try:
-                await asyncio.wait_for(self._dirty.wait(), timeout=0.5)
-            except TimeoutError:
-                pass
+            await wait_event(self._dirty, 0.5)
             self._dirty.clear()
             try:
                 await self._publish_once()

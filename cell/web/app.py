@@ -19,6 +19,7 @@ from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from cell.asyncwait import wait_event
 from cell.config import CellConfig
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
 from cell.events import Origin
@@ -285,8 +286,7 @@ class ScreenApp:
         try:
             sent_seq = -1
             while not screen.closed:
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(screen.wake.wait(), KEEPALIVE_S)
+                await wait_event(screen.wake, KEEPALIVE_S)
                 screen.wake.clear()
                 if screen.closed:
                     break

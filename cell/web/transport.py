@@ -41,6 +41,7 @@ import h11
 import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from cell.asyncwait import wait_event
 from cell.errors import ConfigError
 from cell.logratelimit import Tally
 
@@ -377,8 +378,7 @@ class LimitedServer(uvicorn.Server):
         should_exit = await self.on_tick(counter)
         while not should_exit:
             counter = (counter + 10) % 864000  # on_tick refreshes the Date header when counter % 10 == 0
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._tick_wake.wait(), TICK_S)
+            await wait_event(self._tick_wake, TICK_S)
             should_exit = await self.on_tick(counter)
 
     def request_exit(self) -> None:
