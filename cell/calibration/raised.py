@@ -20,6 +20,7 @@ is the spacer's times height / spacer).
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -104,8 +105,8 @@ def raised_circles(
     mn = np.linalg.solve(basis, (on_table - on_table[seed]).T).T
     near = np.all(np.abs(mn - np.rint(mn)) < 0.2, axis=1)
     mn = np.rint(mn).astype(int)
-    places = [tuple(x) for x in mn]
-    unique = np.array([places.count(x) == 1 for x in places])
+    places = Counter(map(tuple, mn))
+    unique = np.array([places[tuple(x)] == 1 for x in mn])
     keep = near & unique
     handed = 1.0 if np.linalg.det(basis) > 0 else -1.0  # the lattice's steps as the table's axes turn
     grid = np.column_stack([mn[:, 0] * pitch_u, handed * mn[:, 1] * pitch_v])

@@ -89,12 +89,9 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
             used = result.calibration.camera_center_table_mm
             if used is not None:
                 lines.append(f"camera height used: {used[2]:.1f} mm")
-        elif not sd <= 0.05 * height:
-            lines.append(
-                "  the plate, seen nearly straight on, does not pin the camera height down: set "
-                "calibration.camera_height_mm (measured), or add an image of the plate raised on a "
-                "spacer (--raised-image, --spacer-mm), for the part-height correction"
-            )
+    doubt = result.calibration.height_doubt()  # the height used, from everything that knew it
+    if doubt is not None:
+        lines.append(f"  {doubt[0]} (hint: {doubt[1]})")
     return lines
 
 
