@@ -82,6 +82,13 @@ class SpecClient:
     async def last_transition(self, machine: Node) -> str:
         return (await (await machine.get_child(["0:LastTransition"])).read_value()).Text
 
+    async def wait_transition(self, machine: Node, want: str, timeout_s: float = 20.0) -> None:
+        """Until LastTransition reads `want` (a state read right after a Start may still be the old one)."""
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while (last := await self.last_transition(machine)) != want:
+            assert asyncio.get_running_loop().time() < deadline, f"last transition still {last}, waiting for {want}"
+            await asyncio.sleep(0.05)
+
     async def wait_state(self, machine: Node, want: str, timeout_s: float = 20.0) -> None:
         deadline = asyncio.get_running_loop().time() + timeout_s
         while (state := await self.state(machine)) != want:
@@ -247,9 +254,11 @@ def test_a_specification_only_client_runs_the_cell(harness: MachineVisionHarness
             assert prepared == {"bolts-only": True, "nuts-only": False}
 
             job2 = (await s.call(s.auto, "StartSingleJob", *job_args("meas-2", "", "", "", {})))[0].Id
-            await s.wait_state(s.auto, "Ready")
-            assert await s.last_transition(s.auto) == "SingleExecutionToReadyAuto"
             (end2,) = await handler.wait(lambda e: e.ResultId.Id == f"{job2}/end", 1)
+            # the job ran and ended on its own: Ready again by its own transition (waited for, not read
+            # at once: right after the Start the state may still read the Ready before it)
+            await s.wait_transition(s.auto, "SingleExecutionToReadyAuto")
+            await s.wait_state(s.auto, "Ready")
             assert end2.ResultState == 1 and end2.InternalRecipeId.Id == "bolts-only"
             assert end2.CreationTime is not None and end2.JobId.Id == job2
             await sub.delete()
