@@ -1,6 +1,6 @@
 """The issue-21 probes as measurements: what an attacker on the plant network costs the cell.
 
-    .venv/bin/python scripts/bench_security.py [--clients 1000] [--only slowloris,streams,vanish,bomb,guess]
+    .venv/bin/python scripts/bench_security.py [--clients 1000] [--only slowloris,streams,vanish,bomb,upload,guess]
 
 Each probe runs tests/limits_server.py in a subprocess (the screen's transport and the guarded
 OPC UA server in one process, as `run-cell serve` has them) and prints what a real client saw
@@ -20,6 +20,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -204,6 +205,31 @@ def bomb() -> None:
     print(f"  for comparison cv2.imdecode inflates it all: {per_gb:.2f} s of CPU per GiB of zeros")
 
 
+def upload(work: Path) -> None:
+    """The bomb through the screen's upload route, ten times, while a client reads the state: how long it waited."""
+    data = png(1920, 1080, zeros_stream(20 * 1024))
+    server = ProbeServer(work)
+    latencies: list[float] = []
+    codes: list[int] = []
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            latencies.append(timed(lambda: httpx.get(server.screen_url + "api/state", timeout=30).raise_for_status()))
+            time.sleep(0.05)
+
+    watcher = threading.Thread(target=watch)
+    try:
+        watcher.start()
+        codes = [httpx.post(server.screen_url + "api/upload", content=data, timeout=60).status_code for _ in range(10)]
+    finally:
+        done.set()
+        watcher.join(60)
+        server.stop()
+    print(f"PNG bomb uploaded to the screen 10 times ({len(data) / 2**20:.1f} MiB each): answers {sorted(set(codes))}")
+    print(f"  screen meanwhile: {ms(latencies)} (the acceptance: 1 s)")
+
+
 def guess(work: Path) -> None:
     server = ProbeServer(work, users=True)
     try:
@@ -237,13 +263,13 @@ def guess(work: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--clients", type=int, default=1000, help="vanishing OPC UA clients")
-    p.add_argument("--only", default="slowloris,streams,vanish,bomb,guess")
+    p.add_argument("--only", default="slowloris,streams,vanish,bomb,upload,guess")
     args = p.parse_args()
     logging.basicConfig(level=logging.WARNING)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)  # the refusals are the point: not their tracebacks
     chosen = set(args.only.split(","))
     with tempfile.TemporaryDirectory() as tmp:
-        for name in ("slowloris", "streams", "vanish", "bomb", "guess"):
+        for name in ("slowloris", "streams", "vanish", "bomb", "upload", "guess"):
             if name not in chosen:
                 continue
             work = Path(tmp) / name
