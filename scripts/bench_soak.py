@@ -12,7 +12,11 @@ At 1920 x 1080 (the built-in camera) the cell runs as shipped: the drift watch o
 simulated table's reference marks. Smaller cameras do not resolve the 1.5 mm marks (run-cell
 neither), so there the shift config turns them off.
 
-    .venv/bin/python scripts/bench_soak.py [--picks 2000] [--camera 1920x1080] [--timeout-s 3600]
+    .venv/bin/python scripts/bench_soak.py [--picks 2000] [--camera 1920x1080] [--timeout-s 3600] [--count-objects [EVERY_S]]
+
+With --count-objects the server counts its Python objects by type (every 2 minutes by default)
+(scripts/serve_counting_objects.py) and the bench prints the types that grew most, and RSS
+against the object count at each count: a growth no type follows is the C allocator's.
 """
 
 from __future__ import annotations
@@ -166,6 +170,20 @@ def history_figures(path: Path) -> dict:
         db.close()
 
 
+def print_object_growth(path: Path) -> None:
+    """RSS and the live object count at each count, and the types that grew most from the second count on."""
+    import json
+
+    lines = [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
+    if len(lines) < 3:
+        print(f"object counts: {len(lines)} taken, too few to compare (a longer run takes more)")
+        return
+    print("object counts (RSS MB / live objects): " + ", ".join(f"{x['rss_mb']:.0f}/{x['objects']}" for x in lines))
+    first, last = lines[1]["types"], lines[-1]["types"]
+    grew = sorted(((last.get(k, 0) - first.get(k, 0), k) for k in set(first) | set(last)), reverse=True)[:8]
+    print("types that grew most from the second count to the last: " + ", ".join(f"{k} +{n}" for n, k in grew if n > 0))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--picks", type=int, default=2000)
@@ -176,6 +194,14 @@ def main() -> int:
         help="the simulated camera's size, WIDTHxHEIGHT (default 960x540; 1920x1080 is the shipped cell, drift watch on)",
     )
     ap.add_argument("--timeout-s", type=float, default=3600.0)
+    ap.add_argument(
+        "--count-objects",
+        type=float,
+        nargs="?",
+        const=120.0,
+        metavar="EVERY_S",
+        help="count the server's Python objects by type, every EVERY_S seconds (120 by default)",
+    )
     args = ap.parse_args()
     load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
@@ -183,10 +209,22 @@ def main() -> int:
         (tmp / "shift.toml").write_text(shift_toml(*args.camera))
         print(f"camera {args.camera[0]} x {args.camera[1]}; drift watch {'on' if args.camera == FULL_HD else 'off'}")
         port = free_port()
+        counts = tmp / "object-counts.jsonl"
+        runner = (
+            [
+                str(REPO / "scripts" / "serve_counting_objects.py"),
+                "--out",
+                str(counts),
+                "--every-s",
+                str(args.count_objects),
+                "--",
+            ]
+            if args.count_objects
+            else ["-m", "cell.cli"]
+        )
         cmd = [
             sys.executable,
-            "-m",
-            "cell.cli",
+            *runner,
             "serve",
             "--dry-run",
             "--config",
@@ -224,6 +262,8 @@ def main() -> int:
         events = [e for f in sorted((tmp / "logs").glob("cell-*.jsonl")) for e in read_events(f)]
         files = len(list((tmp / "logs").glob("cell-*.jsonl")))
         store = history_figures(tmp / "data" / "history.sqlite")
+        if args.count_objects:
+            print_object_growth(counts)
     c = r["counters"]
     picks = c["PickedBolts"] + c["PickedNuts"]
     picked_lines = sum(1 for e in events if e["kind"] == "verify" and e["result"] == "picked")
