@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import select
 import signal
@@ -172,8 +173,6 @@ def history_figures(path: Path) -> dict:
 
 def print_object_growth(path: Path) -> None:
     """RSS and the live object count at each count, and the types that grew most from the second count on."""
-    import json
-
     lines = [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
     if len(lines) < 3:
         print(f"object counts: {len(lines)} taken, too few to compare (a longer run takes more)")

@@ -19,10 +19,7 @@ import sys
 import threading
 import time
 
-
-def rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+from bench_soak import proc_figures  # RSS read as the bench reads it, in the same unit
 
 
 def count_forever(out: str, every_s: float) -> None:
@@ -30,7 +27,12 @@ def count_forever(out: str, every_s: float) -> None:
         time.sleep(every_s)
         objects = gc.get_objects()
         counts = collections.Counter(type(o).__qualname__ for o in objects)
-        line = {"time": time.time(), "rss_mb": rss_mb(), "objects": len(objects), "types": dict(counts)}
+        line = {
+            "time": time.time(),
+            "rss_mb": proc_figures(os.getpid())["rss_mb"],
+            "objects": len(objects),
+            "types": dict(counts),
+        }
         del objects
         with open(out, "a") as f:
             f.write(json.dumps(line) + "\n")

@@ -171,8 +171,8 @@ def test_vanished_clients_are_reclaimed_and_a_fresh_client_gets_in(tmp_path):
     """The issue's probe: clients that subscribe and drop their TCP connection. Their sessions must
     go with their connections; meanwhile a live client is answered all along (within 1 s is the
     acceptance, a wall time: scripts/bench_security.py measures it), and afterwards a fresh client
-    gets a session. All from 127.0.0.1, so the cap per
-    address is raised above a batch (50 at a time) for this test."""
+    gets a session. All from 127.0.0.1, so the cap per address is raised above a batch (50 at a
+    time) for this test."""
     server = ProbeServer(tmp_path, users=True, limits={"opcua_limits": {"max_connections_per_address": 64}})
     try:
         good = asyncio.run(trusted_credentials(server, "plc"))

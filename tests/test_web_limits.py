@@ -185,19 +185,14 @@ def _raise_own_limit(needed: int) -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
 
 
-def _latency(call) -> float:
-    t0 = time.monotonic()
-    call()
-    return time.monotonic() - t0
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
     """The issue's probe against `run-cell serve --dry-run` under `ulimit -n 1024`, picking in continuous
     mode: 1,100 connections that send a request line and nothing more. The screen and OPC UA must answer a
-    real client all along (within 1 s is the acceptance, a wall time: scripts/bench_security.py), the picks must go on, the process must keep descriptors to spare, and
-    the log must not fill with the same failure."""
+    real client all along (within 1 s is the acceptance, a wall time: scripts/bench_security.py), the
+    picks must go on, the process must keep descriptors to spare, and the log must not fill with the
+    same failure."""
     _raise_own_limit(1400)
     serve = ServeProcess(tmp_path, nofile=1024)
     screen = serve.url
@@ -236,11 +231,9 @@ def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
         before = picked()
         # The burst itself queues in the kernel's accept queue ahead of anyone else (a first request waits for
         # it: ~0.3 s measured); the acceptance is about the screen while the unfinished requests are held (the
-        # header deadline, 10 s, then frees them), so the requests measured come after a first one got through.
+        # header deadline, 10 s, then frees them), so the requests counted come after a first one got through.
         httpx.get(screen + "api/state", timeout=30).raise_for_status()
-        latencies = [
-            _latency(lambda: httpx.get(screen + "api/state", timeout=30).raise_for_status()) for _ in range(10)
-        ]
+        answers = [httpx.get(screen + "api/state", timeout=30).raise_for_status().status_code for _ in range(10)]
         opcua = asyncio.run(opcua_reads(3.0))
         wait_until(lambda: picked() > before, 60, "picks going on during the attack")
         descriptors = len(list(Path(f"/proc/{serve.proc.pid}/fd").iterdir()))
@@ -253,7 +246,7 @@ def test_1100_unfinished_requests_under_ulimit_1024(tmp_path):
     # The screen (10 requests, each within its 30 s timeout) and OPC UA (each read within 10 s) answered all through
     # the attack; how fast (the acceptance: within 1 s) is a wall time, measured by
     # `scripts/bench_security.py --only slowloris`.
-    assert len(latencies) == 10 and opcua, f"OPC UA read {len(opcua)} times during the attack"
+    assert len(answers) == 10 and opcua, f"OPC UA read {len(opcua)} times during the attack"
     log = "".join(p.read_text() for p in (tmp_path / "logs").glob("serve-*.log"))
     assert "Too many open files" not in log
     complaints = [line for line in log.splitlines() if " WARNING " in line or " ERROR " in line]
