@@ -253,6 +253,7 @@ def test_closing_while_the_server_gives_no_answer_returns_and_keeps_the_rows(tmp
     closed = closed_in_a_thread(store, 1.0)
     assert closed.wait(60), "the store's close did not return while the server gave no answer"
     assert outbox_rows(cfg) == 5  # for the next start
+    wait_for(lambda: not store._forwarder.is_alive(), 30, "the forwarder's wait interrupted, the thread ended")
 
 
 def test_a_silent_server_raises_a_warning_and_the_rows_wait_in_the_outbox(tmp_path, proxy):

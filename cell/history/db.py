@@ -226,7 +226,6 @@ def libpq_params(url: str, history: HistoryConfig, application_name: str = "pick
     from psycopg.conninfo import conninfo_to_dict
 
     given = conninfo_to_dict(url)
-    statement = f"-c statement_timeout={round(history.statement_timeout_s * 1000)}"
     params: dict[str, Any] = {
         "connect_timeout": max(1, round(history.connect_timeout_s)),
         "keepalives": 1,
@@ -234,8 +233,10 @@ def libpq_params(url: str, history: HistoryConfig, application_name: str = "pick
         "keepalives_interval": history.keepalive_interval_s,
         "keepalives_count": history.keepalive_count,
         "tcp_user_timeout": round(history.tcp_user_timeout_s * 1000),
-        "options": f"{given['options']} {statement}" if given.get("options") else statement,
     }
+    if history.statement_timeout_s > 0:  # 0: no `options` at all (a pooler such as PgBouncer may refuse it)
+        statement = f"-c statement_timeout={round(history.statement_timeout_s * 1000)}"
+        params["options"] = f"{given['options']} {statement}" if given.get("options") else statement
     if not given.get("application_name"):
         params["application_name"] = application_name
     return params
