@@ -237,6 +237,9 @@ def test_a_row_the_server_refuses_goes_to_the_dead_letter_and_the_rows_behind_it
     assert "track_on_the_table" in rows[0]["error"] and "NUL" in rows[1]["error"]
     assert main(["history", "--config", str(conf), "--dead-letter"]) == 0
     assert capsys.readouterr().out.strip().endswith(f"2 refused rows in {cfg.history.data_dir}/history-outbox.sqlite")
+    assert main(["history", "--config", str(conf), "--dead-letter", "--since", "2026-12-01"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--dead-letter lists every refused row: --since does not apply" in err[0]
 
 
 def test_closing_while_the_server_gives_no_answer_returns_and_keeps_the_rows(tmp_path, proxy):
