@@ -265,7 +265,7 @@ def test_a_silent_server_raises_a_warning_and_the_rows_wait_in_the_outbox(tmp_pa
         url=proxy.url(),
         statement_timeout_s=0.5,
         answer_timeout_s=1,
-        connect_timeout_s=1,
+        connect_timeout_s=2,
         retry_initial_s=0.05,
         retry_max_s=0.4,
     )
@@ -276,9 +276,8 @@ def test_a_silent_server_raises_a_warning_and_the_rows_wait_in_the_outbox(tmp_pa
     for n in range(6, 11):
         store.handle(verify(n))
     assert store.wait_idle(30)
-    wait_for(lambda: "history-server" in hooks.warnings, 60, "the warning")
-    first = hooks.raised[0]
-    assert first[0] == "history-server" and "gave no answer within 1 s (answer_timeout_s)" in first[1]
+    silent = "gave no answer within 1 s (answer_timeout_s)"
+    wait_for(lambda: any(k == "history-server" and silent in r for k, r in hooks.raised), 60, "the warning")
     assert store.stats().outbox == 5
     closed = closed_in_a_thread(store, 1.0)
     assert closed.wait(60), "the store's close did not return"
