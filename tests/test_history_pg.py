@@ -67,7 +67,7 @@ def test_the_same_rows_and_queries_on_postgresql(tmp_path, pg_url):
 
 
 def test_an_outage_queues_rows_locally_and_sends_them_once_when_the_server_is_back(tmp_path, pg, pg_url):
-    cfg = history_config(tmp_path, url=pg_url, retry_s=0.2, connect_timeout_s=2)
+    cfg = history_config(tmp_path, url=pg_url, retry_initial_s=0.2, retry_max_s=1, connect_timeout_s=2)
     hooks = Hooks()
     store = fill(cfg, [verify(n, track=n) for n in range(1, 11)], hooks)
     assert store.wait_sent(30)
@@ -96,6 +96,7 @@ def test_an_outage_queues_rows_locally_and_sends_them_once_when_the_server_is_ba
 def test_a_shift_goes_on_through_a_server_outage(tmp_path, pg, pg_url):
     cfg = small_config(tmp_path)
     cfg.history.url, cfg.history.retry_s, cfg.history.min_free_mb = pg_url, 0.2, 1
+    cfg.history.retry_initial_s, cfg.history.retry_max_s = 0.2, 1
     cfg.history.connect_timeout_s = 2
     cfg.sim.feeder = cfg.sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(cfg) as service:

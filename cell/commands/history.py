@@ -38,6 +38,11 @@ def register(sub) -> None:
     p.add_argument("--class", dest="cls", choices=("bolt", "nut"), help="one class")
     p.add_argument("--outcome", choices=OUTCOMES, help="one outcome")
     p.add_argument("--limit", type=int, default=None, help="at most this many (default: all)")
+    p.add_argument(
+        "--dead-letter",
+        action="store_true",
+        help="instead of picks: the rows the PostgreSQL server refused, kept aside in the local outbox",
+    )
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--json", action="store_true", help="a JSON array of picks")
     fmt.add_argument("--csv", action="store_true", help="CSV with a header line")
@@ -71,6 +76,10 @@ def cmd_history(args: argparse.Namespace) -> int:
     from cell.shifts import ShiftCalendar
 
     config = store_config(args)
+    if args.limit is not None and args.limit < 1:
+        raise InputError(f"--limit {args.limit}: give 1 or more")
+    if args.dead_letter:
+        return _dead_letter(args, config)
     calendar = ShiftCalendar(config.shifts)
     since = parse_when(args.since, calendar.zone, "--since") if args.since else None
     until = parse_when(args.until, calendar.zone, "--until") if args.until else None
@@ -81,8 +90,6 @@ def cmd_history(args: argparse.Namespace) -> int:
             raise InputError(f"--shift: {e}") from None
         since = max(since or shift.start_utc, shift.start_utc)
         until = min(until or shift.end_utc, shift.end_utc)
-    if args.limit is not None and args.limit < 1:
-        raise InputError(f"--limit {args.limit}: give 1 or more")
     reader = open_reader(config)
     try:
         picks = reader.list_picks(PickFilter(since, until, args.job, args.cls, args.outcome), limit=args.limit)
@@ -103,6 +110,30 @@ def cmd_history(args: argparse.Namespace) -> int:
     else:
         for line in _table(picks, calendar.zone):
             print(line)
+    return 0
+
+
+def _dead_letter(args: argparse.Namespace, config: CellConfig) -> int:
+    from cell.history.config import OUTBOX_FILE, data_dir
+    from cell.history.store import read_dead_letter
+
+    given = [o for o, v in (("--since", args.since), ("--until", args.until), ("--shift", args.shift)) if v]
+    given += [o for o, v in (("--job", args.job), ("--class", args.cls), ("--outcome", args.outcome)) if v]
+    if given or args.csv:
+        raise InputError(
+            f"--dead-letter lists every refused row: {', '.join(given or ['--csv'])} does not apply",
+            hint="leave it out (--limit and --json do apply)",
+        )
+    outbox = data_dir(config.history, config.run.log_dir) / OUTBOX_FILE
+    rows = read_dead_letter(outbox)[: args.limit]
+    if args.json:
+        json.dump(rows, sys.stdout, indent=1)
+        print()
+        return 0
+    for r in rows:
+        print(f"{r['refused_utc']}  #{r['seq']}  {r['statement']}: {r['error']}")
+        print(f"    {json.dumps(r['params'])}")
+    print(f"{len(rows)} refused rows in {outbox}" if rows else f"no refused rows ({outbox})")
     return 0
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from drivers.config import Strict
 
@@ -48,13 +48,62 @@ class HistoryConfig(Strict):
         8, ge=1, le=256, description="images waiting to be written; more are dropped (counted), never held"
     )
     batch_max_rows: int = Field(2000, ge=1, le=100_000, description="rows written in one transaction at most")
-    retry_s: float = Field(5.0, gt=0, le=600, description="PostgreSQL unreachable: try again this often")
+    retry_s: float = Field(
+        5.0,
+        gt=0,
+        le=600,
+        description="the local database (or PostgreSQL's local outbox) cannot be written: try again this often",
+    )
+    retry_initial_s: float = Field(
+        1.0,
+        gt=0,
+        le=600,
+        description="PostgreSQL failed (unreachable, INSERT refused, disk full, no answer): the first wait before "
+        "trying again; doubled after each failure up to retry_max_s, each wait drawn between half and all of it",
+    )
+    retry_max_s: float = Field(
+        60.0, gt=0, le=3600, description="PostgreSQL failing: the longest wait between two tries"
+    )
     connect_timeout_s: float = Field(5.0, gt=0, le=120, description="PostgreSQL connect timeout")
+    keepalive_idle_s: int = Field(
+        10,
+        ge=1,
+        le=7200,
+        description="PostgreSQL connection idle this long: TCP keepalive probes start (libpq keepalives_idle)",
+    )
+    keepalive_interval_s: int = Field(5, ge=1, le=600, description="between two TCP keepalive probes")
+    keepalive_count: int = Field(
+        3, ge=1, le=100, description="unanswered TCP keepalive probes before the connection is dead"
+    )
+    tcp_user_timeout_s: float = Field(
+        30.0,
+        ge=0,
+        le=3600,
+        description="data sent to PostgreSQL unacknowledged this long: the connection is dead (libpq tcp_user_timeout; "
+        "0: the system's default)",
+    )
+    statement_timeout_s: float = Field(
+        30.0, ge=0, le=3600, description="the server cancels a statement running longer (statement_timeout; 0: never)"
+    )
+    answer_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="no answer from PostgreSQL to one batch within this (a half-open connection, a proxy that went "
+        "silent): the cell drops the connection, raises a warning alarm and tries again later; keep it above "
+        "statement_timeout_s",
+    )
     cell_name: str = Field(
         "",
         max_length=64,
         description="this cell's name in a plant-wide database (rows carry it); default: the host name",
     )
+
+    @model_validator(mode="after")
+    def _retry_order(self) -> HistoryConfig:
+        if self.retry_max_s < self.retry_initial_s:
+            raise ValueError(f"retry_max_s {self.retry_max_s} is below retry_initial_s {self.retry_initial_s}")
+        return self
 
     @field_validator("url")
     @classmethod

@@ -14,14 +14,19 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import socket
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cell.errors import CellError, ConfigError
+
+if TYPE_CHECKING:
+    from cell.history.config import HistoryConfig
 
 log = logging.getLogger(__name__)
 
@@ -131,6 +136,25 @@ class Database:
         with self.lock, contextlib.suppress(Exception):
             self.conn.close()
 
+    def broken(self) -> bool:
+        """The connection is gone (closed, or lost mid-statement): open a new one."""
+        return bool(getattr(self.conn, "closed", False) or getattr(self.conn, "broken", False))
+
+    def interrupt(self) -> None:
+        """From another thread, without the lock (the owner may be blocked in it): end the
+        connection's network I/O at once. The socket is shut down, so a call waiting for an
+        answer that will never come fails now ("server closed the connection"); the owner then
+        closes the connection. PostgreSQL only."""
+        if self.dialect != "postgresql":
+            return
+        with contextlib.suppress(Exception):
+            fd = self.conn.pgconn.socket
+            s = socket.socket(fileno=os.dup(fd))  # a duplicate: shutdown acts on the socket, close on the copy
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            finally:
+                s.close()
+
     def integrity_check(self) -> str:
         """'ok' or what is wrong (SQLite's PRAGMA integrity_check; PostgreSQL keeps its own)."""
         if self.dialect != "sqlite":
@@ -193,11 +217,37 @@ def _connect_sqlite(path: Path, readonly: bool) -> Database:
     return Database(conn, "sqlite", str(path))
 
 
-def open_postgresql(url: str, connect_timeout_s: float) -> Database:
+def libpq_params(url: str, history: HistoryConfig, application_name: str = "pick-cell") -> dict[str, Any]:
+    """The connection's timeouts as libpq parameters (they override the URL's; `options` is added to).
+    TCP keepalives end a connection whose peer vanished while the cell waits for an answer;
+    tcp_user_timeout one whose data goes unacknowledged; statement_timeout has the server cancel a
+    statement that runs too long. (A peer that keeps the connection up but never answers is
+    caught by the store's own `answer_timeout_s`.)"""
+    from psycopg.conninfo import conninfo_to_dict
+
+    given = conninfo_to_dict(url)
+    params: dict[str, Any] = {
+        "connect_timeout": max(1, round(history.connect_timeout_s)),
+        "keepalives": 1,
+        "keepalives_idle": history.keepalive_idle_s,
+        "keepalives_interval": history.keepalive_interval_s,
+        "keepalives_count": history.keepalive_count,
+        "tcp_user_timeout": round(history.tcp_user_timeout_s * 1000),
+    }
+    if history.statement_timeout_s > 0:  # 0: no `options` at all (a pooler such as PgBouncer may refuse it)
+        statement = f"-c statement_timeout={round(history.statement_timeout_s * 1000)}"
+        params["options"] = f"{given['options']} {statement}" if given.get("options") else statement
+    if not given.get("application_name"):
+        params["application_name"] = application_name
+    return params
+
+
+def open_postgresql(url: str, history: HistoryConfig, application_name: str = "pick-cell") -> Database:
+    """A connection to the plant's server with the configured timeouts (`libpq_params`)."""
     import psycopg  # only when the plant's server is used: 0.1 s of import
 
     try:
-        conn = psycopg.connect(url, autocommit=True, connect_timeout=max(1, round(connect_timeout_s)))
+        conn = psycopg.connect(url, autocommit=True, **libpq_params(url, history, application_name))
     except psycopg.Error as e:
         raise HistoryUnreachable(f"history server {redact(url)} unreachable: {_first_line(e)}") from None
     return Database(conn, "postgresql", redact(url))
@@ -218,6 +268,17 @@ def is_connection_error(e: BaseException) -> bool:
     except ImportError:
         return False
     return isinstance(e, (psycopg.OperationalError, psycopg.InterfaceError))
+
+
+def is_row_refused(e: BaseException) -> bool:
+    """The server (or the driver, before sending) refuses a row for what it holds: a value out of
+    range, a NUL in a text, a CHECK or NOT NULL violated. Sending it again changes nothing. Any
+    other error (no permission, disk full, the connection) may pass: the row is kept and retried."""
+    try:
+        import psycopg
+    except ImportError:
+        return False
+    return isinstance(e, (psycopg.DataError, psycopg.IntegrityError))
 
 
 def describe(e: BaseException) -> str:

@@ -257,7 +257,7 @@ def open_reader(config: Any, cell: str | None = "", readonly: bool = True) -> Hi
     images = data_dir(h, config.run.log_dir) / "images"
     if url.startswith("sqlite:///"):
         return HistoryReader(open_sqlite(sqlite_path(url), readonly=readonly), who, images)
-    return HistoryReader(open_postgresql(url, h.connect_timeout_s), who, images)
+    return HistoryReader(open_postgresql(url, h), who, images)
 
 
 def dump_arguments(text: str | None) -> dict:

@@ -9,10 +9,17 @@ Three threads, none of them the control thread:
   never a half-written row), with this cell's mark (the time of its last event) in the same
   transaction; on SQLite straight into the database, on PostgreSQL into a local SQLite outbox;
 - on PostgreSQL a forwarder sends the outbox to the server in order, deleting what the server
-  committed. While the server cannot be reached rows wait in the outbox (a warning alarm
-  says how many); they are sent when it is back. Inserts are keyed by the rows' ids, so a
-  batch sent twice (the forwarder killed between the server's commit and the outbox's
-  delete) is there once: none lost, none twice.
+  committed. While the server cannot be reached, or refuses the rows (INSERT revoked, disk
+  full), or does not answer, rows wait in the outbox (a warning alarm says why); the
+  forwarder keeps its one connection while it is sound and tries again after a wait that
+  doubles with each failure (`retry_initial_s` up to `retry_max_s`, with jitter). Inserts are
+  keyed by the rows' ids, so a batch sent twice (the forwarder killed between the server's
+  commit and the outbox's delete) is there once: none lost, none twice. A row the server
+  refuses for what it holds (a data or integrity error) is moved to the outbox's dead-letter
+  table (counted, a warning alarm, `run-cell history --dead-letter` lists it) and the rows
+  behind it go on. A watchdog drops a connection that gives no answer within
+  `answer_timeout_s`; closing the store interrupts the forwarder's network I/O and returns in
+  bounded time, what is unsent staying in the outbox for the next start.
 
 When rows cannot be written (a full disk, a damaged file) the store says "history cannot be
 written: ..." through the cell's hooks: a fault (the job stops safely; `run-cell` exits 3,
@@ -30,12 +37,13 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import random
 import re
 import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -56,6 +64,7 @@ from cell.history.db import (
     HistoryError,
     HistoryUnreachable,
     describe,
+    is_row_refused,
     open_postgresql,
     open_sqlite,
     parse_time,
@@ -73,6 +82,9 @@ _KIND_RE = re.compile(r'"kind":"([a-z_]+)"')
 _OUTBOX_DDL = [
     "CREATE TABLE IF NOT EXISTS outbox (seq INTEGER PRIMARY KEY AUTOINCREMENT, op TEXT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS marks (cell TEXT PRIMARY KEY, last_event_utc TEXT NOT NULL)",
+    # rows the server refused for what they hold: kept here, never sent again, never lost
+    """CREATE TABLE IF NOT EXISTS dead_letter (seq INTEGER PRIMARY KEY AUTOINCREMENT, outbox_seq INTEGER NOT NULL,
+        refused_utc TEXT NOT NULL, op TEXT NOT NULL, error TEXT NOT NULL)""",
 ]
 EVENT_TYPES = tuple(BY_KIND[k] for k in sorted(KINDS) if k in BY_KIND)
 
@@ -100,6 +112,18 @@ class HistoryStats:
     images_dropped: int
     images_skipped_low_disk: int
     write_error: str
+    dead_letter: int = 0  # rows the PostgreSQL server refused, kept aside in the outbox file
+
+
+@dataclass(frozen=True)
+class ForwarderStats:
+    """What the PostgreSQL forwarder did since the store opened (for tests and diagnosis)."""
+
+    attempts: int  # batches sent to the server (each one transaction)
+    connections: int  # connections opened or tried
+    failures: int  # attempts that failed
+    waits_s: tuple[float, ...]  # the waits chosen after the latest failures, oldest first (at most 64)
+    dead_letter: int  # rows moved to the dead-letter table
 
 
 def cell_name(config: HistoryConfig) -> str:
@@ -115,6 +139,35 @@ def _encode(op: Op) -> str:
 def _decode(text: str) -> Op:
     key, params = json.loads(text)
     return Op(key, tuple(parse_time(p["t"]) if isinstance(p, dict) else p for p in params))
+
+
+def backoff_s(failures: int, initial_s: float, max_s: float) -> float:
+    """The wait after `failures` failures in a row: initial_s doubled for each after the first, at
+    most max_s, drawn between half and all of it (cells that lost the server together do not all
+    come back at once)."""
+    full = min(max_s, initial_s * 2 ** min(failures - 1, 60))
+    return full * random.uniform(0.5, 1.0)
+
+
+def read_dead_letter(outbox: Path) -> list[dict[str, Any]]:
+    """The rows the PostgreSQL server refused, oldest first (`run-cell history --dead-letter`)."""
+    if not outbox.exists():
+        return []
+    db = open_sqlite(outbox, readonly=True)
+    try:
+        if not db.execute("SELECT name FROM sqlite_master WHERE name = 'dead_letter'"):
+            return []
+        rows = db.execute("SELECT seq, refused_utc, op, error FROM dead_letter ORDER BY seq")
+    finally:
+        db.close()
+    out = []
+    for seq, refused, text, error in rows:
+        try:
+            key, params = json.loads(text)
+        except (ValueError, TypeError):
+            key, params = "", text
+        out.append({"seq": seq, "refused_utc": refused, "statement": key, "params": params, "error": error})
+    return out
 
 
 def image_kind(event: Event) -> str:
@@ -165,14 +218,35 @@ class HistoryStore:
         self.reconciled = self._reconcile()
         self._writer = threading.Thread(target=self._write_loop, name="history-writer", daemon=True)
         self._writer.start()
-        self.remote: Database | None = None
+        self.remote: Database | None = None  # the forwarder's connection (only it does I/O on it)
         self._forwarder: threading.Thread | None = None
+        self._watchdog: threading.Thread | None = None
         self._wake_forwarder = threading.Event()
+        self._first_try = threading.Event()  # the forwarder's first connection made (or failed)
+        self._stop_forwarder = threading.Event()  # closing: no further tries, no waits
+        # guards `remote`'s replacement, the I/O in progress and the stall flag; never held across I/O
+        self._io = threading.Condition()
+        self._io_since: float | None = None
+        self._stalled = False
+        self._watching = True
         self.unreachable = ""
-        if self.remote_url:
-            self._connect_remote()
+        self.forward_attempts = self.forward_connections = self.forward_failures = self.dead_lettered = 0
+        self._waits: deque[float] = deque(maxlen=64)
+        if self.remote_url:  # connecting is the forwarder's: opening never waits on the network
+            kept = self._dead_letter_count()
+            if kept:
+                log.warning(
+                    "history: %d rows the server refused are kept in %s (run-cell history --dead-letter)",
+                    kept,
+                    self.folder / OUTBOX_FILE,
+                )
             self._forwarder = threading.Thread(target=self._forward_loop, name="history-forwarder", daemon=True)
+            self._watchdog = threading.Thread(target=self._watch_loop, name="history-watchdog", daemon=True)
             self._forwarder.start()
+            self._watchdog.start()
+            # the first connection's schema is there when open returns (readers may need it); a server
+            # that cannot be reached delays the start by connect_timeout_s at most, as before
+            self._first_try.wait(self.config.connect_timeout_s + 1.0)
 
     # ---- opening -------------------------------------------------------------------------
     def _open_local(self) -> Database:
@@ -191,27 +265,70 @@ class HistoryStore:
             raise HistoryError(f"history cannot be written: {db.where}: {describe(e)}") from None
         return db
 
-    def _connect_remote(self) -> bool:
+    def _connect_remote(self) -> Database:
+        """A new connection (bounded by connect_timeout_s), the schema migrated on it; raises."""
+        self.forward_connections += 1
+        db = open_postgresql(self.remote_url, self.config, f"pick-cell history {self.cell}"[:63])
+        with self._io:
+            if self._stop_forwarder.is_set():
+                db.close()
+                raise HistoryUnreachable("history: closing")
+            self.remote = db  # from here on close() and the watchdog can interrupt it
         try:
-            db = open_postgresql(self.remote_url, self.config.connect_timeout_s)
-            migrate(db)
-        except HistoryUnreachable as e:
-            self._unreachable(str(e))
-            return False
-        except Exception as e:
-            self._unreachable(f"history server {self.remote_url.split('@')[-1]}: {describe(e)}")
-            return False
-        self.remote = db
-        return True
+            with self._network_io():
+                migrate(db)
+        except BaseException:
+            self._drop_remote()  # the next try migrates on a new connection
+            raise
+        self._first_try.set()
+        return db
 
-    def _unreachable(self, why: str) -> None:
-        if why != self.unreachable:
-            log.warning("%s; rows wait in %s", why, self.folder / OUTBOX_FILE)
+    def _drop_remote(self) -> None:
+        with self._io:
+            db, self.remote = self.remote, None
+        if db is not None:
+            db.close()
+
+    @contextlib.contextmanager
+    def _network_io(self) -> Iterator[None]:
+        """Marks the forwarder's wait for the server, for the watchdog (answer_timeout_s)."""
+        with self._io:
+            self._io_since = time.monotonic()
+            self._io.notify_all()
+        try:
+            yield
+        finally:
+            with self._io:
+                self._io_since = None
+
+    def _watch_loop(self) -> None:
+        """A connection that gives no answer within answer_timeout_s (half-open, a silent proxy:
+        TCP keeps it up) is interrupted; the forwarder then says so and tries again later."""
+        with self._io:
+            while self._watching:
+                if self._io_since is None:
+                    self._io.wait()
+                    continue
+                left = self._io_since + self.config.answer_timeout_s - time.monotonic()
+                if left > 0:
+                    self._io.wait(left)
+                    continue
+                self._io_since = None
+                self._stalled = True
+                if self.remote is not None:
+                    self.remote.interrupt()  # a socket shutdown: does not block
+
+    def _unreachable(self, why: str, hint: str = "") -> None:
+        """The server failed; the rows wait. Logged and raised once for each distinct reason (each
+        alarm is itself a row: one raised at every retry would grow the queue it reports)."""
+        if why == self.unreachable:
+            return
+        log.warning("%s; rows wait in %s", why, self.folder / OUTBOX_FILE)
         self.unreachable = why
         self.hooks.raise_warning(
             "history-server",
             f"{why}: rows wait in the local queue ({self._outbox_count()})",
-            "check the network and the history server; the cell keeps picking",
+            hint or "check the network and the history server; the cell keeps picking",
             "history",
         )
 
@@ -336,47 +453,151 @@ class HistoryStore:
         except Exception:
             return -1
 
+    def _dead_letter_count(self) -> int:
+        try:
+            return int(self.local.execute("SELECT count(*) FROM dead_letter")[0][0])
+        except Exception:
+            return -1
+
     def _forward_loop(self) -> None:
-        while True:
-            if self.remote is None and not self._connect_remote():
-                if self._wait_forwarder(self.config.retry_s):
-                    return
-                continue
-            try:
-                sent = self._forward_once()
-            except Exception as e:
-                with contextlib.suppress(Exception):
-                    self.remote.close()  # type: ignore[union-attr]
-                self.remote = None
-                self._unreachable(f"history server {self.remote_url.split('@')[-1]}: {describe(e)}")
-                continue
-            if sent:
-                continue
-            if self.unreachable:
-                self.unreachable = ""
-                log.info("history server reachable again: the local queue is sent")
-                self.hooks.clear_warning("history-server")
-            if self._wait_forwarder(None):
-                return
+        failures = 0
+        try:
+            while True:
+                try:
+                    remote = self.remote or self._connect_remote()
+                    sent = self._forward_once(remote)
+                except Exception as e:
+                    if self._stop_forwarder.is_set():
+                        return  # closing: what is unsent stays in the outbox
+                    failures += 1
+                    self._server_failed(e)
+                    self._first_try.set()
+                    wait_s = backoff_s(failures, self.config.retry_initial_s, self.config.retry_max_s)
+                    self._waits.append(wait_s)
+                    if self._stop_forwarder.wait(wait_s):
+                        return
+                    continue
+                if failures or self.unreachable:
+                    failures = 0
+                    self._server_back()
+                if sent:
+                    continue
+                if self._stop_forwarder.is_set():
+                    return  # everything sent
+                self._wake_forwarder.wait()
+                self._wake_forwarder.clear()
+        except Exception as e:  # the outbox itself (closed under it): nothing more to do
+            if not self._stop_forwarder.is_set():
+                log.error("history: the forwarder stopped: %s", describe(e))
+        finally:
+            self._drop_remote()
 
-    def _wait_forwarder(self, timeout_s: float | None) -> bool:
-        """Wait for rows (or the timeout); True when the store is closing and nothing is left to send."""
-        self._wake_forwarder.wait(timeout_s if timeout_s is not None else 1.0)
-        self._wake_forwarder.clear()
-        return self._closing and (self.remote is None or self._outbox_count() == 0)
+    def _server_failed(self, e: Exception) -> None:
+        """Count, drop a connection that is gone (keep a sound one: a refused INSERT or a full disk
+        leave it usable), and say why the rows wait."""
+        self.forward_failures += 1
+        with self._io:
+            stalled, self._stalled = self._stalled, False
+        server = self.remote_url.split("@")[-1]
+        if stalled or self.remote is None or self.remote.broken():
+            self._drop_remote()
+        if stalled:
+            why = f"history server {server} gave no answer within {self.config.answer_timeout_s:g} s (answer_timeout_s)"
+            hint = "check the network path to the history server; the connection is dropped and tried again"
+        elif isinstance(e, HistoryUnreachable):
+            why, hint = str(e), ""
+        else:
+            why = f"history server {server}: {describe(e)}"
+            hint = (
+                "grant the cell's database role INSERT, UPDATE and SELECT on the history tables; the cell keeps picking"
+                if "permission denied" in why
+                else ""
+            )
+        self._unreachable(why, hint)
 
-    def _forward_once(self) -> int:
+    def _server_back(self) -> None:
+        if self.unreachable:
+            self.unreachable = ""
+            log.info("history server reachable again: the local queue is sent")
+            self.hooks.clear_warning("history-server")
+
+    def _forward_once(self, remote: Database) -> int:
+        """Send one batch of the outbox in one transaction; rows the server refuses for what they
+        hold go to the dead-letter table (then the batch is sent row by row, each in a savepoint).
+        Returns how many outbox rows were taken. Any other error leaves the outbox as it was."""
         rows = self.local.execute("SELECT seq, op FROM outbox ORDER BY seq LIMIT ?", (self.config.batch_max_rows,))
         if not rows:
             return 0
-        remote = self.remote
-        assert remote is not None
-        with remote.transaction():
-            _apply(remote, [_decode(text) for _, text in rows])
+        refused: list[tuple[int, str, str]] = []
+        ops: list[tuple[int, str, Op]] = []
+        for seq, text in rows:
+            try:
+                op = _decode(text)
+                if op.key not in STATEMENTS:
+                    raise KeyError(f"unknown statement {op.key!r}")
+            except (ValueError, KeyError, TypeError) as e:
+                refused.append((seq, text, f"not a row this cell can send: {e}"))
+                continue
+            ops.append((seq, text, op))
+        self.forward_attempts += 1
+        with self._network_io():
+            try:
+                with remote.transaction():
+                    _apply(remote, [op for _, _, op in ops])
+            except Exception as e:
+                if not is_row_refused(e) or remote.broken():
+                    raise
+                refused.extend(self._send_row_by_row(remote, ops))
         last = rows[-1][0]
         with self.local.transaction():
+            if refused:
+                now = datetime.now(UTC).isoformat()
+                self.local.executemany(
+                    "INSERT INTO dead_letter (outbox_seq, refused_utc, op, error) VALUES (?, ?, ?, ?)",
+                    [(seq, now, text, error) for seq, text, error in refused],
+                )
             self.local.execute("DELETE FROM outbox WHERE seq <= ?", (last,))
+        if refused:
+            self._dead_lettered(refused)
         return len(rows)
+
+    def _send_row_by_row(self, remote: Database, ops: list[tuple[int, str, Op]]) -> list[tuple[int, str, str]]:
+        """The batch again, in order, each row in a savepoint: the refused ones roll back alone."""
+        refused: list[tuple[int, str, str]] = []
+        with remote.transaction():
+            for seq, text, op in ops:
+                try:
+                    with remote.transaction():
+                        _apply(remote, [op])
+                except Exception as e:
+                    if not is_row_refused(e) or remote.broken():
+                        raise
+                    refused.append((seq, text, describe(e)))
+        return refused
+
+    def _dead_lettered(self, refused: list[tuple[int, str, str]]) -> None:
+        self.dead_lettered += len(refused)
+        where = self.folder / OUTBOX_FILE
+        for seq, text, error in refused:
+            log.error(
+                "history: the server refused row %d (%s): %s; kept in %s (dead_letter)", seq, text[:200], error, where
+            )
+        # the reason names the error, not a count: a refused alarm row must not raise a new alarm each time
+        self.hooks.raise_warning(
+            "history-dead-letter",
+            f"the history server refused a row: {refused[-1][2]}; it is kept aside in {where}, not sent again",
+            "list the refused rows with `run-cell history --dead-letter`; fix the database's rules or the data",
+            "history",
+        )
+
+    def forwarder_stats(self) -> ForwarderStats:
+        return ForwarderStats(
+            self.forward_attempts,
+            self.forward_connections,
+            self.forward_failures,
+            tuple(self._waits),
+            self.dead_lettered,
+        )
 
     # ---- after a crash: the audit read back ---------------------------------------------------------
     def mark(self) -> datetime | None:
@@ -421,6 +642,7 @@ class HistoryStore:
             images.dropped if images else 0,
             images.skipped_low_disk if images else 0,
             self.write_error,
+            self._dead_letter_count() if self.remote_url else 0,
         )
 
     def wait_idle(self, timeout_s: float) -> bool:
@@ -450,7 +672,10 @@ class HistoryStore:
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Write what is pending within the time given (images first: their rows follow), then close.
-        On PostgreSQL, what the server has not taken stays in the outbox for the next start."""
+        On PostgreSQL, what the server has not taken stays in the outbox for the next start: the
+        forwarder sends what it can within timeout_s, then its network I/O is interrupted: the
+        forwarder's part ends within timeout_s + 1 s whatever the network does (close never waits
+        on a lock held across network I/O); the local parts (images, writer) each within timeout_s."""
         if self.images is not None:
             self.images.close(timeout_s / 2)
         self.wait_idle(timeout_s)
@@ -461,12 +686,36 @@ class HistoryStore:
         self._writer.join(timeout_s)
         if left:
             log.error("history: %d rows not written at close (%s)", left, self.write_error or "timed out")
+        forwarder_done = True
         if self._forwarder is not None:
-            self._wake_forwarder.set()
-            self._forwarder.join(timeout_s)
-        if self.remote is not None:
-            self.remote.close()
-        self.local.close()
+            forwarder_done = self._close_forwarder(time.monotonic() + timeout_s)
+        if forwarder_done:
+            self.local.close()
+        # else: the forwarder is still connecting (connect_timeout_s); it finds the store closing and
+        # ends; the outbox's file is closed with the process (everything in it is committed)
+
+    def _close_forwarder(self, deadline: float) -> bool:
+        """True once the forwarder has ended (it closes its own connection)."""
+        assert self._forwarder is not None
+        self._stop_forwarder.set()  # no further tries; a sound connection still sends what is left
+        self._wake_forwarder.set()
+        self._forwarder.join(max(0.0, deadline - time.monotonic()))
+        if self._forwarder.is_alive():
+            with self._io:
+                if self.remote is not None:
+                    self.remote.interrupt()
+            self._forwarder.join(1.0)
+        with self._io:
+            self._watching = False
+            self._io.notify_all()
+        unsent = self._outbox_count()
+        if unsent > 0:
+            why = self.unreachable or "the server did not take them in time"
+            log.warning("history: %d rows wait in %s for the next start (%s)", unsent, self.folder / OUTBOX_FILE, why)
+        if self._forwarder.is_alive():
+            log.warning("history: the forwarder is still connecting to %s; left behind", self.remote_url.split("@")[-1])
+            return False
+        return True
 
 
 def _apply(db: Database, ops: Iterable[Op]) -> None:
