@@ -94,12 +94,18 @@ class Access:
         return self._authenticate is not None and self._authenticate(user, password) is not None
 
     def login(self, user: str, password: str, address: str) -> LoginResult:
-        """Throttle first (a refused try costs no hash), then the password. Blocking: call it off the event loop."""
+        """Throttle first (a refused try costs no hash; a try let through counts at once, so tries in parallel
+        cannot pass it: issue 28), then the password. Blocking: call it off the event loop."""
         if self._authenticate is None:
             return LoginResult()
-        if self.throttle is not None and (wait := self.throttle.refuse_for(user, address)) > 0:
+        if self.throttle is not None and (wait := self.throttle.begin(user, address)) > 0:
             return LoginResult(None, wait)
-        role = self._authenticate(user, password)
+        try:
+            role = self._authenticate(user, password)
+        except BaseException:
+            if self.throttle is not None:
+                self.throttle.abandon(user, address)
+            raise
         if self.throttle is not None:
             if role is None:
                 self.throttle.failed(user, address, "screen")
