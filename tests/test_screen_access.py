@@ -49,7 +49,7 @@ def test_a_login_gives_a_session_with_the_users_role(users):
         "10.0.0.9",
     )
     assert access.csrf_ok(sid, csrf) and access.may_control(sid)
-    assert access.origin(None, "10.0.0.9").role is Role.VIEWER  # no session: watch (and Halt) at most
+    assert access.origin(None, "10.0.0.9") is None  # no session: nobody, who may do nothing (issue 28)
 
 
 def test_guessing_on_the_screen_backs_off_then_locks_out(users):

@@ -8,6 +8,7 @@ each with a role): the screen speaks only HTTPS, and a login gives an HttpOnly,
 SameSite=Strict, Secure session cookie and a CSRF token bound to that session. Logins are
 throttled per user and per client address (cell.service.throttle); the session remembers
 who logged in and their role, so each command carries an Origin (`origin()`).
+Every control needs a session where logins are required: there is no anonymous origin.
 """
 
 from __future__ import annotations
@@ -123,14 +124,15 @@ class Access:
         self._sessions[sid] = _Session(csrf, now + self._session_s, user, role)
         return sid, csrf
 
-    def origin(self, sid: str | None, address: str = "") -> Origin:
+    def origin(self, sid: str | None, address: str = "") -> Origin | None:
         """Who sends a command from this screen: the session's user and role; without users (loopback only) the
-        PC's own user, as before, may do everything; a viewer without a session only watches (and may Halt)."""
+        PC's own user, as before, may do everything. None: nobody (no session where logins are required), who
+        may do nothing: there is no anonymous origin, Halt included (a viewer's session may Halt)."""
         if not self.login_required:
             return Origin(Interface.SCREEN, "", Role.ADMIN, address)
         s = self.session(sid)
         if s is None:
-            return Origin(Interface.SCREEN, "", Role.VIEWER, address)
+            return None
         return Origin(Interface.SCREEN, s.user, s.role, address)
 
     def end_session(self, sid: str | None) -> None:
