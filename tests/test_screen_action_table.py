@@ -115,6 +115,7 @@ def served(tmp_path: Path, web: WebConfig | None = None) -> Iterator[tuple[Any, 
             web,
             authenticate=users.authenticate,
             throttle=LoginThrottle(LoginConfig()),
+            credential=users.credential,
         )
         app = build_app(service, cfg, web, access)
         yield service, app, cfg, users

@@ -234,7 +234,7 @@ class ScreenApp:
         if result.role is None:
             log.warning("screen: failed login from %s", address)
             return _error(401, "wrong user or password")
-        sid, csrf = self.access.new_session(user, result.role)
+        sid, csrf = self.access.new_session(user, result.role, result.credential)  # ends if the user changes
         log.info("screen: login of %s (%s) from %s", user, result.role.value, address)
         reply = JSONResponse({"csrf": csrf})
         reply.set_cookie(
@@ -293,16 +293,18 @@ class ScreenApp:
         if screen is None:
             return _error(503, f"{self.web.max_screens} screens are already open (service.web.max_screens)")
         return StreamingResponse(
-            self._stream(screen), media_type="text/event-stream", headers={"x-accel-buffering": "no"}
+            self._stream(screen, self._sid(request)),
+            media_type="text/event-stream",
+            headers={"x-accel-buffering": "no"},
         )
 
-    async def _stream(self, screen: Screen) -> AsyncIterator[str]:
+    async def _stream(self, screen: Screen, sid: str | None) -> AsyncIterator[str]:
         try:
             sent_seq = -1
             while not screen.closed:
                 await wait_event(screen.wake, KEEPALIVE_S)
                 screen.wake.clear()
-                if screen.closed:
+                if screen.closed or not self.access.may_view(sid):  # logged out, or the user removed or changed
                     break
                 snapshot, screen.snapshot = screen.snapshot, None
                 screen.sending = True  # each yield returns once its event is handed to the socket
