@@ -55,7 +55,7 @@ class Interface(Enum):
 class Role(Enum):
     """What a user may do; each role may do everything the ones before it may."""
 
-    VIEWER = "viewer"  # watch; and Halt, which anyone who sees the cell may press
+    VIEWER = "viewer"  # watch; and Halt, which every logged-in user may press
     OPERATOR = "operator"  # start, stop, pause, resume, reset, halt
     ENGINEER = "engineer"  # recalibrate, recipes, teach
     ADMIN = "admin"  # users

@@ -90,6 +90,7 @@ class FakeLineService:
         self.calibration = CalibrationInfo("polynomial", 0.0101, 0.0212, _now(), "rendered plate at start")
         self.installed: list = []
         self.commands: list[Command] = []
+        self.steps: list[tuple[str, str, bool]] = []  # authorize(): (action or command, user, accepted)
         self.heartbeat = 0
         self._seq = 0
         self._stop = threading.Event()
@@ -157,8 +158,27 @@ class FakeLineService:
         self._emit("hold")
         return release
 
+    def authorize(self, command: Command, origin: Origin, action: str = "", *, state=True, arguments=None) -> None:
+        """The service's check before a screen's own step: the role, then (with `state`) the states and guards;
+        refusals and, with `action`, acceptances are kept in `steps` as (name, user, accepted)."""
+        name = action or command.value
+        with self._lock:
+            try:
+                if not origin.role.may(needed_role(command)):
+                    raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
+                why = (
+                    state_refusal(command, Rest(self.state, self.paused, self.paused), self._hold()) if state else None
+                )
+                if why is not None:
+                    raise InvalidState(command, why, self.state)
+            except (AccessDenied, InvalidState):
+                self.steps.append((name, origin.user, False))
+                raise
+            if action:
+                self.steps.append((name, origin.user, True))
+
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
-        self._check_recalibration("capture a plate image")
+        self._check_recalibration(Command.CAPTURE_PLATE, origin)
         return plate_image(self.plate_size)
 
     def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
@@ -172,7 +192,7 @@ class FakeLineService:
         return LiveFrame(image, time.monotonic(), _now())
 
     def install_calibration(self, calibration, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
-        self._check_recalibration("install a calibration")
+        self._check_recalibration(Command.INSTALL_CALIBRATION, origin)
         with self._lock:
             self.installed.append(calibration)
             self.calibration = info
@@ -205,11 +225,13 @@ class FakeLineService:
             raise BadArgument(Command.PREPARE_RECIPE, str(e), self.state) from None
         return request.recipe_id
 
-    def _check_recalibration(self, what: str) -> None:
+    def _check_recalibration(self, command: Command, origin: Origin) -> None:
         with self._lock:
-            why = state_refusal(Command.CAPTURE_PLATE, Rest(self.state, self.paused, self.paused))
+            if not origin.role.may(needed_role(command)):
+                raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
+            why = state_refusal(command, Rest(self.state, self.paused, self.paused))
             if why is not None:
-                raise InvalidState(Command.CAPTURE_PLATE, why, self.state)
+                raise InvalidState(command, why, self.state)
 
     def _hold(self) -> str:
         return next(iter(self.holds.values()), "")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import logging
 import resource
+import threading
+import time
 
 import pytest
 
@@ -47,7 +49,7 @@ def test_a_login_gives_a_session_with_the_users_role(users):
         "10.0.0.9",
     )
     assert access.csrf_ok(sid, csrf) and access.may_control(sid)
-    assert access.origin(None, "10.0.0.9").role is Role.VIEWER  # no session: watch (and Halt) at most
+    assert access.origin(None, "10.0.0.9") is None  # no session: nobody, who may do nothing (issue 28)
 
 
 def test_guessing_on_the_screen_backs_off_then_locks_out(users):
@@ -113,3 +115,41 @@ def test_a_low_open_file_limit_is_raised_or_reported(monkeypatch, caplog):
     warning = check_open_files(service)
     assert warning and f"below the {needed} descriptors" in warning and "LimitNOFILE" in warning
     assert "LimitNOFILE" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("cfg", "checked"),
+    [
+        (LoginConfig(), 1),  # with back-off: one check at a time per address, as one after another
+        (LoginConfig(max_failures_per_address=3, backoff_first_s=0, backoff_max_s=0), 3),  # at most the limit
+    ],
+)
+def test_guesses_sent_together_from_one_address_get_no_further_than_one_after_another(users, cfg, checked):
+    """issue 28: the throttle was asked, then the password hashed, then the failure counted; eight guesses sent
+    at once were all asked before any failure was counted, so all eight were checked."""
+    hashed: list[str] = []
+    release = threading.Event()
+
+    def slow_check(user: str, password: str) -> Role | None:
+        hashed.append(user)
+        release.wait(30)  # every guess is in flight together
+        return users.authenticate(user, password)
+
+    access = Access("10.0.0.5", WebConfig(), authenticate=slow_check, throttle=LoginThrottle(cfg))
+    results: dict[int, object] = {}
+    threads = [
+        threading.Thread(target=lambda i=i: results.update({i: access.login(f"name{i}", "guess", "10.0.0.66")}))
+        for i in range(8)
+    ]
+    for thread in threads:
+        thread.start()
+    deadline = time.monotonic() + 30
+    while len(hashed) + len(results) < 8:  # each guess either checked (waiting) or already refused
+        assert time.monotonic() < deadline, (hashed, results)
+        time.sleep(0.01)
+    release.set()
+    for thread in threads:
+        thread.join(30)
+    assert len(hashed) == checked, hashed
+    refused = [r for r in results.values() if r.retry_after_s > 0]  # type: ignore[attr-defined]
+    assert len(refused) == 8 - checked

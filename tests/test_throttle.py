@@ -95,3 +95,31 @@ def test_a_failing_alarm_callback_does_not_break_the_login_path():
 
     t = LoginThrottle(LoginConfig(max_failures_per_user=1), broken, clock=Clock())
     assert t.failed("anna", "10.0.0.9") > 0
+
+
+def test_a_try_let_through_counts_at_once_so_tries_in_parallel_get_no_further():
+    """issue 28: the check and the count were apart, so tries sent together were all let through to the hash."""
+    t, clock, fired = make(backoff_first_s=1, backoff_max_s=8)
+    assert t.begin("anna", "10.0.0.9") == 0  # let through: in flight until settled
+    assert t.begin("anna", "10.0.0.7") > 0  # the same name elsewhere waits as after a failure
+    assert t.begin("ben", "10.0.0.9") > 0  # and any name from that address
+    assert t.begin("ben", "10.0.0.7") == 0
+    t.failed("anna", "10.0.0.9")
+    t.succeeded("ben", "10.0.0.7")
+    assert t.begin("anna", "10.0.0.9") == 1  # the back-off of one failure: the in-flight try was settled
+    clock.now += 1
+    assert t.begin("carl", "10.0.0.7") == 0  # ben's good login settled his address too
+    t.abandon("carl", "10.0.0.7")  # a check that could not be made (the users file unreadable) counts nothing
+    assert t.begin("dora", "10.0.0.7") == 0  # and never settled:
+    assert t.begin("erin", "10.0.0.7") > 0
+    clock.now += 61  # a try never settled stops counting
+    assert t.begin("erin", "10.0.0.7") == 0
+
+
+def test_without_back_off_the_checks_in_flight_count_towards_the_lockout():
+    t, clock, fired = make(backoff_first_s=0, backoff_max_s=0)  # 6 failures lock an address
+    assert [t.begin(f"guess{i}", "10.0.0.66") for i in range(8)] == [0.0] * 6 + [0.5] * 2
+    for i in range(6):
+        t.failed(f"guess{i}", "10.0.0.66")
+    assert [(f.kind, f.key) for f in fired] == [("address", "10.0.0.66")]
+    assert t.begin("anyone", "10.0.0.66") == 60

@@ -158,3 +158,79 @@ def test_file_is_json_with_the_roles(tmp_path):
     assert [u["role"] for u in data["users"]] == ["viewer", "operator", "engineer", "admin"]
     auth = Authenticator(ServiceConfig(users_file=path))
     assert [auth.authenticate(n, "pass-word-1") for n in "abcd"] == list(Role)
+
+
+def test_removing_a_user_or_changing_their_role_or_password_ends_their_screen_sessions_at_once(config, tmp_path):
+    """issue 28: a login made before the change kept its access until a restart."""
+    import threading
+
+    from starlette.testclient import TestClient
+
+    from cell.config import CellConfig
+    from cell.service.config import LoginConfig
+    from cell.service.throttle import LoginThrottle
+    from cell.web.app import build_app
+    from cell.web.auth import Access
+    from cell.web.config import WebConfig
+    from tests.fake_service import FakeLineService
+
+    path = tmp_path / "users.json"
+    people = {"otto": ("otto-pass-1", Role.OPERATOR), "vera": ("vera-pass-1", Role.OPERATOR)}
+    people["erik"] = ("erik-pass-1", Role.ENGINEER)
+    write_users(path, [UserEntry(n, r, hash_password(p, FAST)) for n, (p, r) in people.items()])
+    users = Authenticator(ServiceConfig(users_file=path))
+    changed: list[frozenset[str]] = []
+    users.add_listener(changed.append)  # what an OPC UA server would follow
+    web = WebConfig()
+    access = Access(
+        "127.0.0.1",
+        web,
+        authenticate=users.authenticate,
+        throttle=LoginThrottle(LoginConfig(backoff_first_s=0)),
+        credential=users.credential,
+    )
+    service = FakeLineService()
+    try:
+        app = build_app(service, CellConfig(), web, access)
+        clients = {name: TestClient(app, base_url="http://127.0.0.1:8080") for name in people}
+        for name, client in clients.items():
+            reply = client.post("/api/login", json={"user": name, "password": people[name][0]})
+            client.headers["x-csrf-token"] = reply.json()["csrf"]
+            assert client.get("/api/state").status_code == 200
+        with clients["erik"]:  # the screen's lifespan: its event streams
+            ended = threading.Event()
+
+            def watch() -> None:
+                with clients["erik"].stream("GET", "/api/events") as stream:
+                    for _ in stream.iter_lines():
+                        pass
+                ended.set()
+
+            watcher = threading.Thread(target=watch, daemon=True)
+            watcher.start()
+
+            assert run_user("user", "remove", "otto", "--config", str(config)) == 0
+            assert clients["otto"].get("/api/state").status_code == 401
+            assert clients["otto"].post("/api/command/Halt").status_code == 401
+            assert clients["vera"].get("/api/state").status_code == 200 and not ended.is_set()
+
+            entries = read_users(path)  # vera's role only: the same password hash
+            write_users(
+                path,
+                [
+                    *(e for n, e in entries.items() if n != "vera"),
+                    UserEntry("vera", Role.VIEWER, entries["vera"].password_hash),
+                ],
+            )
+            assert clients["vera"].post("/api/command/StartSingleJob").status_code == 401
+            assert clients["erik"].get("/api/state").status_code == 200
+
+            assert run_user("user", "passwd", "erik", "--config", str(config), stdin="erik-new-pw-2\n") == 0
+            assert clients["erik"].get("/api/state").status_code == 401
+            assert ended.wait(30), "erik's open event stream went on after his password changed"
+            again = clients["erik"].post("/api/login", json={"user": "erik", "password": "erik-new-pw-2"})
+            assert again.status_code == 200
+        assert changed == [frozenset({"otto"}), frozenset({"vera"}), frozenset({"erik"})]
+        assert service.commands == []
+    finally:
+        service.close()

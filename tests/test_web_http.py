@@ -245,7 +245,8 @@ def test_login_from_another_origin_is_refused(service, config):
 def test_recalibration_refused_while_running(client, service, config):
     client.post("/api/command/StartContinuous")
     r = client.post("/api/recalibration/capture")
-    assert r.status_code == 409 and "paused" in r.json()["error"]
+    assert r.status_code == 409 and "the cell is moving (pause or stop it first)" in r.json()["error"]  # the table's
+    assert r.json()["say"] == "The cell is running."
     assert not config.calibration.active_path.exists()
 
 

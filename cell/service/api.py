@@ -363,6 +363,20 @@ class LineServiceAPI(Protocol):
         function is called; every interface then gets InvalidState with `reason`."""
         ...
 
+    def authorize(
+        self,
+        command: Command,
+        origin: Origin,
+        action: str = "",
+        *,
+        state: bool = True,
+        arguments: dict[str, Any] | None = None,
+    ) -> None:
+        """Check `command`'s role (and with `state` its states and guards) in the command table for `origin`,
+        before an interface's own step does anything (an uploaded plate's fit, a report's answer): refused,
+        CommandRefused is raised and recorded; allowed, nothing happens but, with `action`, a record of it."""
+        ...
+
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         """A frame from the cell's camera for recalibration; only at rest (Ready, Halted, or a job
         paused at a safe point), and Resume and Start wait until it is taken."""

@@ -412,6 +412,57 @@ class LineService:
         self._changed("hold")
         return release
 
+    def authorize(
+        self,
+        command: Command,
+        origin: Origin,
+        action: str = "",
+        *,
+        state: bool = True,
+        arguments: dict[str, Any] | None = None,
+    ) -> None:
+        """The command table's rules for `command` (its role; with `state` its states and guards too) checked
+        for `origin` before an interface's own step has any effect: an uploaded plate's fit, a recalibration
+        report's answer, the camera check (issue 28). Refused: recorded and raised (CommandRefused), nothing
+        done. Allowed: nothing is done here; with `action` (the step's name in the record) it is recorded as
+        accepted, without it the command records itself when carried out (install_calibration)."""
+        name = action or command.value
+        with self._lock:
+            try:
+                if state or not self._accepting:
+                    self._check(command, origin)
+                elif not origin.role.may(role := needed_role(command)):
+                    raise AccessDenied(
+                        command,
+                        f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role.value}",
+                        self._vstate,
+                    )
+            except CommandRefused as e:
+                message = str(e) if not action else f"{action} refused: {e}"
+                refused = type(e)(command, message, e.state)
+                self._emit_best_effort(self._step_record(name, origin, arguments, refused))
+                log.info("%s from %s refused: %s", name, origin.describe(), e)
+                raise refused from None
+            if action:
+                try:
+                    self.bus.emit(self._step_record(name, origin, arguments, None))
+                except AuditWriteFailed as e:
+                    raise NotRecorded(command, f"{action} not carried out: {e}", self._vstate) from None
+                log.info("%s from %s", name, origin.describe())
+
+    def _step_record(
+        self, name: str, origin: Origin, arguments: dict[str, Any] | None, refused: CommandRefused | None
+    ) -> CommandHandled:
+        return CommandHandled(
+            command=name,
+            origin=origin,
+            accepted=refused is None,
+            vision_state=self._vstate.value,
+            refusal="" if refused is None else refused.reason.value,
+            message="" if refused is None else str(refused),
+            arguments=arguments or {},
+        )
+
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         with self._lock:
             try:

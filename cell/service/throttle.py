@@ -8,10 +8,15 @@ Failures older than `forget_after_s` with none since are forgotten; a successful
 clears its user name's failures (not its address's: one valid account must not reset the
 count of an address guessing others).
 
-Nothing here sleeps: `refuse_for(user, address)` says how many seconds the caller must
-still refuse (0: it may check the password), so an event loop is never held and a refused
-try costs no password hash. Thread-safe; memory is bounded (`max_entries` keys, the oldest
-unlocked forgotten first).
+Nothing here sleeps: `begin(user, address)` says how many seconds the caller must still
+refuse (0: it may check the password), so an event loop is never held and a refused try
+costs no password hash. A try `begin` lets through counts, under the same lock, as in
+flight until `failed` or `succeeded` settles it: tries sent in parallel cannot get past the
+throttle (issue 28: eight at once were all checked). While a user name or an address has a
+check in flight, its next try waits as after a failure (with back-off configured), and the
+checks in flight count towards the lockout limits. A try never settled (its caller gave
+up) stops counting after IN_FLIGHT_MAX_S. `refuse_for` only asks, counting nothing.
+Thread-safe; memory is bounded (`max_entries` keys, the oldest unlocked forgotten first).
 """
 
 from __future__ import annotations
@@ -21,13 +26,15 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from cell.service.config import LoginConfig
 
 log = logging.getLogger(__name__)
+
+IN_FLIGHT_MAX_S = 60.0  # a try let through by begin() and never settled stops counting after this
 
 
 @dataclass(frozen=True)
@@ -53,6 +60,7 @@ class _Record:
     last_failure_s: float = 0.0
     blocked_until_s: float = 0.0
     locked: bool = False
+    in_flight: list[float] = field(default_factory=list)  # when each unsettled try began (monotonic s)
 
 
 class LoginThrottle:
@@ -78,6 +86,32 @@ class LoginThrottle:
             waits = [self._wait(key, now) for key in self._keys(user, address)]
         return max(waits)
 
+    def begin(self, user: str, address: str) -> float:
+        """Before a password check: seconds to refuse it (> 0), or 0, and then the try is counted as in flight
+        (towards the limits, and holding back the next try of this user or address) until `failed` or
+        `succeeded` settles it. Checked and counted under one lock: parallel tries get no further than one
+        after another would."""
+        now = self._clock()
+        with self._lock:
+            keys = self._keys(user, address)
+            wait = max(self._wait(key, now) for key in keys)
+            if wait > 0:
+                return wait
+            for key in keys:
+                record = self._fresh(key, now)
+                record.in_flight = [t for t in record.in_flight if now - t < IN_FLIGHT_MAX_S]
+                if record.in_flight and (
+                    self.cfg.backoff_first_s > 0 or record.failures + len(record.in_flight) >= self._limit(key[0])
+                ):
+                    # the check in flight may fail: wait as its failure would make us (at least a moment)
+                    failures = record.failures + len(record.in_flight)
+                    return float(max(0.5, min(self.cfg.backoff_max_s, self.cfg.backoff_first_s * 2 ** (failures - 1))))
+            for key in keys:
+                self._records[key].in_flight.append(now)
+                self._records.move_to_end(key)
+            self._trim()
+        return 0.0
+
     def failed(self, user: str, address: str, interface: str = "") -> float:
         """Record a failed login; returns how long the next try (of this user or address) is refused."""
         now = self._clock()
@@ -85,6 +119,8 @@ class LoginThrottle:
         with self._lock:
             for key in self._keys(user, address):
                 record = self._fresh(key, now)
+                if record.in_flight:
+                    record.in_flight.pop(0)
                 record.failures += 1
                 record.last_failure_s = now
                 limit = self._limit(key[0])
@@ -109,9 +145,20 @@ class LoginThrottle:
         return wait
 
     def succeeded(self, user: str, address: str) -> None:
-        """A good login clears the user name's failures (the address's age out)."""
+        """A good login clears the user name's failures (the address's age out) and settles its try in flight."""
         with self._lock:
             self._records.pop(("user", user), None)
+            record = self._records.get(("address", address))
+            if record is not None and record.in_flight:
+                record.in_flight.pop(0)
+
+    def abandon(self, user: str, address: str) -> None:
+        """Settle a try let through by `begin` whose check could not be made (an error, not a wrong password)."""
+        with self._lock:
+            for key in self._keys(user, address):
+                record = self._records.get(key)
+                if record is not None and record.in_flight:
+                    record.in_flight.pop(0)
 
     def locked(self) -> list[Lockout]:
         """The lockouts in force now (for a status page or an alarm's text)."""

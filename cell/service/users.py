@@ -10,6 +10,11 @@ in about the same time whether the name is unknown or the password wrong. A chec
 hash (about 0.14 s of CPU at 600,000 iterations): call it off an event loop, and ask the
 login throttle (cell.service.throttle) first. The file is read again when it changes, so a
 user added, removed or given a new password counts at the next login without a restart.
+
+Logins made before a change end too: `credential(user)` is a fingerprint of what the user
+logs in with (role and password hash; None once removed), which an interface keeps with a
+session at login and compares on each request (the screen: cell.web.auth.Access). Listeners
+(`add_listener`) hear the names whose fingerprint changed whenever the file is read again.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import re
 import secrets
 import stat
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -170,6 +175,12 @@ def now_utc() -> str:
 class _Known:
     role: Role
     stored: tuple[int, bytes, bytes] | None  # None: the legacy user's password is in an environment variable
+    fingerprint: str = ""
+
+
+def fingerprint(role: Role, stored: str) -> str:
+    """What a user logs in with, as a short digest: it differs after a new role or a new password."""
+    return hashlib.sha256(f"{role.value}\0{stored}".encode()).hexdigest()[:32]
 
 
 class Authenticator:
@@ -185,6 +196,7 @@ class Authenticator:
         self._stamp: tuple[int, int, int] | None = None
         self._file_users: dict[str, UserEntry] = {}
         self._decoy = (ITERATIONS, secrets.token_bytes(16), secrets.token_bytes(32))  # matches no password
+        self._listeners: list[Callable[[frozenset[str]], None]] = []
         self._reload(first=True)
 
     # ---- what is configured --------------------------------------------------------------
@@ -224,16 +236,29 @@ class Authenticator:
             ok = verify_hash(known.stored, password)
         return known.role if ok else None
 
+    def credential(self, user: str) -> str | None:
+        """`user`'s fingerprint now (role and password hash; None: they cannot log in any more). Keep it with a
+        session at login and compare it on each request: a difference means the user was removed or given
+        another role or password since, and the session must end (issue 28). Costs a stat of the users file."""
+        known = self._lookup(user)
+        return None if known is None else known.fingerprint
+
+    def add_listener(self, callback: Callable[[frozenset[str]], None]) -> None:
+        """`callback(names)` whenever the users file is read again and these users were removed or got another
+        role or password (called on the thread that noticed, outside the lock; an error in it is logged)."""
+        self._listeners.append(callback)
+
     def _lookup(self, user: str) -> _Known | None:
         self._reload()
         entry = self._file_users.get(user)
         if entry is not None:
-            return _Known(entry.role, parse_hash(entry.password_hash, f"{self.users_file}: {user}"))
+            stored = parse_hash(entry.password_hash, f"{self.users_file}: {user}")
+            return _Known(entry.role, stored, fingerprint(entry.role, entry.password_hash))
         if self._legacy_name and hmac.compare_digest(user.encode(), self._legacy_name.encode()):
             if self._legacy_hash is not None:
-                return _Known(Role.ADMIN, self._legacy_hash)
+                return _Known(Role.ADMIN, self._legacy_hash, fingerprint(Role.ADMIN, "legacy hash"))
             if self._legacy_env and os.environ.get(self._legacy_env):
-                return _Known(Role.ADMIN, None)
+                return _Known(Role.ADMIN, None, fingerprint(Role.ADMIN, "legacy environment"))
         return None
 
     # ---- following the file ----------------------------------------------------------------
@@ -268,7 +293,19 @@ class Authenticator:
                 )
             if not first and users.keys() != self._file_users.keys():
                 log.info("users file %s now lists %d users", path, len(users))
+            changed = frozenset(
+                name
+                for name, old in self._file_users.items()
+                if (new := users.get(name)) is None or (new.role, new.password_hash) != (old.role, old.password_hash)
+            )
             self._file_users, self._stamp = users, stamp
+        if changed:
+            log.info("users removed or changed (their logins end): %s", ", ".join(sorted(changed)))
+            for listener in list(self._listeners):
+                try:
+                    listener(changed)
+                except Exception:  # one interface's failure must not stop the others hearing it
+                    log.exception("a listener to users' changes failed")
 
     def _read_checked(self, path: Path) -> dict[str, UserEntry]:
         users = read_users(path)

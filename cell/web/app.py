@@ -31,9 +31,9 @@ from cell.web.config import WebConfig
 from cell.web.history import HistoryRoutes
 from cell.web.hub import EncodedFrame, Hub, Screen
 from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
-from cell.web.recalibration import Busy, RecalibrationDesk, Report
+from cell.web.recalibration import Busy, NotInstalled, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
-from cell.web.views import COMMANDS, may_recalibrate, snapshot_json
+from cell.web.views import COMMANDS, snapshot_json
 from cell.web.words import calibration_words
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ class ScreenApp:
             self.check,
             web.max_frame_rate_hz,
         )
-        self.desk = RecalibrationDesk(service, config)
+        self.desk = RecalibrationDesk(service, config, web.report_timeout_s)
         self.metrics = CellMetrics(service)  # /metrics (Prometheus); its own registry
         pkg = resources.files("cell.web") / "static"
         self.static = {route: ((pkg / name).read_bytes(), kind) for route, (name, kind) in STATIC.items()}
@@ -153,11 +153,25 @@ class ScreenApp:
             return _error(401, "log in to watch the cell")
         return None
 
-    def _origin(self, request: Request) -> Origin:
-        """Who sends a control: the logged-in user with their role (without logins, anyone on this PC, with every
-        right; issue 21: Access.origin)."""
+    def _controller(self, request: Request) -> Origin | Response:
+        """Who sends this control (the logged-in user with their role; without logins, anyone on this PC, with
+        every right: Access.origin), or the refusal when the request may not control at all (`_control_refused`).
+        Nobody without a session may do anything, Halt included (issue 28)."""
+        if refused := self._control_refused(request):
+            return refused
         address = request.client.host if request.client else ""
-        return self.access.origin(self._sid(request), address)
+        origin = self.access.origin(self._sid(request), address)
+        if origin is None:
+            return _error(401, "log in to control the cell")
+        return origin
+
+    def _refusal(self, command: Command, origin: Origin, **kw: Any) -> Response | None:
+        """The command table's refusal of an interface's own step (service.authorize), as the screen answers it."""
+        try:
+            self.service.authorize(command, origin, **kw)
+        except CommandRefused as e:
+            return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
+        return None
 
     def web_user(self, request: Request) -> str:
         return "operator" if self.access.login_required and self.access.session(self._sid(request)) else ""
@@ -220,7 +234,7 @@ class ScreenApp:
         if result.role is None:
             log.warning("screen: failed login from %s", address)
             return _error(401, "wrong user or password")
-        sid, csrf = self.access.new_session(user, result.role)
+        sid, csrf = self.access.new_session(user, result.role, result.credential)  # ends if the user changes
         log.info("screen: login of %s (%s) from %s", user, result.role.value, address)
         reply = JSONResponse({"csrf": csrf})
         reply.set_cookie(
@@ -279,16 +293,18 @@ class ScreenApp:
         if screen is None:
             return _error(503, f"{self.web.max_screens} screens are already open (service.web.max_screens)")
         return StreamingResponse(
-            self._stream(screen), media_type="text/event-stream", headers={"x-accel-buffering": "no"}
+            self._stream(screen, self._sid(request)),
+            media_type="text/event-stream",
+            headers={"x-accel-buffering": "no"},
         )
 
-    async def _stream(self, screen: Screen) -> AsyncIterator[str]:
+    async def _stream(self, screen: Screen, sid: str | None) -> AsyncIterator[str]:
         try:
             sent_seq = -1
             while not screen.closed:
                 await wait_event(screen.wake, KEEPALIVE_S)
                 screen.wake.clear()
-                if screen.closed:
+                if screen.closed or not self.access.may_view(sid):  # logged out, or the user removed or changed
                     break
                 snapshot, screen.snapshot = screen.snapshot, None
                 screen.sending = True  # each yield returns once its event is handed to the socket
@@ -306,39 +322,47 @@ class ScreenApp:
 
     # ---- controls --------------------------------------------------------------------
     async def command(self, request: Request) -> Response:
-        if refused := self._control_refused(request):
-            return refused
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
         command = COMMANDS.get(request.path_params["name"])
         if command is None:
             return _error(404, "unknown command", known=sorted(COMMANDS))
         try:
-            self.service.command(command, self._origin(request))
+            self.service.command(command, origin)
         except CommandRefused as e:
             return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
         log.info("screen: %s accepted", command.value)
         return JSONResponse({"ok": True, "command": command.value})
 
     async def recal_capture(self, request: Request) -> Response:
-        if refused := self._control_refused(request):
-            return refused
-        return await self._recal(self.desk.from_camera, self._origin(request))
+        """CapturePlate: the service checks the role and the state before the camera is touched."""
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
+        return await self._recal(self.desk.from_camera, origin)
 
     async def recal_upload(self, request: Request) -> Response:
-        if refused := self._control_refused(request):
-            return refused
+        """Checked as CapturePlate (role, then the cell at rest) before the body is read: refused, nothing is
+        decoded, fitted or held (issue 28)."""
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
+        try:
+            self.desk.authorize_upload(origin)
+        except CommandRefused as e:
+            return _refused(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
         body = await self._read_body(request, self.max_upload, _refused)
         if isinstance(body, Response):
             return body
         gone = threading.Event()  # the decode stops when the client goes (issue 21)
         watcher = asyncio.create_task(set_on_disconnect(request.receive, gone))
         try:
-            return await self._recal(self.desk.from_upload, body, self._origin(request), gone)
+            return await self._recal(self.desk.from_upload, body, origin, gone)
         finally:
             watcher.cancel()
 
     async def _recal(self, make: Callable[..., Report], *args: object) -> Response:
-        if not may_recalibrate(self.service.snapshot()):
-            return _refused(409, "recalibrate only while stopped (Ready), paused, halted or after a fault")
         try:
             report = await run_in_threadpool(make, *args)
         except CommandRefused as e:
@@ -366,27 +390,27 @@ class ScreenApp:
         return Response(report.plate_jpeg if kind == "plate.jpg" else report.deviation_png, media_type=PICTURES[kind])
 
     async def recal_answer(self, request: Request) -> Response:
-        if refused := self._control_refused(request):
-            return refused
+        """Accept (InstallCalibration: role and state checked before the file is written) or reject (its role)."""
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
         report_id, answer = request.path_params["report_id"], request.path_params["answer"]
         if answer not in ("accept", "reject"):
             return _error(404, "answer accept or reject")
         try:
             if answer == "reject":
-                self.desk.reject(report_id)
+                await run_in_threadpool(self.desk.reject, report_id, origin)
                 self.hub.publish_now()
                 return JSONResponse({"ok": True, "accepted": False})
-            if not may_recalibrate(self.service.snapshot()):
-                return _refused(409, "the cell is running: pause or stop it before accepting a calibration")
-            info = await run_in_threadpool(self.desk.accept, report_id, self._origin(request))
+            info = await run_in_threadpool(self.desk.accept, report_id, origin)
         except Busy as e:
             return _refused(409, str(e))
         except CalibrationRejected as e:
             return _refused(422, str(e))
-        except CommandRefused as e:
-            return _refused(
-                REFUSAL_STATUS[e.reason], f"{e}: the calibration file was written but the running cell did not take it"
-            )
+        except CommandRefused as e:  # nothing written
+            return _refused(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
+        except NotInstalled as e:
+            return _refused(REFUSAL_STATUS[e.refusal.reason], str(e), refusal=e.refusal.reason.value)
         except (*REPORTED_ERRORS, OSError) as e:
             return _refused(500, f"accepting failed: {e}")
         self.hub.publish_now()
@@ -404,8 +428,12 @@ class ScreenApp:
         return Response(self.desk.active_pictures[kind], media_type=PICTURES[kind])
 
     async def camera_check(self, request: Request) -> Response:
-        """Switch the camera check on the live view on or off (`{"on": true}`)."""
-        if refused := self._control_refused(request):
+        """Switch the camera check on the live view on or off (`{"on": true}`): commissioning the camera, CapturePlate's
+        role (engineer) in the command table, checked first (issue 28)."""
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
+        if refused := self._refusal(Command.CAPTURE_PLATE, origin, state=False):
             return refused
         body = await self._read_body(request, 256)
         if isinstance(body, Response):
@@ -436,8 +464,9 @@ class ScreenApp:
     async def recipe(self, request: Request) -> Response:
         """Prepare a recipe (`{"recipe_id": "..."}`) or go back to the cell's own config (`""`), through the
         command table (PrepareRecipe / UnprepareRecipe: Ready only, the engineer's role)."""
-        if refused := self._control_refused(request):
-            return refused
+        origin = self._controller(request)
+        if isinstance(origin, Response):
+            return origin
         body = await self._read_body(request, 4096)
         if isinstance(body, Response):
             return body
@@ -450,7 +479,7 @@ class ScreenApp:
         command = Command.PREPARE_RECIPE if recipe_id else Command.UNPREPARE_RECIPE
         try:
             await run_in_threadpool(
-                self.service.command, command, self._origin(request), RecipeRequest(recipe_id) if recipe_id else None
+                self.service.command, command, origin, RecipeRequest(recipe_id) if recipe_id else None
             )
         except CommandRefused as e:
             return _error(REFUSAL_STATUS[e.reason], str(e), refusal=e.reason.value)
@@ -519,6 +548,7 @@ def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, acces
         finally:
             screen.metrics.close()
             screen.hub.close()
+            screen.desk.close()  # an open report's hold and timeout end with the screen
 
     app = Starlette(routes=screen.routes(), lifespan=lifespan)
     return Guard(app, screen)

@@ -82,6 +82,13 @@ class WebConfig(Strict):
     decode_timeout_s: float = Field(
         10.0, gt=0, le=300, description="an uploaded image must decode within this (in a worker process, one at a time)"
     )
+    report_timeout_s: float = Field(
+        600.0,
+        gt=0,
+        le=86400,
+        description="a recalibration report holds Start and Resume while it waits for its answer; unanswered "
+        "this long, it is rejected by itself (recorded) and the hold released",
+    )
 
     @model_validator(mode="after")
     def _certificate_with_key(self) -> WebConfig:

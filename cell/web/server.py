@@ -38,7 +38,16 @@ def screen_server(service: LineServiceAPI, config: CellConfig, throttle: LoginTh
     users = Authenticator(svc)
     authenticate = users.authenticate if users.configured else None
     throttle = throttle or LoginThrottle(svc.login)
-    return WebServer(service, config, svc.web, svc.host, svc.http_port, authenticate=authenticate, throttle=throttle)
+    return WebServer(
+        service,
+        config,
+        svc.web,
+        svc.host,
+        svc.http_port,
+        authenticate=authenticate,
+        throttle=throttle,
+        credential=users.credential if users.configured else None,
+    )
 
 
 class ScreenInterface:
@@ -82,13 +91,17 @@ class WebServer:
         authenticate: Callable[[str, str], Role | None] | None = None,
         throttle: LoginThrottle | None = None,
         certificate_dir: Path | None = None,
+        credential: Callable[[str], str | None] | None = None,
     ):
         """`authenticate(user, password) -> Role | None` (or the older `check_password`): None without users.
-        With users the screen is HTTPS only, its certificate from service.web or made in `certificate_dir`."""
+        With users the screen is HTTPS only, its certificate from service.web or made in `certificate_dir`.
+        `credential(user)`: the user's fingerprint now (Authenticator.credential): sessions end when it changes."""
         from cell.service.security import certificate_dir as default_certificate_dir
 
         # refuses a non-loopback bind without users
-        self.access = Access(host, web, check_password, authenticate=authenticate, throttle=throttle)
+        self.access = Access(
+            host, web, check_password, authenticate=authenticate, throttle=throttle, credential=credential
+        )
         self.app = build_app(service, config, web, self.access)
         self.host = host
         self.https = self.access.login_required

@@ -232,8 +232,15 @@ _CALIBRATION = _rules(
         lambda m: ("The camera gives no picture.", "Check its cable and power, or upload a picture instead."),
     ),
     (
-        r"recalibrate only while|the cell is moving|CapturePlate is not allowed",
+        r"recalibrate only while|the cell is moving|(CapturePlate|InstallCalibration) is not allowed",
         lambda m: ("The cell is running.", "Press Pause or Stop first, then Recalibrate."),
+    ),
+    (
+        r"needs the (\w+) role; (.*) is (\w+)$",
+        lambda m: (
+            f"Recalibrating needs the {m[1]} role; {m[2]} is logged in as {m[3]}.",
+            f"Ask someone with the {m[1]} role to log in and recalibrate.",
+        ),
     ),
 )
 
