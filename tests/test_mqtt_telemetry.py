@@ -190,7 +190,13 @@ def test_commands_over_mqtt_through_the_command_table(tmp_path, monkeypatch):
     with Broker(tmp_path, users=users) as broker:
         listener = Listener(broker.port, user="scada", password=users["scada"])
         cfg = telemetry_config(
-            tmp_path, broker.url, "cell-c", user="cell-c", password_env="CELL_MQTT_PASSWORD", commands=True
+            tmp_path,
+            broker.url,
+            "cell-c",
+            user="cell-c",
+            password_env="CELL_MQTT_PASSWORD",
+            commands=True,
+            command_role="operator",
         )
         cfg.sim.feeder = NO_FEEDER
         topics = Topics("test-hall", "cell-c", "cell")
@@ -273,7 +279,14 @@ def test_tls_with_a_client_certificate_authenticates_the_cell_for_commands(tmp_p
         listener = Listener(broker.port, tls=(tls.ca, *tls.clients["scada"]))
         cert, key = tls.clients["cell-d"]
         cfg = telemetry_config(
-            tmp_path, broker.url, "cell-d", ca_file=tls.ca, client_cert_file=cert, client_key_file=key, commands=True
+            tmp_path,
+            broker.url,
+            "cell-d",
+            ca_file=tls.ca,
+            client_cert_file=cert,
+            client_key_file=key,
+            commands=True,
+            command_role="operator",
         )
         cfg.sim.feeder = NO_FEEDER
         topics = Topics("test-hall", "cell-d", "cell")

@@ -56,8 +56,10 @@ class MqttConfig(Strict):
     commands: bool = Field(
         False, description="accept Start/Stop/Pause/Resume as DCMD (needs an authenticated connection)"
     )
-    command_role: Literal["viewer", "operator", "engineer", "admin"] = Field(
-        "operator", description="the role MQTT commands are checked against (the command table's roles)"
+    command_role: Literal["viewer", "operator", "engineer", "admin"] | None = Field(
+        None,
+        description="the role MQTT commands are checked against (the command table's roles); unset: every "
+        "MQTT command is refused (no role may do nothing)",
     )
 
     @field_validator("url")

