@@ -136,6 +136,8 @@ def test_births_every_pick_rebirth_and_ndeath(tmp_path):
             assert latest(listener, "cell-a", "Counters/Picked Bolts") == service.snapshot().counters.picked_bolts
         ndeath = wait_for(lambda: listener.of("NDEATH", "cell-a"), 30, "NDEATH at stop")[0]
         assert ndeath.metrics == {"bdSeq": 0} and ndeath.datatypes == {"bdSeq": DataType.INT64}
+        # bdSeq is kept in `data` beside the log folder: the next start continues at 1
+        assert (tmp_path / "data" / "sparkplug-bdseq-test-hall-cell-a.json").read_text() == '{"bd_seq": 0}\n'
         assert all(m.qos == 0 and not m.retain for m in listener.all("cell-a") if m.kind != "NDEATH")
         assert_seq_in_order(listener, "cell-a")
         listener.close()

@@ -141,3 +141,36 @@ def test_mqtt_commands_without_a_configured_role_may_do_nothing(tmp_path, plant)
         finally:
             publisher.close(plant.bus)
         listener.close()
+
+
+def test_bd_seq_continues_across_publisher_instances_sharing_the_state_folder(tmp_path, plant):
+    """Each process used to start at bdSeq 0: a host could take the new session's birth for the old one's."""
+    state = tmp_path / "state"
+    with Broker(tmp_path) as broker:
+        listener = Listener(broker.port)
+        for run, want in enumerate((0, 1, 2)):
+            publisher = SparkplugPublisher(edge_config(broker.url, "cell-g"), plant, state_dir=state)
+            publisher.start(plant.bus)
+            try:
+                wait_for(lambda: len(listener.of("NBIRTH", "cell-g")) == run + 1, 30, f"the NBIRTH of run {run}")
+            finally:
+                publisher.close(plant.bus)
+            wait_for(lambda: len(listener.of("NDEATH", "cell-g")) == run + 1, 30, f"the NDEATH of run {run}")
+            assert listener.of("NBIRTH", "cell-g")[-1].metrics["bdSeq"] == want
+            assert listener.of("NDEATH", "cell-g")[-1].metrics == {"bdSeq": want}
+        listener.close()
+    (kept,) = state.iterdir()  # one small file, no temporary left behind
+    assert kept.name == "sparkplug-bdseq-test-hall-cell-g.json"
+
+
+def test_bd_seq_continues_from_the_kept_file_and_wraps_after_255(tmp_path, plant):
+    state = tmp_path / "state"
+    cfg = edge_config("mqtt://127.0.0.1:1", "cell-h")
+    state.mkdir()
+    kept = state / "sparkplug-bdseq-test-hall-cell-h.json"
+    kept.write_text('{"bd_seq": 7}\n')  # the last session's
+    assert SparkplugPublisher(cfg, plant, state_dir=state).bd_seq == 8
+    kept.write_text('{"bd_seq": 255}\n')
+    assert SparkplugPublisher(cfg, plant, state_dir=state).bd_seq == 0
+    kept.write_text("not json")
+    assert SparkplugPublisher(cfg, plant, state_dir=state).bd_seq == 0  # unreadable: start again, said in the log

@@ -2,7 +2,8 @@
 
 One edge node (`edge_node_id`, this PC) with one device (`device_id`, the cell) in a group
 (`group_id`). On every MQTT session: the NDEATH is the connection's Will (QoS 1, with the
-session's bdSeq: 0 for the first CONNECT, +1 for each new one, 255 wraps to 0), the node
+session's bdSeq: +1 for each new CONNECT, 255 wraps to 0, continued across restarts from a small
+file in the cell's data folder, 0 the very first time), the node
 subscribes to its NCMD (and, with commands on, its device's DCMD) topic, then publishes NBIRTH
 (seq 0, bdSeq, `Node Control/Rebirth` false) and DBIRTH (seq 1, every device metric with its
 type and current value). After that each change goes out as DDATA with seq +1 (wrapping at
@@ -20,6 +21,7 @@ every event; the next births carry the current values), and nothing waits: the p
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import ssl
@@ -123,6 +125,69 @@ def password_from_env(cfg: MqttConfig, environ: dict[str, str]) -> str | None:
     return password
 
 
+def bd_seq_file(folder: Path, cfg: MqttConfig) -> Path:
+    """The file keeping this edge node's bdSeq in `folder` (one per group and edge node)."""
+    name = "".join(c if c.isalnum() or c in "._-" else "_" for c in f"{cfg.group_id}-{cfg.edge_node_id}")
+    return Path(folder) / f"sparkplug-bdseq-{name}.json"
+
+
+class BdSeqStore:
+    """The bdSeq of this edge node's last MQTT CONNECT, kept in a small JSON file written atomically
+    (a temporary file, flushed to disk, renamed over the old one): a new process continues the
+    sequence (Sparkplug B: +1 for each new session, 255 wraps to 0) instead of starting at 0 again,
+    which a host would take for the session it already saw. Without a folder nothing is kept."""
+
+    def __init__(self, path: Path | None):
+        self.path = path
+        self._warned = False
+
+    def first(self) -> int:
+        """The bdSeq for this process's first CONNECT: the last one kept + 1, or 0 when none is."""
+        if self.path is None:
+            return 0
+        try:
+            kept = json.loads(self.path.read_text(encoding="utf-8"))["bd_seq"]
+            if not isinstance(kept, int) or not 0 <= kept <= 255:
+                raise ValueError(f"bd_seq {kept!r} is not 0..255")
+        except FileNotFoundError:
+            return 0
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.warning(
+                "telemetry: cannot read the kept Sparkplug bdSeq from %s (%s); starting at 0 (a host may take "
+                "this session's birth for an old one until the next reconnect); the file is rewritten",
+                self.path,
+                e,
+            )
+            return 0
+        return next_seq(kept)
+
+    def keep(self, bd_seq: int) -> None:
+        """Record the bdSeq of the CONNECT about to be sent; a failure is logged once and does not stop MQTT."""
+        if self.path is None:
+            return
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(tmp, "w", encoding="utf-8") as f:
+                json.dump({"bd_seq": bd_seq}, f)
+                f.write("\n")
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, self.path)
+            self._warned = False
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            if not self._warned:
+                self._warned = True
+                log.warning(
+                    "telemetry: cannot keep the Sparkplug bdSeq in %s (%s); the next start may repeat a bdSeq: "
+                    "check that the folder is writable (telemetry.mqtt.state_dir)",
+                    self.path,
+                    e,
+                )
+
+
 def certificate_name(path: Path | None) -> str:
     """The common name of this cell's TLS client certificate (the broker's user for it), else 'tls-client'."""
     if path is None:
@@ -141,13 +206,18 @@ def certificate_name(path: Path | None) -> str:
 class SparkplugPublisher:
     """Sparkplug B edge node over paho-mqtt; `start()` after the service exists, `close()` after it stopped."""
 
-    def __init__(self, cfg: MqttConfig, service: ServiceView, password: str | None = None):
+    def __init__(
+        self, cfg: MqttConfig, service: ServiceView, password: str | None = None, state_dir: Path | None = None
+    ):
+        """`state_dir`: where bdSeq is kept between runs when the config names no `state_dir` (None: not kept)."""
         self.cfg, self.service = cfg, service
         self.topics = Topics(cfg.group_id, cfg.edge_node_id, cfg.device_id)
         self.commands = cfg.commands
         self._lock = threading.RLock()  # seq, the births and every publish, in order
         self._counts = threading.Lock()
-        self.bd_seq = 0  # the bdSeq of the Will registered for the next (or current) CONNECT
+        folder = cfg.state_dir if cfg.state_dir is not None else state_dir
+        self._bd_seq_store = BdSeqStore(bd_seq_file(folder, cfg) if folder is not None else None)
+        self.bd_seq = self._bd_seq_store.first()  # the bdSeq of the Will registered for the next (or current) CONNECT
         self.session_bd_seq: int | None = None  # the bdSeq of the session now up
         self._seq = 0
         self.born = False
@@ -228,6 +298,8 @@ class SparkplugPublisher:
                 '(set command_role, e.g. "operator", to let the plant\'s host start and stop the cell)'
             )
         self._sub = bus.subscribe("telemetry-mqtt", self.handle, kinds=KINDS, maxsize=self.cfg.queue_max)
+        with self._lock:
+            self._bd_seq_store.keep(self.bd_seq)
         self.client.connect_async(self.cfg.host, self.cfg.port, keepalive=self.cfg.keepalive_s)
         self.client.loop_start()
         log.info(
@@ -282,9 +354,11 @@ class SparkplugPublisher:
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         with self._lock:
             self.born = False
-            self.bd_seq = next_seq(self.bd_seq)  # the next CONNECT is a new session
-            self._set_will(client)
             closing = self._closing
+            if not closing:  # the next CONNECT is a new session (after close() none follows)
+                self.bd_seq = next_seq(self.bd_seq)
+                self._set_will(client)
+                self._bd_seq_store.keep(self.bd_seq)
         if not closing and not self._refused:
             log.warning("telemetry: lost the broker %s (%s); reconnecting", self.cfg.url, reason)
             self._warn(f"the plant broker {self.cfg.url} is unreachable: telemetry is not being published")
@@ -455,13 +529,16 @@ def attach_mqtt(
     resources: contextlib.ExitStack,
     hooks: object,
     environ: dict[str, str] | None = None,
+    log_dir: Path | None = None,
 ) -> SparkplugPublisher | None:
-    """The publisher for `run-cell serve` (hooks = the line service), closed with `resources`."""
+    """The publisher for `run-cell serve` (hooks = the line service), closed with `resources`. bdSeq is
+    kept in telemetry.mqtt.state_dir, else in `data` beside `log_dir` (logs/ -> data/)."""
     if not all(callable(getattr(hooks, name, None)) for name in ("snapshot", "command")):
         log.warning("telemetry.mqtt is published by `run-cell serve` only; this run is not published")
         return None
     password = password_from_env(cfg, dict(os.environ if environ is None else environ))
-    publisher = SparkplugPublisher(cfg, cast(ServiceView, hooks), password)  # its methods checked just above
+    state_dir = Path(log_dir).parent / "data" if log_dir is not None else None
+    publisher = SparkplugPublisher(cfg, cast(ServiceView, hooks), password, state_dir)  # its methods checked above
     publisher.start(bus)
     resources.callback(publisher.close, bus)
     return publisher
