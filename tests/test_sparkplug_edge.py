@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -174,3 +175,54 @@ def test_bd_seq_continues_from_the_kept_file_and_wraps_after_255(tmp_path, plant
     assert SparkplugPublisher(cfg, plant, state_dir=state).bd_seq == 0
     kept.write_text("not json")
     assert SparkplugPublisher(cfg, plant, state_dir=state).bd_seq == 0  # unreadable: start again, said in the log
+
+
+def older_than_their_birth(listener: Listener, node: str) -> list[tuple[int, int]]:
+    """(birth's count, data's count) for each DDATA whose picked count is below the DBIRTH before it."""
+    born, older = None, []
+    for m in listener.all(node):
+        if m.kind == "DBIRTH":
+            born = m.metrics["Counters/Picked"]
+        elif m.kind == "DDATA" and born is not None and m.metrics.get("Counters/Picked", born) < born:
+            older.append((born, m.metrics["Counters/Picked"]))
+    return older
+
+
+def test_no_data_after_a_birth_carries_values_older_than_the_birth(tmp_path, plant):
+    """The bus thread read the snapshot, then took the lock to publish it: a birth in between (a rebirth
+    request on paho's thread) went out with newer values, and the older DDATA followed it."""
+    with Broker(tmp_path) as broker:
+        listener = Listener(broker.port)
+        topics = Topics(GROUP, "cell-i", "cell")
+        publisher = SparkplugPublisher(edge_config(broker.url, "cell-i"), plant, state_dir=tmp_path / "state")
+        armed, inside = threading.Event(), threading.Event()
+
+        def slow_read(n: int) -> None:
+            """The bus thread's read (armed once): give a birth up to 5 s to come between read and publish."""
+            if not armed.is_set():
+                return
+            armed.clear()
+            births = publisher.births
+            inside.set()
+            deadline = time.monotonic() + 5.0
+            while publisher.births == births and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+        plant.on_snapshot = slow_read
+        publisher.start(plant.bus)
+        try:
+            wait_for(lambda: listener.of("DBIRTH", "cell-i"), 30, "DBIRTH")
+            armed.set()
+            n = plant.bump()  # the bus thread reads n ...
+            assert inside.wait(30), "the bus thread's snapshot"
+            with plant._lock:
+                plant.picked += 1  # ... the cell moves on (announced later) ...
+            listener.publish_metric(topics.node("NCMD"), "Node Control/Rebirth", True)  # ... a host asks a rebirth
+            wait_for(lambda: len(listener.of("DBIRTH", "cell-i")) == 2, 30, "the rebirth")
+            assert listener.of("DBIRTH", "cell-i")[-1].metrics["Counters/Picked"] == n + 1
+            last = plant.bump()
+            wait_for(lambda: last in picked_in(listener, "cell-i"), 30, "the next DDATA")
+            assert older_than_their_birth(listener, "cell-i") == []
+        finally:
+            publisher.close(plant.bus)
+        listener.close()

@@ -488,9 +488,8 @@ class SparkplugPublisher:
             return
         if isinstance(event, StateChanged) and not self.born:
             return  # the runner's steps while the broker is away: the next birth reads the snapshot again
-        snapshot_values = M.snapshot_values(self.service.snapshot())
-        with self._lock:
-            self._data(snapshot_values)
+        with self._lock:  # read and published under one lock: no birth between them (it would be newer)
+            self._data(M.snapshot_values(self.service.snapshot()))
 
     # ---- the service's warning while the broker is away ---------------------------------------------
     def _warn(self, reason: str) -> None:
