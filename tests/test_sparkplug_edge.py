@@ -6,6 +6,7 @@ snapshot racing a birth, and bdSeq across restarts."""
 from __future__ import annotations
 
 import logging
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from cell.service.api import Command, CommandResult, Counters, Snapshot, VisionS
 from cell.telemetry.config import MqttConfig
 from cell.telemetry.publisher import SparkplugPublisher
 from cell.telemetry.sparkplug import Topics
-from tests.mqtt_broker import Broker, Listener, needs_mosquitto, wait_for
+from tests.mqtt_broker import Broker, Listener, Proxy, needs_mosquitto, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_mosquitto]
 
@@ -34,6 +35,8 @@ class Plant:
     def __init__(self) -> None:
         self.bus = EventBus()
         self.picked = 0
+        self.moving = False  # True: each snapshot counts one more pick (every read a change to publish)
+        self.padding = 0  # characters added to the cell state (the runner's step): larger messages
         self._lock = threading.Lock()
         self.calls: list[tuple[Command, Origin]] = []
         self.on_command: Callable[[Command, Origin], CommandResult] = lambda c, o: CommandResult(c)
@@ -42,10 +45,12 @@ class Plant:
 
     def snapshot(self) -> Snapshot:
         with self._lock:
+            self.picked += self.moving
             n = self.picked
         self.on_snapshot(n)
+        state = f"IDLE {n:.>{self.padding}}" if self.padding else "IDLE"  # padded: changes with the count
         return Snapshot(
-            VisionState.READY, "IDLE", False, False, Counters(picked_bolts=n), 0.0, (), None, None, 0, frozenset()
+            VisionState.READY, state, False, False, Counters(picked_bolts=n), 0.0, (), None, None, 0, frozenset()
         )
 
     def command(self, command: Command, origin: Any = None, request: Any = None) -> CommandResult:
@@ -67,9 +72,8 @@ class Plant:
 
 
 def edge_config(url: str, node: str, **mqtt: Any) -> MqttConfig:
-    return MqttConfig(
-        url=url, edge_node_id=node, group_id=GROUP, reconnect_min_s=1.0, reconnect_max_s=2.0, keepalive_s=30, **mqtt
-    )
+    settings: dict[str, Any] = {"reconnect_min_s": 1.0, "reconnect_max_s": 2.0, "keepalive_s": 30} | mqtt
+    return MqttConfig(url=url, edge_node_id=node, group_id=GROUP, **settings)
 
 
 def picked_in(listener: Listener, node: str, kind: str = "DDATA") -> list[int]:
@@ -225,4 +229,53 @@ def test_no_data_after_a_birth_carries_values_older_than_the_birth(tmp_path, pla
             assert older_than_their_birth(listener, "cell-i") == []
         finally:
             publisher.close(plant.bus)
+        listener.close()
+
+
+def test_a_birth_the_client_could_not_send_is_sent_again_without_a_reconnect(tmp_path, plant):
+    """A stalled link fills the MQTT client's queue (unsent_max); a rebirth asked meanwhile could not be
+    handed over. The node stayed unborn while connected: every DDATA dropped until a reconnect."""
+    with Broker(tmp_path) as broker:
+        link = Proxy(broker.port, receive_buffer=4096)  # the cell's way to the broker, which the test stalls
+        listener = Listener(broker.port)
+        topics = Topics(GROUP, "cell-j", "cell")
+        cfg = edge_config(link.url, "cell-j", unsent_max=10, keepalive_s=120, queue_max=100_000)
+        publisher = SparkplugPublisher(cfg, plant, state_dir=tmp_path / "state")
+        publisher.start(plant.bus)
+        try:
+            wait_for(lambda: listener.of("DBIRTH", "cell-j"), 30, "DBIRTH")
+            link.hold()
+            # the cell goes on changing (every snapshot a new count) until its socket is full and then the
+            # client's queue: the socket no longer writable (the link takes nothing), and 10,000 updates
+            # dropped in a row with none handed over (paho had its turns to write and could not)
+            plant.moving, plant.padding = True, 8000
+            frozen = {"published": -1, "dropped": 0}
+
+            def queue_stays_full() -> bool:
+                for _ in range(2000):
+                    plant.bus.emit(SnapshotChanged(what="counters"))
+                s = publisher.stats()
+                if s["published"] != frozen["published"]:
+                    frozen.update(published=s["published"], dropped=s["dropped"])
+                writable = select.select([], [publisher.client.socket()], [], 0)[1]
+                return not writable and s["dropped"] - frozen["dropped"] >= 10_000
+
+            wait_for(queue_stays_full, 120, "the client's queue full behind the stalled link")
+            plant.moving = False
+            listener.publish_metric(topics.node("NCMD"), "Node Control/Rebirth", True)
+            wait_for(lambda: not publisher.born, 30, "the rebirth not handed over")
+            assert publisher.stats()["births"] == 1  # the first one only
+
+            link.release()  # the link flows again: the birth goes out on the same connection
+            wait_for(lambda: len(listener.of("DBIRTH", "cell-j")) == 2, 30, "the birth sent again")
+            n = plant.bump()
+            wait_for(lambda: n in picked_in(listener, "cell-j"), 30, "data after the new birth")
+            births = listener.of("NBIRTH", "cell-j")
+            assert [b.metrics["bdSeq"] for b in births] == [0, 0]  # the same session: no reconnect
+            assert listener.of("NDEATH", "cell-j") == [] and publisher.stats()["births"] == 2
+            assert publisher.stats()["births_dropped"] >= 1
+            assert older_than_their_birth(listener, "cell-j") == []
+        finally:
+            publisher.close(plant.bus)
+            link.close()
         listener.close()

@@ -221,6 +221,9 @@ class SparkplugPublisher:
         self.session_bd_seq: int | None = None  # the bdSeq of the session now up
         self._seq = 0
         self.born = False
+        self._birth_due = False  # connected, but the births could not be handed over: sent again when they can
+        self.births_dropped = 0  # tries at the births the client could not take
+        self._births_failing = 0
         self.dropped = 0
         self.published = 0
         self.births = 0
@@ -319,6 +322,7 @@ class SparkplugPublisher:
                 self._sub.close(_CLOSE_WAIT_S)
         with self._lock:
             self._closing = True
+            self._birth_due = False
             info = None
             if self.born:
                 death = payload([Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq)], seq=None, birth=True)
@@ -353,7 +357,7 @@ class SparkplugPublisher:
 
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         with self._lock:
-            self.born = False
+            self.born = self._birth_due = False
             closing = self._closing
             if not closing:  # the next CONNECT is a new session (after close() none follows)
                 self.bd_seq = next_seq(self.bd_seq)
@@ -386,6 +390,11 @@ class SparkplugPublisher:
     def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason: Any, properties: Any) -> None:
         with self._counts:
             self._unsent = max(self._unsent - 1, 0)
+            room = self._unsent <= self.cfg.unsent_max // 2
+        if self._birth_due and room:  # the client's queue drained: the births it had no room for go now
+            with self._lock:
+                if self._birth_due:
+                    self._birth()
 
     def _command(self, command: Command) -> None:
         """A DCMD through the one command table, as any interface; the answer goes back as DDATA. Nothing
@@ -426,9 +435,33 @@ class SparkplugPublisher:
             self._data(result, force=True)
 
     # ---- births and data (under the lock) ------------------------------------------------------------
-    def _birth(self) -> None:
-        """NBIRTH (seq 0) and DBIRTH (seq 1) with every metric's current value; DATA may follow."""
+    def _birth(self) -> bool:
+        """NBIRTH (seq 0) and DBIRTH (seq 1) with every metric's current value; DATA may follow. Births the
+        client cannot take (its queue full, the publish refused) are due: sent again as soon as the queue
+        drains (`_on_publish`) or before the next data, on the same connection; a new one births anew."""
         self.born = False
+        self._birth_due = True
+        with self._counts:
+            room = self.cfg.unsent_max - self._unsent >= 2  # both births, or neither (no NBIRTH alone)
+        if room and self._birth_sent():
+            self.born, self._birth_due = True, False
+            self.births += 1
+            if self._births_failing:
+                log.info("telemetry: births sent on the same connection after %d tries", self._births_failing + 1)
+                self._births_failing = 0
+            return True
+        with self._counts:
+            self.births_dropped += 1
+        if not self._births_failing:
+            log.warning(
+                "telemetry: the births could not be handed to the MQTT client (%d messages not yet sent); they are "
+                "sent again as soon as it has room, and data waits for them",
+                self._unsent,
+            )
+        self._births_failing += 1
+        return False
+
+    def _birth_sent(self) -> bool:
         self._values.update(M.snapshot_values(self.service.snapshot()))
         node = [
             Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq),
@@ -437,12 +470,10 @@ class SparkplugPublisher:
         ]
         self._seq = 0
         if not self._send(self.topics.node("NBIRTH"), node, birth=True):
-            return
+            return False
         specs = M.device_specs(self.commands)
         device = [Metric(s.name, s.dtype, self._values.get(s.name)) for s in specs]
-        if self._send(self.topics.device("DBIRTH"), device, birth=True):
-            self.born = True
-            self.births += 1
+        return self._send(self.topics.device("DBIRTH"), device, birth=True)
 
     def _data(self, values: dict[str, Any], force: bool = False) -> None:
         """DDATA with the values that changed (all given ones with `force`)."""
@@ -450,6 +481,8 @@ class SparkplugPublisher:
         self._values.update(values)
         if not changed:
             return
+        if not self.born and self._birth_due and self._birth() and not force:
+            return  # the births just sent carry these values (and newer ones): no DDATA older than them
         if not self.born:
             with self._counts:
                 self.dropped += 1
@@ -486,7 +519,7 @@ class SparkplugPublisher:
             with self._lock:
                 self._data(M.pick_values(record, cycle), force=True)  # every pick, even one like the last
             return
-        if isinstance(event, StateChanged) and not self.born:
+        if isinstance(event, StateChanged) and not self.born and not self._birth_due:
             return  # the runner's steps while the broker is away: the next birth reads the snapshot again
         with self._lock:  # read and published under one lock: no birth between them (it would be newer)
             self._data(M.snapshot_values(self.service.snapshot()))
@@ -514,6 +547,7 @@ class SparkplugPublisher:
                 "published": self.published,
                 "dropped": self.dropped,
                 "births": self.births,
+                "births_dropped": self.births_dropped,
                 "command_errors": self.command_errors,
                 "callback_errors": self.callback_errors,
             }
