@@ -74,7 +74,9 @@ KINDS = (
 )
 WARNING_KEY = "telemetry-mqtt"
 _CLOSE_WAIT_S = 3.0
-_ERROR_LOG_INTERVAL_S = 60.0  # unexpected errors in paho's callbacks: logged at most once a minute each
+_ERROR_LOG_INTERVAL_S = (
+    60.0  # unexpected errors in commands, and in paho's callbacks: each logged at most once a minute
+)
 INTERNAL_ERROR = "internal_error"  # Command/Last Refusal when handling a command failed unexpectedly
 P = ParamSpec("P")
 
@@ -358,6 +360,7 @@ class SparkplugPublisher:
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         with self._lock:
             self.born = self._birth_due = False
+            self._births_failing = 0
             closing = self._closing
             if not closing:  # the next CONNECT is a new session (after close() none follows)
                 self.bd_seq = next_seq(self.bd_seq)
