@@ -256,7 +256,7 @@ def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.Ex
     if config.telemetry.mqtt.enabled:  # Sparkplug B to the plant's broker (paho-mqtt is imported only then)
         from cell.telemetry.publisher import attach_mqtt
 
-        consumers.telemetry = attach_mqtt(config.telemetry.mqtt, bus, resources, hooks)
+        consumers.telemetry = attach_mqtt(config.telemetry.mqtt, bus, resources, hooks, log_dir=config.run.log_dir)
     return consumers
 
 

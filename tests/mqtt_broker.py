@@ -244,11 +244,18 @@ def picks_seen(listener: Listener, node: str | None = None, outcome: str = "pick
 
 class Proxy:
     """A TCP pipe 127.0.0.1:port -> the broker, to cut the cell's network while the broker lives:
-    `cut()` drops every open connection (as a pulled cable noticed at once); new ones still pass."""
+    `cut()` drops every open connection (as a pulled cable noticed at once); new ones still pass.
+    `hold()` stops taking what the cell sends (a stalled link: the cell's socket fills, nothing is
+    lost, the broker's way back still flows) until `release()`; `receive_buffer` shrinks the pipe's
+    receive buffer so that a hold fills the cell's socket sooner."""
 
-    def __init__(self, target_port: int):
+    def __init__(self, target_port: int, receive_buffer: int | None = None):
         self.target_port = target_port
+        self._flowing = threading.Event()
+        self._flowing.set()
         self._server = socket.create_server(("127.0.0.1", 0))
+        if receive_buffer is not None:  # before any connection: accepted sockets inherit it
+            self._server.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
         self.port = self._server.getsockname()[1]
         self._conns: list[socket.socket] = []
         self._lock = threading.Lock()
@@ -273,13 +280,20 @@ class Proxy:
             upstream.settimeout(None)
             with self._lock:
                 self._conns += [client, upstream]
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+            for a, b, held in ((client, upstream, True), (upstream, client, False)):
+                threading.Thread(target=self._pipe, args=(a, b, held), daemon=True).start()
 
-    @staticmethod
-    def _pipe(src: socket.socket, dst: socket.socket) -> None:
+    def hold(self) -> None:
+        self._flowing.clear()
+
+    def release(self) -> None:
+        self._flowing.set()
+
+    def _pipe(self, src: socket.socket, dst: socket.socket, held: bool) -> None:
         try:
-            while data := src.recv(65536):
+            while not held or self._flowing.wait():
+                if not (data := src.recv(65536)):
+                    break
                 dst.sendall(data)
         except OSError:
             pass
@@ -302,5 +316,6 @@ class Proxy:
 
     def close(self) -> None:
         self._closed = True
+        self._flowing.set()
         self._server.close()
         self.cut()

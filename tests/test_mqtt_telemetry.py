@@ -136,6 +136,8 @@ def test_births_every_pick_rebirth_and_ndeath(tmp_path):
             assert latest(listener, "cell-a", "Counters/Picked Bolts") == service.snapshot().counters.picked_bolts
         ndeath = wait_for(lambda: listener.of("NDEATH", "cell-a"), 30, "NDEATH at stop")[0]
         assert ndeath.metrics == {"bdSeq": 0} and ndeath.datatypes == {"bdSeq": DataType.INT64}
+        # bdSeq is kept in `data` beside the log folder: the next start continues at 1
+        assert (tmp_path / "data" / "sparkplug-bdseq-test-hall-cell-a.json").read_text() == '{"bd_seq": 0}\n'
         assert all(m.qos == 0 and not m.retain for m in listener.all("cell-a") if m.kind != "NDEATH")
         assert_seq_in_order(listener, "cell-a")
         listener.close()
@@ -190,7 +192,13 @@ def test_commands_over_mqtt_through_the_command_table(tmp_path, monkeypatch):
     with Broker(tmp_path, users=users) as broker:
         listener = Listener(broker.port, user="scada", password=users["scada"])
         cfg = telemetry_config(
-            tmp_path, broker.url, "cell-c", user="cell-c", password_env="CELL_MQTT_PASSWORD", commands=True
+            tmp_path,
+            broker.url,
+            "cell-c",
+            user="cell-c",
+            password_env="CELL_MQTT_PASSWORD",
+            commands=True,
+            command_role="operator",
         )
         cfg.sim.feeder = NO_FEEDER
         topics = Topics("test-hall", "cell-c", "cell")
@@ -273,7 +281,14 @@ def test_tls_with_a_client_certificate_authenticates_the_cell_for_commands(tmp_p
         listener = Listener(broker.port, tls=(tls.ca, *tls.clients["scada"]))
         cert, key = tls.clients["cell-d"]
         cfg = telemetry_config(
-            tmp_path, broker.url, "cell-d", ca_file=tls.ca, client_cert_file=cert, client_key_file=key, commands=True
+            tmp_path,
+            broker.url,
+            "cell-d",
+            ca_file=tls.ca,
+            client_cert_file=cert,
+            client_key_file=key,
+            commands=True,
+            command_role="operator",
         )
         cfg.sim.feeder = NO_FEEDER
         topics = Topics("test-hall", "cell-d", "cell")

@@ -56,8 +56,15 @@ class MqttConfig(Strict):
     commands: bool = Field(
         False, description="accept Start/Stop/Pause/Resume as DCMD (needs an authenticated connection)"
     )
-    command_role: Literal["viewer", "operator", "engineer", "admin"] = Field(
-        "operator", description="the role MQTT commands are checked against (the command table's roles)"
+    state_dir: Path | None = Field(
+        None,
+        description="the folder the Sparkplug bdSeq is kept in between runs (one small file per edge node), so "
+        "each new session's NBIRTH and NDEATH carry the next bdSeq; default: `data` beside run.log_dir",
+    )
+    command_role: Literal["viewer", "operator", "engineer", "admin"] | None = Field(
+        None,
+        description="the role MQTT commands are checked against (the command table's roles); unset: every "
+        "MQTT command is refused (no role may do nothing)",
     )
 
     @field_validator("url")

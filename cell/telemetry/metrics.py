@@ -97,7 +97,7 @@ COMMANDS = tuple(
         "Command/Last Refusal",
         D.STRING,
         "",
-        "why not: invalid_state, access_denied, shutting_down ...; empty if accepted",
+        "why not: invalid_state, access_denied, shutting_down, internal_error ...; empty if accepted",
     ),
     Spec("Command/Last Message", D.STRING, "", "the refusal in words (as OPC UA and the screen give it)"),
     Spec("Command/Last Job Id", D.STRING, "", "the job a start command began"),
