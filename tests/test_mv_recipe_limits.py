@@ -185,3 +185,30 @@ def test_recipe_calls_never_walk_the_whole_address_space(tmp_path: Path, cache_d
     finally:
         aspace.keys = keys
         h.stop()
+
+
+def test_adding_the_same_recipe_again_starts_its_transfer_over_in_the_same_slot(
+    tmp_path: Path, cache_dir: Path
+) -> None:
+    h = started(tmp_path, cache_dir, recipe_transfers_max=1)
+
+    async def scenario() -> list[Any]:
+        async with Client(h.endpoint, timeout=30, watchdog_intervall=15) as client:
+            r = await Recipes(client).setup()
+            first = (await r.add("kit-again"))[1]
+            handle = await r.handle(first)
+            fh = await handle.call_method("0:Open", ua.Variant(6, _T.Byte))
+            await handle.call_method("0:Write", ua.Variant(fh, _T.UInt32), ua.Variant(b"half a rec", _T.ByteString))
+            second = (await r.add("kit-again"))[1]  # the client lost its connection and starts over
+            stale = await code(handle.call_method("0:Close", ua.Variant(fh, _T.UInt32)))  # the old handle is gone
+            fh = await handle.call_method("0:Open", ua.Variant(6, _T.Byte))
+            data = ua.Variant(RECIPE_BOLTS.encode(), _T.ByteString)
+            await handle.call_method("0:Write", ua.Variant(fh, _T.UInt32), data)
+            closed = await code(handle.call_method("0:Close", ua.Variant(fh, _T.UInt32)))
+            return [first == second, stale, closed]
+
+    try:
+        assert asyncio.run(scenario()) == [True, "BadInvalidState", "Good"]
+        assert h.book.load("kit-again").classes == {"bolt"}
+    finally:
+        h.stop()

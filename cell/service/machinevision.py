@@ -671,10 +671,10 @@ class MachineVisionServer:
             raise MethodError(
                 ua.StatusCodes.BadInvalidArgument, f"recipe {recipe_id!r} exists with other content: remove it first"
             )
-        if any(t.recipe_id == recipe_id for t in self._transfers.values()):
-            raise MethodError(
-                ua.StatusCodes.BadInvalidState, f"recipe {recipe_id!r} is being written already: close that transfer"
-            )
+        again = next((t for t in self._transfers.values() if t.recipe_id == recipe_id), None)
+        if again is not None:  # a client starting over (its connection dropped mid-transfer): the same slot, emptied
+            again.open_handle, again.data, again.used_s = 0, bytearray(), time.monotonic()
+            return self._add_outputs(recipe_id, "", again.node.nodeid, True)
         mv = self.mv
         if len(self._transfers) >= mv.recipe_transfers_max:
             raise MethodError(
