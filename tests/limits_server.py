@@ -149,7 +149,8 @@ async def serve(args: argparse.Namespace) -> None:
     heartbeat = await cell.add_variable(ua.NodeId("Heartbeat", ns), ua.QualifiedName("Heartbeat", ns), 0)
 
     async def halt(parent):
-        return [ua.Variant(caller_origin().role.value, ua.VariantType.String)]
+        origin = caller_origin()
+        return [ua.Variant(origin.role.value if origin is not None else "none", ua.VariantType.String)]
 
     await cell.add_method(ua.NodeId("Halt", ns), ua.QualifiedName("Halt", ns), halt, [], [ua.VariantType.String])
     await opcua.start()

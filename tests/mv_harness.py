@@ -1,5 +1,7 @@
 """An OPC UA server with the Machine Vision interface over a FakeLineService, on its own
-thread and loop, for tests that drive it from a client (asyncua or another stack)."""
+thread and loop, for tests that drive it from a client (asyncua or another stack). The server
+is the production one (cell.service.opcua_security.GuardedServer, as `run-cell serve` builds it
+on loopback without users): the caller's role is `service.machine_vision.client_role`."""
 
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ from cell.config import CellConfig
 from cell.recipes import RecipeBook
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import ModelLoad, cache_key, init_server_with_models
-from cell.service.results import ResultFilter
+from cell.service.opcua_security import GuardedServer, GuardSettings
+from cell.service.results import ResultFilter, ResultStore
 from tests.mv_fake_service import FakeLineService
 from tests.serve_process import free_port
 
@@ -46,8 +49,15 @@ def config_for(tmp: Path, serial: str = "PC-0042") -> CellConfig:
 class MachineVisionHarness:
     """`start()` returns once clients can connect at `endpoint`; `stop()` ends it all."""
 
-    def __init__(self, tmp: Path, cache_dir: Path | None = None, pick_interval_s: float = 0.05):
+    def __init__(
+        self,
+        tmp: Path,
+        cache_dir: Path | None = None,
+        pick_interval_s: float = 0.05,
+        results: ResultStore | None = None,
+    ):
         self.config = config_for(tmp)
+        self.results = results
         self.book = RecipeBook(self.config.service.machine_vision.recipes_dir)
         self.book.add("bolts-only", RECIPE_BOLTS)
         self.book.add("nuts-only", RECIPE_NUTS)
@@ -58,7 +68,7 @@ class MachineVisionHarness:
         self.mv: MachineVisionServer | None = None
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, daemon=True)
-        self._server: Server | None = None
+        self._server: GuardedServer | None = None
 
     def start(self) -> MachineVisionHarness:
         logging.getLogger("asyncua").setLevel(logging.WARNING)
@@ -67,11 +77,13 @@ class MachineVisionHarness:
         return self
 
     async def _start(self) -> None:
-        server = Server()
+        server = GuardedServer(GuardSettings.from_config(self.config, "urn:pick-cell:server", secure=False))
         self.load = await init_server_with_models(server, self.cache_dir)
         server.set_endpoint(self.endpoint)
         server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
-        self.mv = MachineVisionServer(server, self.service, self.config, recipes=self.book, dry_run=True)
+        self.mv = MachineVisionServer(
+            server, self.service, self.config, recipes=self.book, results=self.results, dry_run=True
+        )
         await self.mv.start()
         await server.start()
         self._server = server

@@ -131,14 +131,21 @@ class HistoryReader:
         self.db.close()
 
     # ---- picks ----------------------------------------------------------------------------------
+    def _this_cell(self) -> tuple[str, list[Any]]:
+        """The clause and parameter keeping a lookup by id to this reader's cell (none: every cell's)."""
+        return (" AND cell = ?", [self.cell]) if self.cell is not None else ("", [])
+
     def get_pick(self, pick_id: str) -> dict | None:
-        rows = self.db.execute(f"SELECT {', '.join(PICK_COLUMNS)} FROM picks WHERE id = ?", (pick_id,))
+        """One pick of this reader's cell by id (a shared plant database holds other cells' picks too)."""
+        where, params = self._this_cell()
+        rows = self.db.execute(f"SELECT {', '.join(PICK_COLUMNS)} FROM picks WHERE id = ?{where}", [pick_id, *params])
         return pick_json(rows[0]) if rows else None
 
     def get_job(self, job_id: str) -> dict | None:
-        """A job's row: who started it, its recipe and its start arguments (MeasId, PartId ...)."""
+        """A job's row of this reader's cell: who started it, its recipe and its start arguments (MeasId, PartId ...)."""
         cols = ("id", "start_utc", "end_utc", "mode", "interface", "user_name", "recipe", "arguments", "outcome")
-        rows = self.db.execute(f"SELECT {', '.join(cols)} FROM jobs WHERE id = ?", (job_id,))
+        where, params = self._this_cell()
+        rows = self.db.execute(f"SELECT {', '.join(cols)} FROM jobs WHERE id = ?{where}", [job_id, *params])
         if not rows:
             return None
         d = dict(zip(cols, rows[0], strict=True))

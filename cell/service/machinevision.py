@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import contextvars
 import logging
 import secrets
+import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -41,7 +41,6 @@ from typing import Any
 from asyncua import Node, Server, ua
 from asyncua.common.instantiate_util import instantiate
 from asyncua.server.event_generator import EventGenerator
-from asyncua.server.internal_session import InternalSession
 
 from cell.asyncwait import wait_event
 from cell.config import CellConfig
@@ -58,10 +57,11 @@ from cell.events import (
     JobStarted,
     Origin,
     PickVerified,
+    Role,
     TargetChosen,
     VisionStateChanged,
 )
-from cell.recipes import RecipeBook, RecipeError, check_recipe_id
+from cell.recipes import RecipeBook, RecipeError, RecipeInfo, check_recipe_id
 from cell.service.api import (
     AccessDenied,
     BadArgument,
@@ -75,11 +75,13 @@ from cell.service.api import (
     ShuttingDown,
     Snapshot,
     VisionState,
+    needed_role,
 )
 from cell.service.mv_addressspace import DI_URI, MV_URI
 from cell.service.mv_results import ResultMaker, external_id, internal_id, result_data, result_message
 from cell.service.opcua_security import caller_origin
 from cell.service.results import (
+    LookupsBusy,
     MemoryResultStore,
     ResultFilter,
     ResultStore,
@@ -165,53 +167,50 @@ _STATE_TYPES = {node_id(ua.ObjectIds.StateType), node_id(ua.ObjectIds.InitialSta
 _TRANSITION_TYPE = node_id(ua.ObjectIds.TransitionType)
 _HANDLES_KEPT = 1000  # result and recipe handles a client has not released; the oldest go first
 _RESULT_WAIT_MAX_S = 10.0  # the longest GetResultById waits for a result still being made
+_RESULT_POLL_S = 0.05  # how often a waiting GetResultById looks in memory (never in the store) again
 _FILE_MAX_BYTES = 64 * 1024  # a recipe written through a Handle
 _TRIES = 5  # an event that cannot be published is tried this many rounds (about a second apart), then dropped
 
 # The methods served, by their path below the VisionSystem (BrowseNames in the Machine
-# Vision namespace) and the handler's name.
-METHODS: dict[tuple[str, ...], str] = {
-    ("VisionStateMachine", "Halt"): "_halt",
-    ("VisionStateMachine", "Reset"): "_reset",
-    ("VisionStateMachine", "ConfirmAll"): "_confirm_all",
-    ("VisionStateMachine", "SelectModeAutomatic"): "_select_automatic",
-    ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"): "_start_single",
-    ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"): "_start_continuous",
-    ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"): "_stop",
-    ("VisionStateMachine", "AutomaticModeStateMachine", "Abort"): "_abort",
-    ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"): "_simulation_mode",
-    ("RecipeManagement", "GetRecipeListFiltered"): "_get_recipe_list",
-    ("RecipeManagement", "PrepareRecipe"): "_prepare_recipe",
-    ("RecipeManagement", "UnprepareRecipe"): "_unprepare_recipe",
-    ("RecipeManagement", "AddRecipe"): "_add_recipe",
-    ("RecipeManagement", "RemoveRecipe"): "_remove_recipe",
-    ("RecipeManagement", "ReleaseRecipeHandle"): "_release_handle",
-    ("ResultManagement", "GetResultById"): "_get_result",
-    ("ResultManagement", "GetResultComponentsById"): "_get_result_components",
-    ("ResultManagement", "GetResultListFiltered"): "_get_result_list",
-    ("ResultManagement", "ReleaseResultHandle"): "_release_handle",
-    ("SafetyStateManagement", "ReportSafetyState"): "_report_safety",
+# Vision namespace), the handler's name and the least role that may call it, checked before
+# the handler does anything: a command's is the command table's (cell/service/api.py); the
+# others change nothing but what the caller asked for (handles, lists) or, for the safety
+# state and the confirmations, what an operator reports.
+METHODS: dict[tuple[str, ...], tuple[str, Role]] = {
+    ("VisionStateMachine", "Halt"): ("_halt", needed_role(Command.HALT)),
+    ("VisionStateMachine", "Reset"): ("_reset", needed_role(Command.RESET)),
+    ("VisionStateMachine", "ConfirmAll"): ("_confirm_all", Role.OPERATOR),
+    ("VisionStateMachine", "SelectModeAutomatic"): ("_select_automatic", Role.OPERATOR),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"): (
+        "_start_single",
+        needed_role(Command.START_SINGLE),
+    ),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"): (
+        "_start_continuous",
+        needed_role(Command.START_CONTINUOUS),
+    ),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"): ("_stop", needed_role(Command.STOP)),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "Abort"): ("_abort", needed_role(Command.ABORT)),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"): ("_simulation_mode", Role.OPERATOR),
+    ("RecipeManagement", "GetRecipeListFiltered"): ("_get_recipe_list", Role.VIEWER),
+    ("RecipeManagement", "PrepareRecipe"): ("_prepare_recipe", needed_role(Command.PREPARE_RECIPE)),
+    ("RecipeManagement", "UnprepareRecipe"): ("_unprepare_recipe", needed_role(Command.UNPREPARE_RECIPE)),
+    ("RecipeManagement", "AddRecipe"): ("_add_recipe", needed_role(Command.ADD_RECIPE)),
+    ("RecipeManagement", "RemoveRecipe"): ("_remove_recipe", needed_role(Command.REMOVE_RECIPE)),
+    ("RecipeManagement", "ReleaseRecipeHandle"): ("_release_handle", Role.VIEWER),
+    ("ResultManagement", "GetResultById"): ("_get_result", Role.VIEWER),
+    ("ResultManagement", "GetResultComponentsById"): ("_get_result_components", Role.VIEWER),
+    ("ResultManagement", "GetResultListFiltered"): ("_get_result_list", Role.VIEWER),
+    ("ResultManagement", "ReleaseResultHandle"): ("_release_handle", Role.VIEWER),
+    ("SafetyStateManagement", "ReportSafetyState"): ("_report_safety", Role.OPERATOR),
 }
-
-_caller: contextvars.ContextVar[Any] = contextvars.ContextVar("opcua_caller", default=None)
-
-
-def _remember_caller() -> None:
-    """Method callbacks in asyncua are not told who calls; this wraps the session's `call` once
-    so they can read the calling session's user from a context variable."""
-    if getattr(InternalSession.call, "_pick_cell", False):
-        return
-    original = InternalSession.call
-
-    async def call(self: InternalSession, params: list[ua.CallMethodRequest]) -> list[ua.CallMethodResult]:
-        token = _caller.set(self)
-        try:
-            return await original(self, params)
-        finally:
-            _caller.reset(token)
-
-    call._pick_cell = True  # type: ignore[attr-defined]  # a mark on the function: patched once
-    InternalSession.call = call  # type: ignore[method-assign]  # asyncua's method, wrapped on purpose
+# A recipe's own methods (each recipe object in Recipes), with their roles; its Handle (FileType)
+# writes a new recipe, so every one of the Handle's methods needs AddRecipe's.
+RECIPE_METHODS: dict[str, Role] = {
+    "Prepare": needed_role(Command.PREPARE_RECIPE),
+    "Unprepare": needed_role(Command.UNPREPARE_RECIPE),
+}
+HANDLE_ROLE = needed_role(Command.ADD_RECIPE)
 
 
 def _version() -> str:
@@ -237,6 +236,7 @@ class _Transfer:
     node: Node
     data: bytearray
     open_handle: int = 0
+    used_s: float = 0.0  # time.monotonic() of its last call: an idle transfer expires
 
 
 class MachineVisionServer:
@@ -274,6 +274,8 @@ class MachineVisionServer:
         self._written: dict[str, Any] = {}
         self._handles: dict[int, list[str]] = {}
         self._transfers: dict[ua.NodeId, _Transfer] = {}
+        self._recipe_nodes: dict[str, Node] = {}  # recipe id -> its object in Recipes (files and transfers)
+        self._lookups_waiting = 0  # GetResultById calls waiting for the history store
         self._safety = (False, "")
         self._ns: dict[str, int] = {}
         self._generators: dict[str, EventGenerator] = {}
@@ -281,7 +283,6 @@ class MachineVisionServer:
 
     # ---- start and stop ---------------------------------------------------------------
     async def start(self) -> None:
-        _remember_caller()
         s = self.server
         self._ns = {
             "mv": await s.get_namespace_index(MV_URI),
@@ -369,13 +370,15 @@ class MachineVisionServer:
         await self._write_safety()
         await self._refresh_recipe_folder()
 
-    async def _read_only(self) -> None:
+    async def _read_only(self, nodes: set[ua.NodeId] | None = None) -> None:
         """No client writes any variable (the NodeSet declares some writable): state is the cell's,
-        changed only through the methods and their command table."""
+        changed only through the methods and their command table. `nodes`: only these (a new
+        recipe's); None: every node of the application's namespace (once, at start)."""
         aspace, app = self.server.iserver.aspace, self._ns["app"]
         mask = ua.AccessLevel.CurrentRead.mask
         read = ua.DataValue(ua.Variant(mask, _T.Byte))
-        for nid in [n for n in aspace.keys() if n.NamespaceIndex == app]:
+        chosen = nodes if nodes is not None else [n for n in aspace.keys() if n.NamespaceIndex == app]
+        for nid in chosen:
             attrs = aspace[nid].attributes
             for attr in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
                 if attr not in attrs:
@@ -478,13 +481,22 @@ class MachineVisionServer:
 
     # ---- methods ----------------------------------------------------------------------
     async def _bind_methods(self) -> None:
-        for path, handler in METHODS.items():
-            self.server.link_method(await self._child(*path), self._wrap(path[-1], getattr(self, handler)))
+        for path, (handler, role) in METHODS.items():
+            self.server.link_method(await self._child(*path), self._wrap(path[-1], getattr(self, handler), role))
 
-    def _wrap(self, name: str, handler: Callable[..., Awaitable[list[ua.Variant]]]) -> Callable[..., Any]:
+    def _wrap(self, name: str, handler: Callable[..., Awaitable[list[ua.Variant]]], role: Role) -> Callable[..., Any]:
+        """The method as asyncua calls it: the caller's role checked first (deny by default: a
+        caller without one may do nothing), then the handler; a refusal is a status code."""
+
         async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
             values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
             try:
+                origin = self._origin()
+                if not origin.role.may(role):
+                    raise MethodError(
+                        ua.StatusCodes.BadUserAccessDenied,
+                        f"{origin.describe()} may not call {name}: it needs the {role.value} role",
+                    )
                 return await handler(*values)
             except MethodError as e:
                 log.info("OPC UA %s refused: %s", name, e)
@@ -501,14 +513,14 @@ class MachineVisionServer:
 
         return call
 
-    def _origin(self) -> Origin:
-        guarded = caller_origin()  # the cell's server knows each session's user and role
-        if guarded.interface is Interface.OPCUA:
-            return guarded
-        session = _caller.get()
-        user = getattr(session, "user", None)
-        name = getattr(user, "name", None) or ("anonymous" if session is not None else "")
-        return Origin(Interface.OPCUA, name, self.mv.client_role, "")
+    @staticmethod
+    def _origin() -> Origin:
+        """The caller: its user and role as the GuardedServer saw its session (capped at
+        service.machine_vision.client_role). No role, or no client's request: refused."""
+        origin = caller_origin()
+        if origin is None:
+            raise MethodError(ua.StatusCodes.BadUserAccessDenied, "the caller has no role: it may do nothing")
+        return origin
 
     def _command(self, command: Command, request: JobRequest | RecipeRequest | None = None) -> str | None:
         return self.service.command(command, self._origin(), request).job_id
@@ -586,7 +598,7 @@ class MachineVisionServer:
         prepared = self.service.snapshot().recipe
         tri = int(getattr(is_prepared, "value", is_prepared) or 0)
         listed = []
-        for info in self.recipes.list():
+        for info in await asyncio.to_thread(self.recipes.list):
             if info.error or (want_id and info.recipe_id != want_id):
                 continue
             if want_product and want_product not in info.products:
@@ -645,20 +657,48 @@ class MachineVisionServer:
 
     async def _add_recipe(self, external_id: Any = None, product_id: Any = None) -> list[ua.Variant]:
         """A new recipe: its object in Recipes, to be written through its Handle; an identical
-        existing one (same id and hash) needs no transfer."""
+        existing one (same id and hash) needs no transfer. The caller's role was checked before
+        (AddRecipe's, from the command table); the count of recipes and of transfers open at once
+        is bounded (service.machine_vision.recipes_max, recipe_transfers_max): past it,
+        BadTooManyOperations and nothing added."""
         recipe_id = self._recipe_from(external_id, None)
-        existing = {i.recipe_id: i for i in self.recipes.list()}
-        if recipe_id in existing:
+        existing = await asyncio.to_thread(self._existing, recipe_id)
+        if existing is not None:
             given = bytes(getattr(external_id, "Hash", b"") or b"")
-            if given and given.hex() == existing[recipe_id].sha256:
+            if given and given.hex() == existing.sha256:
                 node = await self._recipe_node(recipe_id)
-                return self._add_outputs(recipe_id, existing[recipe_id].sha256, node.nodeid, False)
+                return self._add_outputs(recipe_id, existing.sha256, node.nodeid, False)
             raise MethodError(
                 ua.StatusCodes.BadInvalidArgument, f"recipe {recipe_id!r} exists with other content: remove it first"
             )
-        node = await self._recipe_node(recipe_id, pending=True)
-        self._transfers[node.nodeid] = _Transfer(recipe_id, node, bytearray())
+        again = next((t for t in self._transfers.values() if t.recipe_id == recipe_id), None)
+        if again is not None:  # a client starting over (its connection dropped mid-transfer): the same slot, emptied
+            again.open_handle, again.data, again.used_s = 0, bytearray(), time.monotonic()
+            return self._add_outputs(recipe_id, "", again.node.nodeid, True)
+        mv = self.mv
+        if len(self._transfers) >= mv.recipe_transfers_max:
+            raise MethodError(
+                ua.StatusCodes.BadTooManyOperations,
+                f"{len(self._transfers)} recipe transfers open (service.machine_vision.recipe_transfers_max = "
+                f"{mv.recipe_transfers_max}): close one, or wait {mv.recipe_transfer_timeout_s:g} s for an idle one "
+                "to expire",
+            )
+        if len(self._recipe_nodes) >= mv.recipes_max:
+            raise MethodError(
+                ua.StatusCodes.BadTooManyOperations,
+                f"{len(self._recipe_nodes)} recipes (service.machine_vision.recipes_max = {mv.recipes_max}): "
+                "remove one first",
+            )
+        node = await self._recipe_node(recipe_id)
+        self._transfers[node.nodeid] = _Transfer(recipe_id, node, bytearray(), used_s=time.monotonic())
         return self._add_outputs(recipe_id, "", node.nodeid, True)
+
+    def _existing(self, recipe_id: str) -> RecipeInfo | None:
+        """The recipe file's info (on a worker thread: it reads and hashes the file), None if there is none."""
+        try:
+            return self.recipes.info(recipe_id)
+        except RecipeError:
+            return None
 
     def _add_outputs(self, recipe_id: str, sha: str, node_id: ua.NodeId, transfer: bool) -> list[ua.Variant]:
         return [
@@ -669,23 +709,57 @@ class MachineVisionServer:
             ua.Variant(0, _T.Int32),
         ]
 
-    async def _recipe_node(self, recipe_id: str, pending: bool = False) -> Node:
-        """The RecipeType object for `recipe_id` in Recipes, made if missing, with its Handle bound."""
+    async def _recipe_node(self, recipe_id: str) -> Node:
+        """The RecipeType object for `recipe_id` in Recipes, made if missing, with its Handle bound.
+        Found in the index, never by browsing; made and trimmed touching only its own nodes."""
+        node = self._recipe_nodes.get(recipe_id)
+        if node is not None:
+            return node
         folder, app = self._n["recipe_folder"], self._ns["app"]
         nid = node_id(f"VisionSystem.Recipes.{recipe_id}", app)
-        node = self.server.get_node(nid)
-        with contextlib.suppress(ua.UaStatusCodeError):
-            await node.read_browse_name()
-            return node
         node = await folder.add_object(
             nid, ua.QualifiedName(recipe_id, app), node_id(1002, self._ns["mv"]), instantiate_optional=True
         )
         for name in ("LinkProduct", "UnlinkProduct", "LinkedProducts"):
             with contextlib.suppress(ua.UaStatusCodeError):
-                await self.server.delete_nodes([await node.get_child([f"{self._ns['mv']}:{name}"])], recursive=True)
+                self._delete_subtree((await node.get_child([f"{self._ns['mv']}:{name}"])).nodeid)
         await self._bind_recipe_node(node, recipe_id)
-        await self._read_only()
+        await self._read_only(self._subtree(node.nodeid))
+        self._recipe_nodes[recipe_id] = node
         return node
+
+    def _subtree(self, root: ua.NodeId) -> set[ua.NodeId]:
+        """`root` and its children (components and properties), read from the address space directly."""
+        aspace = self.server.iserver.aspace
+        found: set[ua.NodeId] = set()
+        todo = [root]
+        while todo:
+            nid = todo.pop()
+            if nid in found or nid not in aspace:
+                continue
+            found.add(nid)
+            todo += [r.NodeId for r in aspace[nid].references if r.IsForward and r.ReferenceTypeId in _CHILD_REFS]
+        return found
+
+    def _delete_subtree(self, root: ua.NodeId) -> None:
+        """Delete `root` and its children, and the references to them from the nodes they refer to
+        (references are kept both ways): asyncua's delete_nodes looks through every node of the
+        address space for each node it deletes, which a client could make the loop do at will."""
+        aspace = self.server.iserver.aspace
+        doomed = self._subtree(root)
+        neighbours = {r.NodeId for nid in doomed for r in aspace[nid].references} - doomed
+        for nid in doomed:
+            data = aspace[nid]
+            value = data.attributes.get(ua.AttributeIds.Value)
+            for handle, callback in list(value.datachange_callbacks.items()) if value is not None else []:
+                with contextlib.suppress(Exception):  # a client's monitored item: told the node is gone
+                    callback(handle, None, status(ua.StatusCodes.BadNodeIdUnknown))
+                    aspace.delete_datachange_callback(handle)
+            del aspace[nid]
+        for nid in neighbours:
+            if nid in aspace:
+                data = aspace[nid]
+                data.references = [r for r in data.references if r.NodeId not in doomed]
 
     async def _bind_recipe_node(self, node: Node, recipe_id: str) -> None:
         mv = self._ns["mv"]
@@ -700,8 +774,9 @@ class MachineVisionServer:
             await self._refresh_recipe_folder()
             return [ua.Variant(0, _T.Int32)]
 
-        self.server.link_method(await node.get_child([f"{mv}:Prepare"]), self._wrap("Prepare", prepare))
-        self.server.link_method(await node.get_child([f"{mv}:Unprepare"]), self._wrap("Unprepare", unprepare))
+        handlers = {"Prepare": prepare, "Unprepare": unprepare}
+        for name, role in RECIPE_METHODS.items():
+            self.server.link_method(await node.get_child([f"{mv}:{name}"]), self._wrap(name, handlers[name], role))
         handle = await node.get_child([f"{mv}:Handle"])
         file_methods: dict[str, Callable[..., Awaitable[list[ua.Variant]]]] = {
             "Open": self._file_open,
@@ -718,12 +793,13 @@ class MachineVisionServer:
         async def handler(*args: Any) -> list[ua.Variant]:
             return await fn(recipe_node, *args)
 
-        return self._wrap(f"Handle.{name}", handler)
+        return self._wrap(f"Handle.{name}", handler, HANDLE_ROLE)
 
     def _transfer(self, recipe_node: ua.NodeId, handle: int | None = None) -> _Transfer:
         t = self._transfers.get(recipe_node)
         if t is None or (handle is not None and t.open_handle != handle):
             raise MethodError(ua.StatusCodes.BadInvalidState, "no recipe transfer open on this Handle")
+        t.used_s = time.monotonic()
         return t
 
     async def _file_open(self, recipe_node: ua.NodeId, mode: int = 0) -> list[ua.Variant]:
@@ -760,37 +836,49 @@ class MachineVisionServer:
         try:
             text = bytes(t.data).decode("utf-8")
         except UnicodeDecodeError:
-            await self._drop_transfer(t)
+            self._drop_transfer(t)
             raise MethodError(ua.StatusCodes.BadInvalidArgument, f"recipe {t.recipe_id!r}: not UTF-8 text") from None
         try:
             self._command(Command.ADD_RECIPE, RecipeRequest(t.recipe_id, text))
         except CommandRefused:
-            await self._drop_transfer(t)
+            self._drop_transfer(t)
             raise
         self._transfers.pop(t.node.nodeid, None)
         await self._refresh_recipe_folder()
         return []
 
-    async def _drop_transfer(self, t: _Transfer) -> None:
-        """Forget a refused transfer; its node goes once the call that refused it has been answered
-        (deleting the method's own node while it runs confuses asyncua's reply)."""
+    def _drop_transfer(self, t: _Transfer) -> None:
+        """Forget a transfer (refused, or idle too long); its node goes once the call that refused it
+        has been answered (deleting the method's own node while it runs confuses asyncua's reply)."""
         self._transfers.pop(t.node.nodeid, None)
 
         async def delete() -> None:
             await asyncio.sleep(0.2)
-            with contextlib.suppress(Exception):
-                await self.server.delete_nodes([t.node], recursive=True)
+            await self._refresh_recipe_folder()
 
         task = asyncio.create_task(delete())
         self._background.add(task)
         task.add_done_callback(self._background.discard)
 
+    def _expire_transfers(self) -> None:
+        """Drop every transfer idle for longer than service.machine_vision.recipe_transfer_timeout_s."""
+        timeout_s = self.mv.recipe_transfer_timeout_s
+        now = time.monotonic()
+        for t in [t for t in self._transfers.values() if now - t.used_s > timeout_s]:
+            log.info(
+                "OPC UA AddRecipe %r: no call on its Handle for %g s (recipe_transfer_timeout_s): dropped",
+                t.recipe_id,
+                timeout_s,
+            )
+            self._drop_transfer(t)
+
     async def _refresh_recipe_folder(self) -> None:
-        """One RecipeType object per valid recipe file, with IsPrepared, InternalId, LastModified."""
+        """One RecipeType object per valid recipe file, with IsPrepared, InternalId, LastModified;
+        an object with neither a file nor a transfer goes. The files are read on a worker thread."""
         mv = self._ns["mv"]
         prepared = self.service.snapshot().recipe
         present = set()
-        for info in self.recipes.list():
+        for info in await asyncio.to_thread(self.recipes.list):
             if info.error:
                 continue
             present.add(info.recipe_id)
@@ -805,10 +893,10 @@ class MachineVisionServer:
                 with contextlib.suppress(ua.UaStatusCodeError):
                     await (await node.get_child([f"{mv}:{name}"])).write_value(value)
         pending = set(t.recipe_id for t in self._transfers.values())
-        for child in await self._n["recipe_folder"].get_children(refs=ua.ObjectIds.Organizes):
-            name = (await child.read_browse_name()).Name
-            if name not in present and name not in pending:
-                await self.server.delete_nodes([child], recursive=True)
+        for recipe_id, node in list(self._recipe_nodes.items()):
+            if recipe_id not in present and recipe_id not in pending:
+                self._delete_subtree(node.nodeid)
+                del self._recipe_nodes[recipe_id]
 
     # ---- results ----------------------------------------------------------------------
     def _new_handle(self, ids: list[str]) -> int:
@@ -824,17 +912,62 @@ class MachineVisionServer:
         return self._ok()
 
     async def _wait_result(self, result_id: Any, timeout_ms: int) -> VisionResult:
+        """The result: from memory, where a result still being made appears (looked at again until
+        the client's Timeout, at most _RESULT_WAIT_MAX_S); an older one from the history store,
+        asked once on its own worker thread and waited for at most result_lookup_timeout_s. Nothing
+        here blocks the loop: every other client is answered meanwhile, whatever the database does."""
         wanted = _id(result_id)
         if not wanted:
             raise MethodError(ua.StatusCodes.BadInvalidArgument, "ResultId is empty")
-        deadline = asyncio.get_running_loop().time() + min(max(int(timeout_ms or 0), 0) / 1000.0, _RESULT_WAIT_MAX_S)
-        while True:
-            found = self.results.get(wanted)
-            if found is not None:
-                return found
-            if asyncio.get_running_loop().time() >= deadline:
-                raise MethodError(ua.StatusCodes.BadNotFound, f"result {wanted!r} not found (or no longer kept)")
-            await asyncio.sleep(0.05)
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        client_deadline = start + min(max(int(timeout_ms or 0), 0) / 1000.0, _RESULT_WAIT_MAX_S)
+        deadline = client_deadline
+        found = self.results.get(wanted)
+        if found is not None:
+            return found
+        store: asyncio.Future[VisionResult | None] | None = None
+        busy: LookupsBusy | None = None
+        try:
+            future = self.results.lookup(wanted)
+        except LookupsBusy as e:
+            future, busy = None, e
+        if future is not None:
+            store = asyncio.wrap_future(future)
+            deadline = max(deadline, start + self.mv.result_lookup_timeout_s)
+        try:
+            while True:
+                if store is not None and store.done():
+                    from_store = store.result()
+                    if from_store is not None:
+                        return from_store
+                    store, deadline = None, client_deadline  # not there: memory until the client's Timeout
+                found = self.results.get(wanted)
+                if found is not None:
+                    return found
+                now = loop.time()
+                if now >= deadline:
+                    break
+                wait = min(_RESULT_POLL_S, deadline - now)
+                if store is not None:
+                    await asyncio.wait({store}, timeout=wait)
+                else:
+                    await asyncio.sleep(wait)
+        finally:
+            if store is not None and not store.done():
+                store.cancel()  # a lookup not yet begun is not made; one under way ends on its own
+        if store is not None:
+            raise MethodError(
+                ua.StatusCodes.BadResourceUnavailable,
+                f"result {wanted!r} not in memory, and the history store did not answer within "
+                f"{self.mv.result_lookup_timeout_s:g} s (service.machine_vision.result_lookup_timeout_s)",
+            )
+        if busy is not None:
+            raise MethodError(
+                ua.StatusCodes.BadResourceUnavailable,
+                f"result {wanted!r} not in memory, and the history store was not asked: {busy}",
+            )
+        raise MethodError(ua.StatusCodes.BadNotFound, f"result {wanted!r} not found (or no longer kept)")
 
     async def _get_result(self, result_id: Any = None, timeout: int = 0) -> list[ua.Variant]:
         r = await self._wait_result(result_id, timeout)
@@ -927,6 +1060,7 @@ class MachineVisionServer:
         while True:
             await wait_event(self._wake, 1.0)
             self._wake.clear()
+            self._expire_transfers()
             while self._queue:
                 item = self._queue[0]
                 if not await self._guard(type(item).__name__, self._handle(item)):

@@ -20,12 +20,47 @@ class MachineVisionConfig(Strict):
     asset_id: str = Field("", max_length=64, description="the plant's own name or tag for this cell (DI AssetId)")
     client_role: Role = Field(
         Role.ENGINEER,
-        description="the role an OPC UA client acts with (the configured user, or anyone on loopback): "
-        "engineer may also switch and add recipes; operator only runs jobs",
+        description="the most an OPC UA client may do: the anonymous client on loopback (no users) acts with "
+        "this role, a logged-in user with their own role capped at it; engineer may also switch and add "
+        "recipes; operator only runs jobs; viewer only watches (and may Halt)",
     )
     recipes_dir: Path = Field(Path("recipes"), description="recipe TOML files, one per recipe (cell.recipes)")
     results_kept: int = Field(
         10000, ge=1, le=1_000_000, description="results kept in memory for GetResultById / GetResultListFiltered"
+    )
+    recipes_max: int = Field(
+        200,
+        ge=1,
+        le=10_000,
+        description="recipes in RecipeManagement's Recipes at most (files and recipes being written together); "
+        "AddRecipe past it is refused with BadTooManyOperations",
+    )
+    recipe_transfers_max: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description="recipes being written through their Handle at once (AddRecipe until Close; each holds up to "
+        "64 KiB); AddRecipe past it is refused with BadTooManyOperations",
+    )
+    recipe_transfer_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="a recipe transfer with no call on its Handle for this long is dropped, with its node",
+    )
+    result_lookups_max: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description="GetResultById lookups in the history store at once (one runs, the others wait); past it a "
+        "result not in memory is answered BadResourceUnavailable at once",
+    )
+    result_lookup_timeout_s: float = Field(
+        5.0,
+        gt=0,
+        le=60,
+        description="the longest GetResultById waits for the history store's answer about a result no longer in "
+        "memory (BadResourceUnavailable after it); other clients are served meanwhile",
     )
     model_cache: bool = Field(True, description="cache the address space built from the NodeSets (faster starts)")
     model_cache_dir: Path | None = Field(

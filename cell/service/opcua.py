@@ -11,8 +11,10 @@ a slow client never holds the cell up. Node tree and types: docs/opcua.md.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -133,6 +135,25 @@ _STATUS = {  # a refused command's status code
     Refusal.NOT_RECORDED: ua.StatusCodes.BadResourceUnavailable,
 }
 _RETRY_LOG_S = 60.0
+_READER_CLOSE_WAIT_S = 5.0  # closing the history reader waits for a lookup under way at most this long
+
+
+async def _close_off_loop(reader: Any, wait_s: float) -> None:
+    """Close the history reader on a daemon thread: its close waits for a query under way, which a
+    half-open database connection can hold for ever; the loop (and the shutdown) waits at most `wait_s`."""
+    done: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+    def close() -> None:
+        try:
+            reader.close()
+        finally:
+            done.set_result(None)
+
+    threading.Thread(target=close, name="opcua-history-close", daemon=True).start()
+    try:
+        await asyncio.wait_for(asyncio.wrap_future(done), wait_s)
+    except TimeoutError:
+        log.warning("OPC UA: the history reader did not close within %g s (a query stuck); left to end", wait_s)
 
 
 def _finite(v: float) -> float:
@@ -144,6 +165,7 @@ class OpcUaServer:
         self.service, self.cfg, self.config = service, config.service, config
         self.machine_vision: MachineVisionServer | None = None
         self._reader: Any = None  # the history store, read for results older than memory holds
+        self._history_results: HistoryBackedResults | None = None
         self.secure = credentials_configured(self.cfg)
         self.endpoint = f"opc.tcp://{self.cfg.host}:{self.cfg.opcua_port}/{self.cfg.opcua_path}"
         # issue 21: policies, trust list, users with roles, throttle, limits (cell/service/opcua_security.py)
@@ -242,7 +264,10 @@ class OpcUaServer:
         except Exception as e:  # no store yet, or its server is away: the newest results still answer
             log.warning("OPC UA results: the history store cannot be read (%s); only the newest results are kept", e)
             return memory
-        return HistoryBackedResults(memory, self._reader, simulated)
+        self._history_results = HistoryBackedResults(
+            memory, self._reader, simulated, self.config.service.machine_vision.result_lookups_max
+        )
+        return self._history_results
 
     async def _secure(self) -> None:
         await self.server.secure()  # certificate, configured policies only, user name tokens, trust list
@@ -252,8 +277,12 @@ class OpcUaServer:
             if args:
                 log.warning("OPC UA %s called with %d arguments: refused", command.value, len(args))
                 return status(ua.StatusCodes.BadTooManyArguments)
+            origin = self._origin(parent)
+            if origin is None:  # deny by default: a caller without a role may do nothing
+                log.info("OPC UA %s refused: the caller has no role", command.value)
+                return status(ua.StatusCodes.BadUserAccessDenied)
             try:
-                self.service.command(command, self._origin(parent))
+                self.service.command(command, origin)
             except CommandRefused as e:
                 log.info("OPC UA %s refused: %s", command.value, e)
                 return status(_STATUS[e.reason])
@@ -263,9 +292,10 @@ class OpcUaServer:
         return call
 
     @staticmethod
-    def _origin(parent: ua.NodeId) -> Origin:
-        """Who called: the session's user and role (loopback with no users: anonymous, with every right).
-        Issue 21: cell.service.opcua_security.caller_origin, from the request being handled."""
+    def _origin(parent: ua.NodeId) -> Origin | None:
+        """Who called: the session's user and role, capped at service.machine_vision.client_role
+        (loopback with no users: anonymous, with that role); None: a caller without a role.
+        cell.service.opcua_security.caller_origin, from the request being handled."""
         return caller_origin()
 
     def _on_event(self, loop: asyncio.AbstractEventLoop, event: Event) -> None:
@@ -345,7 +375,9 @@ class OpcUaServer:
                 pass
         if self.machine_vision is not None:
             await self.machine_vision.stop()
+        if self._history_results is not None:
+            self._history_results.close()  # its worker takes no more lookups
         if self._reader is not None:
-            self._reader.close()
+            await _close_off_loop(self._reader, _READER_CLOSE_WAIT_S)
             self._reader = None
         await self.server.stop()

@@ -24,7 +24,10 @@ asyncua Server whose every connection goes through `GuardedProcessor`:
   a cap on the session timeout a client may ask for, subscriptions per session, and a
   session closed as soon as its connection drops (a client reconnecting makes a new one).
 
-The method handlers of cell.service.opcua build the caller's Origin with `caller_origin()`.
+The method handlers of cell.service.opcua and cell.service.machinevision build the caller's
+Origin with `caller_origin()`: the session's user and role, capped at
+`service.machine_vision.client_role` (without users, loopback only: that role); a caller
+without a role, or a call that is no client's request, gets None and is refused everything.
 """
 
 from __future__ import annotations
@@ -95,7 +98,7 @@ class CellUser(User):
 class _Caller:
     user: User | None
     address: str
-    secure: bool
+    role: Role | None  # what the caller may do: None, nothing at all
 
 
 _CALLER: contextvars.ContextVar[_Caller | None] = contextvars.ContextVar("opcua_caller", default=None)
@@ -104,19 +107,27 @@ _VERIFIED: contextvars.ContextVar[tuple[str, str, Role | None] | None] = context
 )
 
 
-def caller_origin() -> Origin:
-    """The Origin of the OPC UA request being handled (call it from an async method handler).
-    A logged-in user's name and role; without users (loopback only) the anonymous local client
-    may do everything, as before; a call from outside a client request is the service's own."""
-    caller = _CALLER.get()
-    if caller is None:
-        return Origin(Interface.SERVICE, "service")
-    user = caller.user
+def caller_role(user: User | None, secure: bool, client_role: Role) -> Role | None:
+    """The role an OPC UA session acts with. `client_role` (service.machine_vision.client_role)
+    is the most any OPC UA client may do: a logged-in user acts with their own role, capped at
+    it; without users (loopback only) the anonymous local client acts with it. A session on a
+    secure server without a user of the cell has no role (None): it may do nothing."""
     if isinstance(user, CellUser):
-        return Origin(Interface.OPCUA, user.name or "", user.cell_role, caller.address)
-    if caller.secure:  # a secure server has only CellUsers: anything else may only watch
-        return Origin(Interface.OPCUA, "", Role.VIEWER, caller.address)
-    return Origin(Interface.OPCUA, "", Role.ADMIN, caller.address)
+        return user.cell_role if user.cell_role.rank <= client_role.rank else client_role
+    if secure:
+        return None
+    return client_role
+
+
+def caller_origin() -> Origin | None:
+    """The Origin of the OPC UA request being handled (call it from an async method handler), or
+    None when it may do nothing: a caller without a role, or a call that is not a client's request
+    on a GuardedServer at all (deny by default: every handler refuses it, BadUserAccessDenied)."""
+    caller = _CALLER.get()
+    if caller is None or caller.role is None:
+        return None
+    name = (caller.user.name or "") if isinstance(caller.user, CellUser) else ""
+    return Origin(Interface.OPCUA, name, caller.role, caller.address)
 
 
 class CellUserManager(UserManager):
@@ -253,6 +264,7 @@ class GuardSettings:
     session_timeout_max_s: float = 60.0
     max_subscriptions_per_session: int = 10
     allowed: frozenset[tuple[str, ua.MessageSecurityMode]] = field(default_factory=frozenset)
+    client_role: Role = Role.ENGINEER  # the most an OPC UA client may do (service.machine_vision.client_role)
 
     @classmethod
     def from_config(cls, config: Any, app_uri: str, secure: bool) -> GuardSettings:
@@ -272,6 +284,7 @@ class GuardSettings:
             activation_timeout_s=limits.activation_timeout_s,
             session_timeout_max_s=limits.session_timeout_max_s,
             max_subscriptions_per_session=limits.max_subscriptions_per_session,
+            client_role=svc.machine_vision.client_role,
         )
 
     def policy_types(self) -> list[ua.SecurityPolicyType]:
@@ -395,9 +408,9 @@ class GuardedProcessor(UaProcessor):
             self.guard.tally.note("closed: a None channel used for more than discovery", self.address)
             _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadSecurityModeInsufficient)
             return False
-        caller = _CALLER.set(
-            _Caller(self.session.user if self.session else None, self.address, self.guard.settings.secure)
-        )
+        user = self.session.user if self.session else None
+        settings = self.guard.settings
+        caller = _CALLER.set(_Caller(user, self.address, caller_role(user, settings.secure, settings.client_role)))
         try:
             if typeid == _CREATE_SESSION:
                 refused = self._session_refusal(peek)

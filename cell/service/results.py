@@ -9,8 +9,10 @@ Frames in names: `table_mm` the plate frame, `robot_mm` the arm's base frame.
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 from collections import OrderedDict
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any, Protocol
@@ -76,12 +78,23 @@ class ResultFilter:
         return all(not want or want == have for want, have in pairs)
 
 
+class LookupsBusy(Exception):
+    """Every slot for lookups in the history store is taken (the store is slow or away): not looked up."""
+
+
 class ResultStore(Protocol):
-    """Where results are kept. Thread-safe: added from the service's event thread, read from OPC UA's loop."""
+    """Where results are kept. Thread-safe: added from the service's event thread, read from OPC UA's loop.
+    `get` and `query` answer from memory and never wait on anything; `lookup` asks a slower store
+    (the history database) on a worker thread, for a result no longer in memory."""
 
     def add(self, result: VisionResult) -> None: ...
 
     def get(self, result_id: str) -> VisionResult | None: ...
+
+    def lookup(self, result_id: str) -> Future[VisionResult | None] | None:
+        """The result from the slower store, answered on a worker thread; None when there is no such
+        store (or it cannot hold this result). LookupsBusy when too many lookups wait already."""
+        ...
 
     def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
         """The matches from `start_index` on (oldest first), at most `max_results`, and how many match in all."""
@@ -109,6 +122,9 @@ class MemoryResultStore:
         with self._lock:
             return self._results.get(result_id)
 
+    def lookup(self, result_id: str) -> Future[VisionResult | None] | None:
+        return None  # memory is all there is
+
     def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
         with self._lock:
             matches = [r for r in self._results.values() if where.matches(r)]
@@ -123,28 +139,78 @@ class HistoryBackedResults:
     """The newest results in memory, and every older pick answered from the history store, so a
     client that was away for longer than the memory holds can still fetch what it missed by id.
 
-    `reader` is a cell.history.query.HistoryReader (opened read-only for this cell); its job rows
-    give the recipe and the specification's ids (MeasId, PartId, ProductId) the job was started with."""
+    `reader` is a cell.history.query.HistoryReader (opened read-only for this cell: it serves this
+    cell's rows only); its job rows give the recipe and the specification's ids (MeasId, PartId,
+    ProductId) the job was started with. The store is read on one worker thread of its own, one
+    query at a time, never on the OPC UA loop: a slow or half-open database delays only the
+    lookups, at most `max_waiting` of them (queued or running); past that `lookup` refuses."""
 
-    def __init__(self, memory: MemoryResultStore, reader: Any, simulated: bool):
-        self.memory, self.reader, self.simulated = memory, reader, simulated
-        self._lock = threading.Lock()  # one query at a time on the reader's connection
+    def __init__(self, memory: MemoryResultStore, reader: Any, simulated: bool, max_waiting: int = 4):
+        if max_waiting < 1:
+            raise ValueError(f"max_waiting {max_waiting}: at least 1")
+        self.memory, self.reader, self.simulated, self.max_waiting = memory, reader, simulated, max_waiting
+        self._jobs: queue.SimpleQueue[tuple[str, Future[VisionResult | None]] | None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._waiting = 0  # lookups queued or running
+        self._thread: threading.Thread | None = None
+        self._closed = False
 
     def add(self, result: VisionResult) -> None:
         self.memory.add(result)
 
     def get(self, result_id: str) -> VisionResult | None:
-        found = self.memory.get(result_id)
-        if found is not None or result_id.endswith("/end"):
-            return found
+        return self.memory.get(result_id)
+
+    @property
+    def waiting(self) -> int:
         with self._lock:
-            try:
-                pick = self.reader.get_pick(result_id)
-                job = self.reader.get_job(pick["job_id"]) if pick else None
-            except Exception:  # the store is a fallback: its trouble is logged, the answer is "not found"
-                log.warning("results: the history store could not be read for %s", result_id, exc_info=True)
+            return self._waiting
+
+    def lookup(self, result_id: str) -> Future[VisionResult | None] | None:
+        if result_id.endswith("/end"):  # a job's end is a result of memory only
+            return None
+        with self._lock:
+            if self._closed:
                 return None
-        return None if pick is None else self._from_history(pick, job or {})
+            if self._waiting >= self.max_waiting:
+                raise LookupsBusy(
+                    f"{self._waiting} lookups already wait for the history store "
+                    f"(service.machine_vision.result_lookups_max = {self.max_waiting})"
+                )
+            self._waiting += 1
+            if self._thread is None:  # a daemon: a read stuck on a dead connection never holds the exit
+                self._thread = threading.Thread(target=self._work, name="opcua-result-lookup", daemon=True)
+                self._thread.start()
+        future: Future[VisionResult | None] = Future()
+        self._jobs.put((result_id, future))
+        return future
+
+    def close(self) -> None:
+        """No more lookups; the worker ends after the one it is in (it is not waited for)."""
+        with self._lock:
+            self._closed = True
+        self._jobs.put(None)
+
+    def _work(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            result_id, future = job
+            try:
+                if future.set_running_or_notify_cancel():  # a caller that gave up is not looked up
+                    future.set_result(self._read(result_id))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller, never the thread's end
+                future.set_exception(e)
+            finally:
+                with self._lock:
+                    self._waiting -= 1
+
+    def _read(self, result_id: str) -> VisionResult | None:
+        try:
+            pick = self.reader.get_pick(result_id)
+            job = self.reader.get_job(pick["job_id"]) if pick else None
+            return None if pick is None else self._from_history(pick, job or {})
+        except Exception:  # the store is a fallback: its trouble is logged, the answer is "not found"
+            log.warning("results: the history store could not be read for %s", result_id, exc_info=True)
+            return None
 
     def query(self, where: ResultFilter, start_index: int, max_results: int) -> tuple[list[VisionResult], int]:
         return self.memory.query(where, start_index, max_results)
