@@ -158,6 +158,80 @@ def test_halt_then_reset_and_nothing_but_reset_in_halted(tmp_path):
     assert safe[-2:] == ["home", "release torque"]
 
 
+class TorqueSpy:
+    """The simulated arm's torque, as the safe stop leaves it: `stop()` calls counted."""
+
+    def __init__(self, arm):
+        self.arm, self.released = arm, 0
+        inner = arm.stop
+
+        def stop():
+            self.released += 1
+            inner()
+
+        arm.stop = stop
+
+
+def test_a_halt_between_jobs_releases_the_torque_before_halted(tmp_path):
+    """A job that clears the table parks the arm with its torque on: a Halt then is the safe stop of
+    the parked arm (connected, torque released), and the cell shows Halted only after it."""
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="the job to end")
+        torque = TorqueSpy(service.cell.arm)
+        service.command(Command.HALT)
+        with pytest.raises(InvalidState, match="coming to rest|not allowed in Halted"):
+            service.command(Command.START_SINGLE)  # never a job beside the safe stop
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted")
+        assert torque.released == 1
+    events = read_shift(tmp_path / "logs")
+    halt = max(i for i, e in enumerate(events) if e["kind"] == "command" and e["command"] == "Halt")
+    steps = [(e["step"], e["ok"]) for e in events[halt:] if e["kind"] == "safe_step"]
+    assert steps == [("connect", True), ("finish motion", True), ("open gripper", True), ("release torque", True)]
+    halted = [e for e in events[halt:] if e["kind"] == "vision_state" and e["target"] == "Halted"]
+    assert halted and events.index(halted[0]) > halt + len(steps)
+
+
+def test_as_a_job_ends_only_halt_is_taken_and_it_makes_the_parked_arm_safe(tmp_path, monkeypatch):
+    """While the counters catch up after a job (the arm already parked), Pause, Stop and Abort
+    can no longer act: they are refused, not recorded as accepted; a Halt then still gets the safe
+    stop before the cell shows Halted."""
+    from cell.events import RunEnded
+
+    monkeypatch.setattr("cell.service.service._LEDGER_CATCH_UP_S", 120.0)
+    ended, go_on = threading.Event(), threading.Event()
+    handle = Ledger.handle
+
+    def slow_ledger(self, event):
+        if isinstance(event, RunEnded):  # the job's last event: the window stays open until told
+            ended.set()
+            go_on.wait(60)
+        return handle(self, event)
+
+    monkeypatch.setattr(Ledger, "handle", slow_ledger)
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_SINGLE)
+        assert ended.wait(60), "the job did not end"
+        torque = TorqueSpy(service.cell.arm)
+        assert service.snapshot().vision_state == V.SINGLE_EXECUTION  # the counters are catching up
+        assert service.snapshot().allowed == {Command.HALT}
+        for command in (Command.PAUSE, Command.STOP, Command.ABORT):
+            with pytest.raises(InvalidState, match="coming to rest"):
+                service.command(command)
+        service.command(Command.HALT)
+        go_on.set()
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted")
+        assert torque.released == 1
+    commands = [(e["command"], e["accepted"]) for e in read_shift(tmp_path / "logs") if e["kind"] == "command"]
+    assert commands == [
+        ("StartSingleJob", True),
+        ("Pause", False),
+        ("Stop", False),
+        ("Abort", False),
+        ("Halt", True),
+    ]
+
+
 def test_a_fault_raises_an_alarm_and_needs_a_reset(tmp_path):
     # the table is 10 mm higher than the planner thinks: the first descent drives the tool into it
     with running(small_config(tmp_path, truth_table_z_mm=10.0)) as service:
@@ -298,7 +372,7 @@ def test_roles_are_checked_by_the_command_table(tmp_path):
         with pytest.raises(AccessDenied, match="StartSingleJob needs the operator role; guest is viewer"):
             service.command(Command.START_SINGLE, viewer)
         service.command(Command.HALT, viewer)  # anyone who sees the cell may halt it
-        assert service.snapshot().vision_state == V.HALTED
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted (after the safe stop)")
     refused = [e for e in read_shift(tmp_path / "logs") if e["kind"] == "command" and not e["accepted"]]
     assert refused[-1]["refusal"] == "access_denied" and refused[-1]["origin"]["user"] == "guest"
 

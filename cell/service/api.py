@@ -130,13 +130,19 @@ class Rest:
     state: VisionState
     pausing: bool = False
     paused: bool = False
+    ending: bool = False  # the job has ended (the arm parked or made safe) or a Halt's safe stop runs: only Halt acts
+
+
+# What a cell coming to rest (`Rest.ending`) still takes: Halt (its safe stop follows whatever the job
+# did) and the recipe files (nothing moves); anything else could only be recorded and then do nothing.
+WHILE_ENDING = frozenset({Command.HALT, Command.ADD_RECIPE, Command.REMOVE_RECIPE})
 
 
 def allowed(
-    state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = ""
+    state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = "", ending: bool = False
 ) -> frozenset[Command]:
     """The commands the state accepts (any role), as every interface shows them (buttons enabled)."""
-    rest = Rest(state, pausing, pausing if paused is None else paused)
+    rest = Rest(state, pausing, pausing if paused is None else paused, ending)
     return frozenset(c for c in STATE_COMMANDS if state_refusal(c, rest, hold) is None)
 
 
@@ -146,6 +152,8 @@ def state_refusal(command: Command, rest: Rest, hold: str = "") -> str | None:
     where = f"{rest.state.value}{' (paused)' if rest.paused else ' (pausing)' if rest.pausing else ''}"
     if rest.state not in states:
         return f"{command.value} is not allowed in {where}"
+    if rest.ending and command not in WHILE_ENDING:
+        return f"{command.value} is not allowed in {where}: the cell is coming to rest (wait until it is)"
     if command is Command.PAUSE and rest.pausing:
         return f"{command.value} is not allowed in {where}: already pausing"
     if command is Command.RESUME and not rest.pausing:

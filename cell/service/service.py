@@ -60,7 +60,7 @@ from cell.events import (
 from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
 from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
-from cell.runner import Runner
+from cell.runner import Runner, make_parked_arm_safe
 from cell.service.api import (
     AccessDenied,
     Alarm,
@@ -144,6 +144,9 @@ class _Job:
     halt: bool = False  # Halt or a signal: end in Halted
     abort: bool = False  # Abort: the safe stop, then Ready
     fault: tuple[str, str, str] | None = None  # (reason, hint, source) of a fault raised from outside the job
+    ended: bool = False  # its runner has returned (the counters catch up): only Halt can still act
+    halt_only: bool = False  # no job: a Halt between jobs, the safe stop of the parked arm
+    made_safe: bool = False  # the arm's torque was released (by the runner's safe stop or after it)
 
 
 HEIGHT_WARNING = "camera-height"  # the warning alarm's key while the calibration's camera height is in doubt
@@ -362,9 +365,13 @@ class LineService:
         job.controls.request(job.controls.pause, on=False)
 
     def _cmd_halt(self, origin: Origin, request: Any) -> None:
+        """The safe stop, whatever the moment: a running job's runner makes the arm safe; between jobs
+        (or once the job has parked the arm) the worker does, and the state is Halted after it."""
         job = self._job
-        if job is None:  # between jobs the arm is already parked and at rest
-            self._set_state(V.HALTED, f"halted between jobs by {origin.describe()}")
+        if job is None:  # the last job parked the arm with its torque on: the worker releases it
+            job = _Job("", "halt", Controls(), origin, JobRequest(), halt=True, ended=True, halt_only=True)
+            self._job = job
+            self._jobs.put(job)
             return
         job.halt = True
         job.controls.request(job.controls.stop, reason=f"Halt from {origin.interface.value}")
@@ -505,12 +512,12 @@ class LineService:
                 alarm=self._alarm,
                 calibration=self._vision.info,
                 heartbeat=self.heartbeat,
-                allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason()),
+                allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason(), rest.ending),
                 pausing=rest.pausing and not rest.paused,
-                job_id=job.job_id if job is not None else "",
+                job_id=job.job_id if job is not None else "",  # "" for a Halt between jobs
                 recipe=self._recipe_id,
                 simulated=self.cell.sim is not None or not self.cell.expect_motion,
-                job_mode=job.mode if job is not None else "",
+                job_mode=job.mode if job is not None and not job.halt_only else "",
                 hold=self._hold_reason(),
                 warnings=tuple(self._warnings.values()),
                 subscribers=self.bus.stats(),
@@ -593,6 +600,18 @@ class LineService:
             release_free_memory()  # at rest: what the job's frames used goes back to the system
 
     def _run_job(self, job: _Job) -> None:
+        if job.halt_only:
+            self._make_parked_arm_safe(job)
+            with self._lock:
+                self._job = None
+                if job.fault is not None:  # raised by another part while the arm was made safe
+                    reason, hint, source = job.fault
+                    self._raise_fault_alarm(reason, hint, source)
+                    self._set_state(V.ERROR, reason)
+                else:
+                    self._set_state(V.HALTED, f"halted between jobs by {job.origin.describe()}")
+            self._changed("state")
+            return
         outcome, reason, counts = "fault", "", {}
         try:
             self.record.best_effort = False
@@ -616,16 +635,35 @@ class LineService:
                 calibration_id=perception.calibration_id,
             )
             summary = job.runner.run()
+            job.made_safe = job.runner.made_safe
             outcome, reason, counts = summary.outcome, summary.reason, summary.counts()
         except (*REPORTED_ERRORS, OSError) as e:  # the record could not be opened: nothing moved
             reason = f"{type(e).__name__}: {e}"
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
             log.exception("job %s ended by an internal error", job.job_id)
             reason = f"internal error: {type(e).__name__}: {e}"
-        self._ledger_sub.wait_idle(_LEDGER_CATCH_UP_S)  # the arm is at rest: the counters catch up before Ready
         with self._lock:
-            self._end_job(job, outcome, reason, counts)
+            job.ended = True  # from now on only Halt acts (on the parked arm, below)
+        self._changed("state")
+        self._ledger_sub.wait_idle(_LEDGER_CATCH_UP_S)  # the arm is at rest: the counters catch up before Ready
+        while True:
+            with self._lock:
+                if not ((job.halt or job.abort) and not job.made_safe):
+                    self._end_job(job, outcome, reason, counts)
+                    break
+            self._make_parked_arm_safe(job)  # a Halt came as the job ended: the arm only parked
         self._changed("alarm" if outcome == "fault" else "state")
+
+    def _make_parked_arm_safe(self, job: _Job) -> None:
+        """The worker's safe stop of an arm no runner holds (cell.runner.make_parked_arm_safe)."""
+        job.made_safe = True  # tried once: a failed step is in the record, the state says Halted anyway
+        make_parked_arm_safe(
+            self.cell.arm,
+            self.config.run.motion_timeout_s,
+            _JobEvents(self.bus),
+            f"Halt from {job.origin.describe()}",
+            job.job_id or None,
+        )
 
     def _end_job(self, job: _Job, outcome: str, reason: str, counts: Counts | None = None) -> None:
         """Under the lock: the job's end recorded, the outward state set, a fault's alarm raised."""
@@ -655,7 +693,8 @@ class LineService:
         pausing = job.controls.pause.is_set()
         runner = job.runner
         paused = pausing and runner is not None and runner.sm.state is State.PAUSED
-        return Rest(self._vstate, pausing, paused)
+        ending = job.ended or (runner is not None and runner.ending)
+        return Rest(self._vstate, pausing and not ending, paused and not ending, ending)
 
     def _at_rest(self) -> bool:
         """Nothing moves and no job captures: Ready, Halted or Error between jobs, or a job paused."""
