@@ -323,6 +323,46 @@ def test_plate_image_and_a_new_calibration_only_at_rest(tmp_path):
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
 
 
+def test_nothing_that_moves_the_arm_is_taken_while_a_plate_image_is_captured(tmp_path):
+    """A plate capture from a paused job: Stop and Abort would home the arm into the image, Resume
+    and Start would move it: all refused until the image is taken; Halt is never refused."""
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        render, capturing, taken = service.cell.plate_image, threading.Event(), threading.Event()
+
+        def slow_plate():
+            capturing.set()
+            assert taken.wait(60)
+            return render()
+
+        service.cell.plate_image = slow_plate
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        service.command(Command.PAUSE)
+        wait_for(lambda: service.snapshot().paused, what="paused at rest")
+        images = []
+        capture = threading.Thread(target=lambda: images.append(service.capture_plate_image()))
+        capture.start()
+        assert capturing.wait(30)
+        assert service.snapshot().allowed == {Command.HALT}
+        for command in (Command.STOP, Command.ABORT, Command.RESUME):
+            with pytest.raises(InvalidState, match="a plate image is being captured"):
+                service.command(command)
+        taken.set()
+        capture.join(30)
+        assert images and images[0].shape == (540, 960, 3)
+        service.command(Command.STOP)  # the image taken: the job may end, the arm home
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
+    commands = [(e["command"], e["accepted"]) for e in read_shift(tmp_path / "logs") if e["kind"] == "command"]
+    assert commands[-5:] == [
+        ("CapturePlate", True),
+        ("Stop", False),
+        ("Abort", False),
+        ("Resume", False),
+        ("Stop", True),
+    ]
+
+
 def test_a_live_frame_only_at_rest_and_never_recorded(tmp_path):
     no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(small_config(tmp_path, feeder=no_feeder)) as service:

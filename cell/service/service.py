@@ -512,7 +512,9 @@ class LineService:
                 alarm=self._alarm,
                 calibration=self._vision.info,
                 heartbeat=self.heartbeat,
-                allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason(), rest.ending),
+                allowed=allowed(
+                    self._vstate, rest.pausing, rest.paused, self._hold_reason(), rest.ending, rest.capturing
+                ),
                 pausing=rest.pausing and not rest.paused,
                 job_id=job.job_id if job is not None else "",  # "" for a Halt between jobs
                 recipe=self._recipe_id,
@@ -687,14 +689,14 @@ class LineService:
 
     # ---- helpers ----------------------------------------------------------------------------------
     def _rest(self) -> Rest:
-        job = self._job
+        job, capturing = self._job, self._still_ops > 0
         if job is None:
-            return Rest(self._vstate)
+            return Rest(self._vstate, capturing=capturing)
         pausing = job.controls.pause.is_set()
         runner = job.runner
         paused = pausing and runner is not None and runner.sm.state is State.PAUSED
         ending = job.ended or (runner is not None and runner.ending)
-        return Rest(self._vstate, pausing and not ending, paused and not ending, ending)
+        return Rest(self._vstate, pausing and not ending, paused and not ending, ending, capturing)
 
     def _at_rest(self) -> bool:
         """Nothing moves and no job captures: Ready, Halted or Error between jobs, or a job paused."""
