@@ -55,14 +55,15 @@ class AuditLog:
         """The write error that broke the log, if any (later events were dropped)."""
         return self._file.failed
 
-    def record(self, event: Event) -> dict[str, Any] | None:
-        """Write one typed event; a StateChanged moves the stamped state on after its own line."""
+    def record(self, event: Event, best_effort: bool = False) -> dict[str, Any] | None:
+        """Write one typed event; a StateChanged moves the stamped state on after its own line.
+        `best_effort`: this event is dropped, not raised, if it cannot be written."""
         if not event.audited:
             return None
         fields = event.record()
         if event.job_id is not None:
             fields = {"job": event.job_id, **fields}
-        line = self.event(event.kind, **fields)
+        line = self._line(event.kind, fields, best_effort)
         if isinstance(event, StateChanged):
             self.state = event.target
         return line
@@ -70,6 +71,9 @@ class AuditLog:
     emit = record  # an AuditLog is a bus with one record and no subscribers
 
     def event(self, kind: str, **fields: Any) -> dict[str, Any]:
+        return self._line(kind, fields, False)
+
+    def _line(self, kind: str, fields: dict[str, Any], best_effort: bool) -> dict[str, Any]:
         self._seq += 1
         record = {
             "seq": self._seq,
@@ -80,7 +84,7 @@ class AuditLog:
             **to_json(fields),
         }
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
-            if not self.best_effort:  # every write, not only the first: nothing runs without its record
+            if not (self.best_effort or best_effort):  # every write, not only the first: nothing runs without it
                 failed = self.failed
                 why = "the log is closed" if failed is None else (failed.strerror or str(failed))
                 raise AuditWriteFailed(

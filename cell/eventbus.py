@@ -174,6 +174,13 @@ class Subscription:
             return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue))
 
 
+class Record(Protocol):
+    """A synchronous record's write: raises when it cannot write, unless best effort (its owner's
+    switch, or this one call's)."""
+
+    def __call__(self, event: Event, best_effort: bool = False) -> object: ...
+
+
 class RecordOwner(Protocol):
     """What keeps a synchronous record (the audit log): its writes raise unless best effort."""
 
@@ -184,14 +191,14 @@ class EventBus:
     """The one stream: `emit` from the runner or the service; records and subscribers listen."""
 
     def __init__(self) -> None:
-        self._records: list[Callable[[Event], object]] = []
+        self._records: list[Record] = []
         self._subs: tuple[Subscription, ...] = ()
         self._lock = threading.Lock()
         self._best_effort = False
         self._record_objs: list[RecordOwner] = []
 
     # ---- listeners -----------------------------------------------------------------------
-    def add_record(self, record: Callable[[Event], object], owner: RecordOwner | None = None) -> None:
+    def add_record(self, record: Record, owner: RecordOwner | None = None) -> None:
         """A synchronous record (the audit log): `owner.best_effort` follows the bus's."""
         self._records.append(record)
         if owner is not None:
@@ -234,14 +241,24 @@ class EventBus:
         for owner in self._record_objs:
             owner.best_effort = on
 
-    def emit(self, event: Event) -> None:
-        """Records first (may raise: the record could not be kept), then every subscriber's queue."""
+    def emit(self, event: Event, *, best_effort: bool = False, unrecorded_too: bool = True) -> None:
+        """Records first (may raise: the record could not be kept), then every subscriber's queue.
+        `best_effort`: this one event is written if it can be, never raised (a record owner that
+        knows it, e.g. the service's shift log, then does not try a new file for it). With
+        `unrecorded_too` False an event whose record failed reaches no subscriber (a job start
+        refused for its record: nothing started, so nobody hears of it)."""
+        recorded = False
         try:
             for record in self._records:
-                record(event)
+                if best_effort:
+                    record(event, best_effort=True)
+                else:
+                    record(event)
+            recorded = True
         finally:
-            for sub in self._subs:
-                sub.offer(event)
+            if recorded or unrecorded_too:
+                for sub in self._subs:
+                    sub.offer(event)
 
     # ---- state -----------------------------------------------------------------------------
     def stats(self) -> tuple[SubscriberStats, ...]:

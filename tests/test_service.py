@@ -488,6 +488,38 @@ def test_a_full_disk_faults_the_job_and_nothing_starts_until_the_record_can_be_w
     assert len(verified) >= before + 1
 
 
+def test_a_start_whose_job_start_cannot_be_recorded_is_refused_and_starts_nothing(tmp_path, monkeypatch):
+    """The disk fills between the command's line and the job's: the start is refused (NotRecorded,
+    never an error out of the command path), no job runs, no subscriber hears of a start."""
+    import errno
+
+    from cell.events import JobStarted, RunStarted
+    from cell.recordfile import RecordFile
+    from cell.service.api import NotRecorded
+
+    class FullAtJobStart(RecordFile):
+        def _write(self, data):
+            if b'"kind":"job_start"' in data:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return super()._write(data)
+
+    monkeypatch.setattr("cell.audit.RecordFile", FullAtJobStart)
+    with running(small_config(tmp_path)) as service:
+        heard = []
+        sub = service.subscribe("test", heard.append, kinds=(JobStarted, RunStarted))
+        with pytest.raises(NotRecorded, match="StartSingleJob not carried out: .*No space left on device"):
+            service.command(Command.START_SINGLE)
+        snap = service.snapshot()
+        assert (snap.vision_state, snap.job_id) == (V.READY, "")
+        assert Command.START_SINGLE in snap.allowed  # nothing is left half-started
+        assert sub.wait_idle(30) and service.bus.wait_idle(30)
+        assert heard == []
+    events = read_shift(tmp_path / "logs")
+    starts = [e for e in events if e["kind"] == "command" and e["command"] == "StartSingleJob"]
+    assert starts[-1]["accepted"] is False and starts[-1]["refusal"] == "not_recorded"
+    assert not [e for e in events if e["kind"] in ("job_start", "run_start", "job_end")]
+
+
 def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one_is_installed(tmp_path):
     """The part-height correction needs the camera's height: while the active calibration does not
     know it to 5 %, the service shows a warning alarm (no Reset needed); a calibration that knows it

@@ -339,9 +339,14 @@ class LineService:
     def _start_job(self, mode: str, origin: Origin, request: Any) -> str:
         req = request if isinstance(request, JobRequest) else JobRequest()
         job = _Job(new_job_id(), mode, Controls(), origin, req)
-        self.bus.emit(
-            JobStarted(job_id=job.job_id, mode=mode, origin=origin, recipe=self._recipe_id, arguments=req.as_json())
+        started = JobStarted(
+            job_id=job.job_id, mode=mode, origin=origin, recipe=self._recipe_id, arguments=req.as_json()
         )
+        try:  # nothing starts without its record, and nobody hears of a start that was not recorded
+            self.bus.emit(started, unrecorded_too=False)
+        except AuditWriteFailed as e:
+            command = Command.START_SINGLE if mode == "single" else Command.START_CONTINUOUS
+            raise NotRecorded(command, f"{command.value} not carried out: {e}", self._vstate) from None
         self._job = job
         self._jobs.put(job)
         self._set_state(V.SINGLE_EXECUTION if mode == "single" else V.CONTINUOUS_EXECUTION, "job started")
