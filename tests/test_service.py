@@ -520,6 +520,25 @@ def test_a_start_whose_job_start_cannot_be_recorded_is_refused_and_starts_nothin
     assert not [e for e in events if e["kind"] in ("job_start", "run_start", "job_end")]
 
 
+def test_making_safe_on_a_really_full_disk_creates_no_log_file_per_event(tmp_path):
+    """The audit log's folder on a real filesystem that fills during a job: the job faults and
+    makes the arm safe with its record best effort, and the shift log keeps its broken file
+    rather than listing the folder and creating a new file for every event of the safe stop."""
+    from tests.tmpfs import fill, small_tmpfs
+
+    logs = tmp_path / "logs"
+    with small_tmpfs(logs), running(small_config(tmp_path)) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        before = sorted(p.name for p in logs.glob("cell-*.jsonl"))
+        fill(logs)
+        wait_for(lambda: service.snapshot().vision_state == V.ERROR, what="the fault")
+        assert "No space left on device" in service.snapshot().alarm.reason
+        assert service.bus.wait_idle(30)
+        after = sorted(p.name for p in logs.glob("cell-*.jsonl"))
+        assert after == before, f"files created while making safe on a full disk: {sorted(set(after) - set(before))}"
+
+
 def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one_is_installed(tmp_path):
     """The part-height correction needs the camera's height: while the active calibration does not
     know it to 5 %, the service shows a warning alarm (no Reset needed); a calibration that knows it

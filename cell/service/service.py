@@ -74,6 +74,7 @@ from cell.service.api import (
     LiveFrame,
     NotRecorded,
     RecipeRequest,
+    Refusal,
     Rest,
     ShuttingDown,
     Snapshot,
@@ -326,6 +327,11 @@ class LineService:
         )
         if refused is None:
             self.bus.emit(event)
+        elif refused.reason is Refusal.NOT_RECORDED:  # its record broke: a new file is tried for the refusal
+            try:
+                self.bus.emit(event)
+            except AuditWriteFailed as e:
+                log.error("not recorded (%s): %s", event.kind, e)
         else:
             self._emit_best_effort(event)
 
@@ -731,8 +737,8 @@ class LineService:
 
     def _emit_best_effort(self, event: Event) -> None:
         """A record that must not stop what it records (a refusal, a fault's alarm, the service's end)."""
-        try:
-            self.bus.emit(event)
+        try:  # best effort down to the shift log: a broken file is not replaced for this event
+            self.bus.emit(event, best_effort=True)
         except AuditWriteFailed as e:
             log.error("not recorded (%s): %s", event.kind, e)
 
@@ -749,8 +755,8 @@ class _JobEvents:
         self.bus, self.best_effort = bus, False
 
     def emit(self, event: Event) -> None:
-        try:
-            self.bus.emit(event)
+        try:  # the switch goes down to the shift log: making safe on a full disk creates no file per event
+            self.bus.emit(event, best_effort=self.best_effort)
         except AuditWriteFailed:
             if not self.best_effort:
                 raise
