@@ -724,7 +724,20 @@ class LineService:
     def _hold_reason(self) -> str:
         if self._still_ops:
             return "a plate image is being captured for recalibration"
+        if broken := self._history_broken():
+            return broken
         return next(iter(self._holds.values()), "")
+
+    def _history_broken(self) -> str:
+        """Why no job may start while the required history cannot be written ("" when it can): the
+        fault's alarm is raised once, but a Reset does not mend the store, so this holds every start
+        (and resume) until the store's writer has written again."""
+        if self.history is None or not self.config.history.required:
+            return ""
+        error = str(getattr(self.history, "write_error", "") or "")
+        if not error:
+            return ""
+        return f"{error} (hint: free space on the data folder's disk (history.data_dir) or fix the database)"
 
     def _set_state(self, state: VisionState, reason: str) -> None:
         """Under the lock; the caller tells the interfaces once it has let go of it."""
