@@ -63,7 +63,14 @@ class AuditLog:
         fields = event.record()
         if event.job_id is not None:
             fields = {"job": event.job_id, **fields}
-        line = self._line(event.kind, fields, best_effort)
+        if best_effort and not self.best_effort:  # this one event only
+            self.best_effort = True
+            try:
+                line = self.event(event.kind, **fields)
+            finally:
+                self.best_effort = False
+        else:
+            line = self.event(event.kind, **fields)
         if isinstance(event, StateChanged):
             self.state = event.target
         return line
@@ -71,9 +78,6 @@ class AuditLog:
     emit = record  # an AuditLog is a bus with one record and no subscribers
 
     def event(self, kind: str, **fields: Any) -> dict[str, Any]:
-        return self._line(kind, fields, False)
-
-    def _line(self, kind: str, fields: dict[str, Any], best_effort: bool) -> dict[str, Any]:
         self._seq += 1
         record = {
             "seq": self._seq,
@@ -84,7 +88,7 @@ class AuditLog:
             **to_json(fields),
         }
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
-            if not (self.best_effort or best_effort):  # every write, not only the first: nothing runs without it
+            if not self.best_effort:  # every write, not only the first: nothing runs without its record
                 failed = self.failed
                 why = "the log is closed" if failed is None else (failed.strerror or str(failed))
                 raise AuditWriteFailed(
