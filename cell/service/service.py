@@ -674,7 +674,7 @@ class LineService:
             self.cell.arm,
             self.config.run.motion_timeout_s,
             _JobEvents(self.bus),
-            f"Halt from {job.origin.describe()}",
+            f"{'Halt' if job.halt else 'Abort'} from {job.origin.describe()}",
             job.job_id or None,
         )
 
@@ -686,9 +686,10 @@ class LineService:
             outcome, (reason, hint, source) = "fault", job.fault
             reason = f"{reason} (hint: {hint})"
         ended = "halted" if job.halt and outcome != "fault" else outcome
-        self._emit_best_effort(
-            JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
-        )
+        if not job.halt_only:  # a Halt between jobs started no job: it ends none
+            self._emit_best_effort(
+                JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
+            )
         if outcome == "fault":
             what, hint = split_hint(reason)
             self._raise_fault_alarm(what, hint, source)
