@@ -55,14 +55,22 @@ class AuditLog:
         """The write error that broke the log, if any (later events were dropped)."""
         return self._file.failed
 
-    def record(self, event: Event) -> dict[str, Any] | None:
-        """Write one typed event; a StateChanged moves the stamped state on after its own line."""
+    def record(self, event: Event, best_effort: bool = False) -> dict[str, Any] | None:
+        """Write one typed event; a StateChanged moves the stamped state on after its own line.
+        `best_effort`: this event is dropped, not raised, if it cannot be written."""
         if not event.audited:
             return None
         fields = event.record()
         if event.job_id is not None:
             fields = {"job": event.job_id, **fields}
-        line = self.event(event.kind, **fields)
+        if best_effort and not self.best_effort:  # this one event only
+            self.best_effort = True
+            try:
+                line = self.event(event.kind, **fields)
+            finally:
+                self.best_effort = False
+        else:
+            line = self.event(event.kind, **fields)
         if isinstance(event, StateChanged):
             self.state = event.target
         return line

@@ -26,11 +26,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
-from cell.events import Event, FrameLocated
+from cell.events import Event, FrameLocated, PickOrderChosen
 
 log = logging.getLogger(__name__)
 
 Handler = Callable[[Event], object]  # its return value is not used
+_GONE = Event()  # what a dropped slot holds: the frame it held is let go at once
 _LOG_EVERY_S = 60.0  # a failing or overflowing subscriber is logged at most this often
 
 
@@ -44,12 +45,28 @@ class SubscriberStats:
 
 
 class _Box:
-    """A queue slot whose event a newer frame may replace until it is taken."""
+    """A queue slot. A frame's slot is dropped for a newer frame until it is taken, with the slots
+    of the events queued after it that exist only for it (`followers`: its pick order), unless an
+    event after it that must be delivered refers to it (`pinned`)."""
 
-    __slots__ = ("event", "taken")
+    __slots__ = ("event", "taken", "dead", "pinned", "followers")
 
     def __init__(self, event: Event):
-        self.event, self.taken = event, False
+        self.event, self.taken, self.dead, self.pinned = event, False, False, False
+        self.followers: list[_Box] = []
+
+
+# Events that only describe a frame (the screen's pick order): dropped with the frame they refer to.
+_FRAME_ONLY: frozenset[type[Event]] = frozenset({PickOrderChosen})
+
+
+def _frame_of(event: Event) -> int | None:
+    """The frame number an event (not a frame itself) refers to: its `frame`, or its frame's (`ref`)."""
+    n = getattr(event, "frame", None)
+    if isinstance(n, int) and not isinstance(n, bool):
+        return n
+    ref = getattr(event, "ref", None)
+    return ref.frame_no if ref is not None else None
 
 
 class Subscription:
@@ -71,6 +88,7 @@ class Subscription:
         self.delivered = self.dropped = self.failed = 0
         self._queue: deque[_Box] = deque()
         self._latest: dict[type[Event], _Box] = {}
+        self._dead = 0  # slots in the queue whose frame a newer one replaced (skipped, not counted as queued)
         self._cond = threading.Condition()
         self._busy = False
         self._closing = False
@@ -91,19 +109,39 @@ class Subscription:
             if self._closing:
                 return
             kind = type(event)
-            box = self._latest.get(kind) if kind in self.coalesce else None
-            if box is not None and not box.taken:
-                box.event = event  # the older frame was never taken: the newer one goes in its place
-                return
-            if len(self._queue) >= self.maxsize:
+            if kind in self.coalesce:
+                stale = self._latest.get(kind)
+                if stale is not None and not stale.taken and not stale.dead:
+                    if self._queue and self._queue[-1] is stale:
+                        stale.event = event  # nothing came after the older frame: the newer one takes its place
+                        return
+                    if not stale.pinned:  # never delivered ahead of what came after the older frame:
+                        self._drop(stale)  # the older one goes (with its pick order), the newer one at the end
+            frame = None if kind in self.coalesce or not self._latest else _frame_of(event)
+            if len(self._queue) - self._dead >= self.maxsize:
                 self.dropped += 1
                 self._note("dropped", "queue full (%d events): dropping; %d dropped so far", self.maxsize, self.dropped)
                 return
             box = _Box(event)
             if kind in self.coalesce:
                 self._latest[kind] = box
+            elif frame is not None:
+                for latest in self._latest.values():
+                    if not latest.taken and not latest.dead and getattr(latest.event, "frame", None) == frame:
+                        if kind in _FRAME_ONLY:
+                            latest.followers.append(box)
+                        else:
+                            latest.pinned = True  # delivered after the frame it refers to, so the frame stays
             self._queue.append(box)
             self._cond.notify()
+
+    def _drop(self, box: _Box) -> None:
+        """Under the lock: a frame's slot and its followers' are skipped (their events let go now)."""
+        for b in (box, *box.followers):
+            if not b.dead and not b.taken:
+                b.dead, b.event = True, _GONE
+                self._dead += 1
+        box.followers = []
 
     # ---- the subscriber's thread -------------------------------------------------------
     def _run(self) -> None:
@@ -124,6 +162,9 @@ class Subscription:
                         break
                     box = self._queue.popleft()
                     box.taken = True
+                    if box.dead:
+                        self._dead -= 1
+                        continue
                 self._handle(box.event)
 
     def _handle(self, event: Event) -> None:
@@ -162,16 +203,24 @@ class Subscription:
             self._thread.join(timeout_s)
         if self._thread.is_alive():  # too slow to finish: what it has not taken is dropped, so its thread ends
             with self._cond:
-                left = len(self._queue)
+                left = len(self._queue) - self._dead
                 self.dropped += left
                 self._queue.clear()
+                self._dead = 0
             log.warning("subscriber %s: still busy %.1f s after close; %d events dropped", self.name, timeout_s, left)
             return False
         return True
 
     def stats(self) -> SubscriberStats:
         with self._cond:
-            return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue))
+            return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue) - self._dead)
+
+
+class Record(Protocol):
+    """A synchronous record's write: raises when it cannot write, unless best effort (its owner's
+    switch, or this one call's)."""
+
+    def __call__(self, event: Event, best_effort: bool = False) -> object: ...
 
 
 class RecordOwner(Protocol):
@@ -184,14 +233,14 @@ class EventBus:
     """The one stream: `emit` from the runner or the service; records and subscribers listen."""
 
     def __init__(self) -> None:
-        self._records: list[Callable[[Event], object]] = []
+        self._records: list[Record] = []
         self._subs: tuple[Subscription, ...] = ()
         self._lock = threading.Lock()
         self._best_effort = False
         self._record_objs: list[RecordOwner] = []
 
     # ---- listeners -----------------------------------------------------------------------
-    def add_record(self, record: Callable[[Event], object], owner: RecordOwner | None = None) -> None:
+    def add_record(self, record: Record, owner: RecordOwner | None = None) -> None:
         """A synchronous record (the audit log): `owner.best_effort` follows the bus's."""
         self._records.append(record)
         if owner is not None:
@@ -234,14 +283,24 @@ class EventBus:
         for owner in self._record_objs:
             owner.best_effort = on
 
-    def emit(self, event: Event) -> None:
-        """Records first (may raise: the record could not be kept), then every subscriber's queue."""
+    def emit(self, event: Event, *, best_effort: bool = False, unrecorded_too: bool = True) -> None:
+        """Records first (may raise: the record could not be kept), then every subscriber's queue.
+        `best_effort`: this one event is written if it can be, never raised (a record owner that
+        knows it, e.g. the service's shift log, then does not try a new file for it). With
+        `unrecorded_too` False an event whose record failed reaches no subscriber (a job start
+        refused for its record: nothing started, so nobody hears of it)."""
+        recorded = False
         try:
             for record in self._records:
-                record(event)
+                if best_effort:
+                    record(event, best_effort=True)
+                else:
+                    record(event)
+            recorded = True
         finally:
-            for sub in self._subs:
-                sub.offer(event)
+            if recorded or unrecorded_too:
+                for sub in self._subs:
+                    sub.offer(event)
 
     # ---- state -----------------------------------------------------------------------------
     def stats(self) -> tuple[SubscriberStats, ...]:

@@ -136,6 +136,8 @@ class Runner:
         self.holding = False
         self.released = False  # the part of the attempt in progress was let go over its bin, not yet verified
         self.homed = False
+        self.ending = False  # the run is ending (its safe stop or parking under way): requests can no longer act
+        self.made_safe = False  # the safe stop released the arm's torque (not merely parked it)
         self._handlers = {
             S.IDLE: self._idle,
             S.HOME: self._home,
@@ -167,6 +169,7 @@ class Runner:
             except CellError as e:  # the audit log failed before the first step
                 self._finish(S.FAULT, f"{type(e).__name__}: {e}")
             finally:
+                self.ending = True
                 self.events.best_effort = True
                 self._end(t0)
         return self.summary
@@ -239,6 +242,7 @@ class Runner:
         with stop signals held off and the log best effort, then what happened is logged."""
         if self.sm.finished:  # a signal that came as the last step ended
             return
+        self.ending = True  # from here a request cannot act: the line service refuses them (Halt excepted)
         if state is S.STOPPED and self.controls.faulted:  # stopped for a failure outside the job
             state, reason = S.FAULT, self.controls.stop_reason
         with self.controls.shielded():
@@ -247,8 +251,10 @@ class Runner:
             s = self.summary
             s.outcome, s.reason = state.value, reason
             s.exit_code = {S.DONE: EXIT_DONE, S.FAULT: EXIT_FAULT, S.STOPPED: EXIT_STOPPED}[state]
-            finishing = state == S.STOPPED and self.controls.finish.is_set() and not self.controls.stop.is_set()
-            steps = self._make_safe(reason, park_only=state == S.DONE or finishing)
+            finishing = state == S.STOPPED and self.controls.finish.is_set()
+            # a stop (Halt, Abort, a signal) that came while the last step ended the job still gets the safe stop
+            park_only = (state == S.DONE or finishing) and not self.controls.stop.is_set()
+            steps = self._make_safe(reason, park_only=park_only)
             self._settle_released(state)
             if state == S.FAULT:
                 self._emit(FaultRaised, reason=reason, where=where, ref=self.frame_ref)
@@ -276,6 +282,7 @@ class Runner:
         for name, step in steps:
             done.append((name, self._safe_step(name, step, reason)))
         self.holding = False
+        self.made_safe = not park_only and done[-1] == ("release torque", None)
         return done
 
     def _home_unless_position_lost(self) -> None:
@@ -615,6 +622,45 @@ class Runner:
             f" -> robot ({t.robot_mm[0]:6.1f}, {t.robot_mm[1]:6.1f}, {t.robot_mm[2]:4.1f}) mm{angle}: {result}"
             f"  [picked {counts}; misses {s.misses}, failed {s.failed}]"
         )
+
+
+def make_parked_arm_safe(
+    arm: Arm, motion_timeout_s: float, events: EventSink, reason: str, job_id: str | None = None
+) -> bool:
+    """The safe stop with no job moving the arm (a Halt between jobs, or one that came as a job
+    ended by parking the arm): a parked arm keeps its torque when its port is closed, so it is
+    connected, told to finish any motion, open its gripper and release its torque, then
+    disconnected. It is not homed: it is parked where the last job left it. Each step is tried
+    even if one before failed and recorded after (best effort). True when the torque was released."""
+    events.best_effort = True
+    steps: list[tuple[str, Callable[[], None]]] = [
+        ("connect", arm.connect),
+        ("finish motion", lambda: arm.wait_until_idle(motion_timeout_s)),
+        ("open gripper", arm.open_gripper),
+        ("release torque", arm.stop),
+    ]
+    done: list[tuple[str, str | None]] = []
+    for name, step in steps:
+        error: str | None = None
+        try:
+            if name != "connect" and not arm.is_connected:
+                error = "arm not connected"
+            elif not (name == "connect" and arm.is_connected):
+                step()
+        except (*REPORTED_ERRORS, OSError, KeyboardInterrupt) as e:
+            log.warning("making the parked arm safe after %s: %s failed: %s", reason, name, e)
+            error = f"{type(e).__name__}: {e}"
+        except Exception as e:  # a driver bug must not skip the remaining steps
+            log.exception("making the parked arm safe after %s: %s failed", reason, name)
+            error = f"internal error: {type(e).__name__}: {e}"
+        done.append((name, error))
+    try:
+        arm.disconnect()
+    except Exception:  # the torque is released or not by now; a port that will not close is logged
+        log.exception("closing the arm's port after its safe stop")
+    for name, error in done:
+        events.emit(SafeStepDone(job_id=job_id, step=name, ok=error is None, error=error))
+    return done[-1][1] is None
 
 
 def _detection(o: LocatedPart) -> dict[str, Any]:

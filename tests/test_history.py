@@ -232,6 +232,32 @@ def test_after_a_crash_the_audit_gives_back_the_picks_the_store_missed(tmp_path)
     assert db_of(cfg).execute("SELECT outcome, unreachable FROM jobs").fetchall() == [("done", 1)]
 
 
+def test_a_malformed_audit_line_is_skipped_and_counted_never_a_reason_not_to_start(tmp_path, caplog):
+    """A `verify` line without its pick_id (and one that is not an object) in the audit after a
+    crash: the read-back skips them, says so in the log, and gives back every other pick."""
+    import json
+
+    cfg = history_config(tmp_path)
+    store = fill(cfg, shift_events()[:8])  # up to pick 2
+    store.close()
+    audit = ShiftLog(cfg.run.log_dir, 2**20, day=lambda: "20261201")
+    for e in shift_events():
+        audit.record(e)
+    path = audit.path
+    audit.close()
+    lines = path.read_text().splitlines()
+    broken = json.loads(next(line for line in lines if '"kind":"verify"' in line and f"{JOB}/3" in line))
+    del broken["pick_id"]
+    lines += [json.dumps(broken, separators=(",", ":")), '[{"kind":"verify"}]']
+    path.write_text("\n".join(lines) + "\n")
+    store = HistoryStore(cfg.history, cfg.run.log_dir, Hooks())
+    assert store.reconciled > 0 and store.reconcile_skipped == 2
+    store.close()
+    assert "malformed audit lines skipped" in caplog.text and "no 'pick_id'" in caplog.text
+    rows = db_of(cfg).execute("SELECT id FROM picks ORDER BY id").fetchall()
+    assert [r[0] for r in rows] == [f"{JOB}/{n}" for n in (1, 2, 3, 4, 6)]
+
+
 def test_a_damaged_file_is_refused_naming_it_or_moved_aside_when_configured(tmp_path):
     cfg = history_config(tmp_path)
     path = cfg.history.data_dir / "history.sqlite"

@@ -120,3 +120,43 @@ def test_a_shift_goes_on_through_a_server_outage(tmp_path, pg, pg_url):
     ids = [p["id"] for p in picks]
     assert len(ids) == len(set(ids))
     assert sum(p["outcome"] == "picked" for p in picks) == counters.picked_bolts + counters.picked_nuts == 17
+
+
+def test_counters_after_an_outage_and_a_restart_count_the_rows_still_in_the_outbox(tmp_path, pg, pg_url):
+    """The server goes away mid-shift and the service is restarted before the outbox is sent (here
+    the server takes no INSERT at the restart, so the outbox stays unsent): the counters restored
+    are the shift's, the server's rows and the outbox's together, not the server's alone."""
+    import psycopg
+
+    with psycopg.connect(pg_url, autocommit=True) as conn:  # a plain user (the superuser ignores REVOKE)
+        conn.execute("DO $$ BEGIN CREATE ROLE cellw LOGIN; EXCEPTION WHEN duplicate_object THEN NULL; END $$")
+        conn.execute("GRANT ALL ON SCHEMA public TO cellw")
+    cfg = small_config(tmp_path)
+    cfg.history.url, cfg.history.retry_s, cfg.history.min_free_mb = pg_url.replace("cell@", "cellw@"), 0.2, 1
+    cfg.history.connect_timeout_s = 2
+    cfg.sim.feeder = cfg.sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(cfg) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 3, 120, "3 picks")
+        assert service.history.wait_sent(60)
+        pg.stop()
+        wait_for(lambda: service.snapshot().waiting_for_parts, 120, "the table cleared")
+        service.command(Command.STOP)
+        wait_for(lambda: service.snapshot().vision_state == VisionState.READY, 60, "Ready")
+        assert service.history.wait_idle(60)
+        before = service.snapshot()
+        assert service.history.stats().outbox > 0
+    pg.start()
+    with psycopg.connect(pg_url, autocommit=True) as conn:
+        conn.execute("REVOKE INSERT, UPDATE ON ALL TABLES IN SCHEMA public FROM cellw")
+        on_server = conn.execute("SELECT count(*) FROM picks WHERE outcome = 'picked'").fetchone()[0]
+    try:
+        assert on_server < 17  # the server lacks the picks of the outage
+        with running(cfg) as service:
+            after = service.snapshot()
+            assert service.history.stats().outbox > 0  # still unsent while the counters were restored
+            assert after.counters == before.counters and picked(service) == 17
+            assert [p.pick_id for p in after.last_picks] == [p.pick_id for p in before.last_picks]
+    finally:
+        with psycopg.connect(pg_url, autocommit=True) as conn:
+            conn.execute("GRANT INSERT, UPDATE ON ALL TABLES IN SCHEMA public TO cellw")

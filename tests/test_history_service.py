@@ -95,6 +95,32 @@ def test_a_full_disk_stops_the_cell_safely_when_the_history_is_required(tmp_path
     assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
 
 
+def test_after_a_full_disk_fault_with_history_required_start_is_refused_while_the_disk_is_full(tmp_path, tiny_disk):
+    """A Reset clears the fault's alarm, not the disk: every start is refused with the store's reason
+    until the store has written again, also after the Reset; then the cell runs, with its history."""
+    from cell.service.api import InvalidState
+
+    cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False, retry_s=0.2)
+    with running(cfg) as service:
+        fill_disk(tiny_disk)
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == V.ERROR, 120, "Error")
+        service.command(Command.RESET)
+        snap = service.snapshot()
+        assert snap.vision_state == V.READY and "history cannot be written" in snap.hold
+        assert Command.START_SINGLE not in snap.allowed and Command.START_CONTINUOUS not in snap.allowed
+        for command in (Command.START_SINGLE, Command.START_CONTINUOUS):
+            with pytest.raises(InvalidState, match="not allowed now: history cannot be written: .*full"):
+                service.command(command)
+        (tiny_disk / "filler").unlink()  # space again: the store's writer writes its rows on its next try
+        wait_for(lambda: Command.START_SINGLE in service.snapshot().allowed, 60, "Start allowed again")
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, 120, "the job's end")
+        assert service.history.wait_idle(30)
+        job = service.history.local.execute("SELECT count(*) FROM picks WHERE outcome = 'picked'")
+        assert job[0][0] == picked(service) > 0
+
+
 def test_a_full_disk_with_the_history_not_required_keeps_picking_with_a_warning(tmp_path, tiny_disk):
     cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False, required=False)
     with running(cfg) as service:

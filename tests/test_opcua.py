@@ -350,7 +350,7 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
             async with client:
                 cell = await Cell(client).open()
                 await cell.call("Halt")  # the user may command the cell, not only read it
-                halted = await cell.read("VisionState")
+                halted = await cell.wait("VisionState", lambda s: s == "Halted")  # after the arm's safe stop
                 await cell.call("Reset")
                 return halted, await cell.read("VisionState")
 

@@ -56,6 +56,19 @@ async def call_as(serve: ServeProcess, credentials: Credentials, user: str, *met
     return out
 
 
+async def halted(serve: ServeProcess, credentials: Credentials, timeout_s: float = 60.0) -> None:
+    client = await secure_client(
+        f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", credentials, user="vera", password=USERS["vera"][0]
+    )
+    async with client:
+        ns = await client.get_namespace_index("urn:pick-cell")
+        state = await client.nodes.objects.get_child([f"{ns}:Cell", f"{ns}:VisionState"])
+        end = asyncio.get_running_loop().time() + timeout_s
+        while (value := await state.read_value()) != "Halted":
+            assert asyncio.get_running_loop().time() < end, f"VisionState {value!r}, not Halted"
+            await asyncio.sleep(0.1)
+
+
 def test_opcua_roles(served):
     serve, credentials, _ = served
     assert asyncio.run(call_as(serve, credentials, "vera", "StartSingleJob", "Halt", "Reset")) == [
@@ -63,6 +76,7 @@ def test_opcua_roles(served):
         "Good",  # anyone who may see the cell may Halt
         "BadUserAccessDenied",  # nor reset
     ]
+    asyncio.run(halted(serve, credentials))  # a Halt is Halted once the arm's safe stop is done
     assert asyncio.run(call_as(serve, credentials, "otto", "Reset")) == ["Good"]  # an operator may
 
 

@@ -158,6 +158,80 @@ def test_halt_then_reset_and_nothing_but_reset_in_halted(tmp_path):
     assert safe[-2:] == ["home", "release torque"]
 
 
+class TorqueSpy:
+    """The simulated arm's torque, as the safe stop leaves it: `stop()` calls counted."""
+
+    def __init__(self, arm):
+        self.arm, self.released = arm, 0
+        inner = arm.stop
+
+        def stop():
+            self.released += 1
+            inner()
+
+        arm.stop = stop
+
+
+def test_a_halt_between_jobs_releases_the_torque_before_halted(tmp_path):
+    """A job that clears the table parks the arm with its torque on: a Halt then is the safe stop of
+    the parked arm (connected, torque released), and the cell shows Halted only after it."""
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_SINGLE)
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="the job to end")
+        torque = TorqueSpy(service.cell.arm)
+        service.command(Command.HALT)
+        with pytest.raises(InvalidState, match="coming to rest|not allowed in Halted"):
+            service.command(Command.START_SINGLE)  # never a job beside the safe stop
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted")
+        assert torque.released == 1
+    events = read_shift(tmp_path / "logs")
+    halt = max(i for i, e in enumerate(events) if e["kind"] == "command" and e["command"] == "Halt")
+    steps = [(e["step"], e["ok"]) for e in events[halt:] if e["kind"] == "safe_step"]
+    assert steps == [("connect", True), ("finish motion", True), ("open gripper", True), ("release torque", True)]
+    halted = [e for e in events[halt:] if e["kind"] == "vision_state" and e["target"] == "Halted"]
+    assert halted and events.index(halted[0]) > halt + len(steps)
+
+
+def test_as_a_job_ends_only_halt_is_taken_and_it_makes_the_parked_arm_safe(tmp_path, monkeypatch):
+    """While the counters catch up after a job (the arm already parked), Pause, Stop and Abort
+    can no longer act: they are refused, not recorded as accepted; a Halt then still gets the safe
+    stop before the cell shows Halted."""
+    from cell.events import RunEnded
+
+    monkeypatch.setattr("cell.service.service._LEDGER_CATCH_UP_S", 120.0)
+    ended, go_on = threading.Event(), threading.Event()
+    handle = Ledger.handle
+
+    def slow_ledger(self, event):
+        if isinstance(event, RunEnded):  # the job's last event: the window stays open until told
+            ended.set()
+            go_on.wait(60)
+        return handle(self, event)
+
+    monkeypatch.setattr(Ledger, "handle", slow_ledger)
+    with running(small_config(tmp_path)) as service:
+        service.command(Command.START_SINGLE)
+        assert ended.wait(60), "the job did not end"
+        torque = TorqueSpy(service.cell.arm)
+        assert service.snapshot().vision_state == V.SINGLE_EXECUTION  # the counters are catching up
+        assert service.snapshot().allowed == {Command.HALT}
+        for command in (Command.PAUSE, Command.STOP, Command.ABORT):
+            with pytest.raises(InvalidState, match="coming to rest"):
+                service.command(command)
+        service.command(Command.HALT)
+        go_on.set()
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted")
+        assert torque.released == 1
+    commands = [(e["command"], e["accepted"]) for e in read_shift(tmp_path / "logs") if e["kind"] == "command"]
+    assert commands == [
+        ("StartSingleJob", True),
+        ("Pause", False),
+        ("Stop", False),
+        ("Abort", False),
+        ("Halt", True),
+    ]
+
+
 def test_a_fault_raises_an_alarm_and_needs_a_reset(tmp_path):
     # the table is 10 mm higher than the planner thinks: the first descent drives the tool into it
     with running(small_config(tmp_path, truth_table_z_mm=10.0)) as service:
@@ -257,6 +331,46 @@ def test_plate_image_and_a_new_calibration_only_at_rest(tmp_path):
         wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
 
 
+def test_nothing_that_moves_the_arm_is_taken_while_a_plate_image_is_captured(tmp_path):
+    """A plate capture from a paused job: Stop and Abort would home the arm into the image, Resume
+    and Start would move it: all refused until the image is taken; Halt is never refused."""
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        render, capturing, taken = service.cell.plate_image, threading.Event(), threading.Event()
+
+        def slow_plate():
+            capturing.set()
+            assert taken.wait(60)
+            return render()
+
+        service.cell.plate_image = slow_plate
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        service.command(Command.PAUSE)
+        wait_for(lambda: service.snapshot().paused, what="paused at rest")
+        images = []
+        capture = threading.Thread(target=lambda: images.append(service.capture_plate_image()))
+        capture.start()
+        assert capturing.wait(30)
+        assert service.snapshot().allowed == {Command.HALT}
+        for command in (Command.STOP, Command.ABORT, Command.RESUME):
+            with pytest.raises(InvalidState, match="a plate image is being captured"):
+                service.command(command)
+        taken.set()
+        capture.join(30)
+        assert images and images[0].shape == (540, 960, 3)
+        service.command(Command.STOP)  # the image taken: the job may end, the arm home
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready")
+    commands = [(e["command"], e["accepted"]) for e in read_shift(tmp_path / "logs") if e["kind"] == "command"]
+    assert commands[-5:] == [
+        ("CapturePlate", True),
+        ("Stop", False),
+        ("Abort", False),
+        ("Resume", False),
+        ("Stop", True),
+    ]
+
+
 def test_a_live_frame_only_at_rest_and_never_recorded(tmp_path):
     no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(small_config(tmp_path, feeder=no_feeder)) as service:
@@ -306,7 +420,7 @@ def test_roles_are_checked_by_the_command_table(tmp_path):
         with pytest.raises(AccessDenied, match="StartSingleJob needs the operator role; guest is viewer"):
             service.command(Command.START_SINGLE, viewer)
         service.command(Command.HALT, viewer)  # anyone who sees the cell may halt it
-        assert service.snapshot().vision_state == V.HALTED
+        wait_for(lambda: service.snapshot().vision_state == V.HALTED, what="Halted (after the safe stop)")
     refused = [e for e in read_shift(tmp_path / "logs") if e["kind"] == "command" and not e["accepted"]]
     assert refused[-1]["refusal"] == "access_denied" and refused[-1]["origin"]["user"] == "guest"
 
@@ -380,6 +494,57 @@ def test_a_full_disk_faults_the_job_and_nothing_starts_until_the_record_can_be_w
     assert len(files) >= 2  # the broken file was left for a new one
     verified = [e for e in read_shift(logs) if e["kind"] == "verify" and e["result"] == "picked"]
     assert len(verified) >= before + 1
+
+
+def test_a_start_whose_job_start_cannot_be_recorded_is_refused_and_starts_nothing(tmp_path, monkeypatch):
+    """The disk fills between the command's line and the job's: the start is refused (NotRecorded,
+    never an error out of the command path), no job runs, no subscriber hears of a start."""
+    import errno
+
+    from cell.events import JobStarted, RunStarted
+    from cell.recordfile import RecordFile
+    from cell.service.api import NotRecorded
+
+    class FullAtJobStart(RecordFile):
+        def _write(self, data):
+            if b'"kind":"job_start"' in data:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return super()._write(data)
+
+    monkeypatch.setattr("cell.audit.RecordFile", FullAtJobStart)
+    with running(small_config(tmp_path)) as service:
+        heard = []
+        sub = service.subscribe("test", heard.append, kinds=(JobStarted, RunStarted))
+        with pytest.raises(NotRecorded, match="StartSingleJob not carried out: .*No space left on device"):
+            service.command(Command.START_SINGLE)
+        snap = service.snapshot()
+        assert (snap.vision_state, snap.job_id) == (V.READY, "")
+        assert Command.START_SINGLE in snap.allowed  # nothing is left half-started
+        assert sub.wait_idle(30) and service.bus.wait_idle(30)
+        assert heard == []
+    events = read_shift(tmp_path / "logs")
+    starts = [e for e in events if e["kind"] == "command" and e["command"] == "StartSingleJob"]
+    assert starts[-1]["accepted"] is False and starts[-1]["refusal"] == "not_recorded"
+    assert not [e for e in events if e["kind"] in ("job_start", "run_start", "job_end")]
+
+
+def test_making_safe_on_a_really_full_disk_creates_no_log_file_per_event(tmp_path):
+    """The audit log's folder on a real filesystem that fills during a job: the job faults and
+    makes the arm safe with its record best effort, and the shift log keeps its broken file
+    rather than listing the folder and creating a new file for every event of the safe stop."""
+    from tests.tmpfs import fill, small_tmpfs
+
+    logs = tmp_path / "logs"
+    with small_tmpfs(logs), running(small_config(tmp_path)) as service:
+        service.command(Command.START_CONTINUOUS)
+        wait_for(lambda: picked(service) >= 1, what="a pick")
+        before = sorted(p.name for p in logs.glob("cell-*.jsonl"))
+        fill(logs)
+        wait_for(lambda: service.snapshot().vision_state == V.ERROR, what="the fault")
+        assert "No space left on device" in service.snapshot().alarm.reason
+        assert service.bus.wait_idle(30)
+        after = sorted(p.name for p in logs.glob("cell-*.jsonl"))
+        assert after == before, f"files created while making safe on a full disk: {sorted(set(after) - set(before))}"
 
 
 def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one_is_installed(tmp_path):

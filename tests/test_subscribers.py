@@ -104,6 +104,62 @@ def test_frames_coalesce_a_slow_subscriber_sees_the_newest(tmp_path):
     bus.close()
 
 
+def test_a_coalesced_frame_never_goes_ahead_of_the_events_about_the_older_one(tmp_path):
+    """A slow subscriber has frame 1 and its pick order queued when frame 2 comes: frame 2 is not
+    delivered in frame 1's place, ahead of frame 1's pick order (the screen would number frame 2
+    with frame 1's order); frame 1 goes with its order, frame 2 comes after what came between.
+    A frame an event to deliver refers to (its verdict, carrying it) is kept; every event comes
+    after the frame it refers to."""
+    import numpy as np
+
+    from cell.events import FrameLocated, FrameRef, PickOrderChosen
+
+    def located(n: int, ref=None) -> FrameLocated:
+        return FrameLocated(frame=n, locate_ms=1.0, warnings=(), detections=(), ref=ref)
+
+    def verdict(n: int, ref) -> PickVerified:
+        return PickVerified(
+            pick_id=f"j/{n}", track=n, cls="nut", attempt=1, result="picked", pixel=(0.0, 0.0),
+            table_mm=(0.0, 0.0), robot_mm=(0.0, 0.0, 0.0), jaw_angle_deg=None, still_at_mm=(), ref=ref,
+        )  # fmt: skip
+
+    bus = EventBus()
+    gate, seen = threading.Event(), []
+    sub = bus.subscribe("screen", lambda e: (gate.wait(), seen.append(e)), frames=True)
+    bus.emit(StateChanged(source="idle", target="home", reason="x"))  # taken: the handler waits on the gate
+    assert wait_until(lambda: sub.stats().queued == 0)
+    refs = {n: FrameRef(n, np.zeros((4, 4, 3), np.uint8), None, 0.0) for n in range(1, 5)}
+    bus.emit(located(1, refs[1]))
+    bus.emit(PickOrderChosen(frame=1, order=(3, 1, 2)))
+    bus.emit(StateChanged(source="plan", target="pick", reason="part 3"))
+    bus.emit(located(2, refs[2]))  # frame 1 was never taken: it goes, with its order
+    bus.emit(PickOrderChosen(frame=2, order=(1, 2)))
+    bus.emit(verdict(2, refs[2]))  # refers to frame 2: frame 2 stays for it
+    bus.emit(located(3, refs[3]))
+    bus.emit(PickOrderChosen(frame=3, order=(2,)))
+    bus.emit(located(4, refs[4]))  # frame 3 had nothing to deliver after it but its order: both go
+    queued = sub.stats().queued
+    gate.set()
+    assert sub.wait_idle(10)
+    got = [(e.kind, getattr(e, "frame", None) or getattr(getattr(e, "ref", None), "frame_no", None)) for e in seen]
+    assert got == [
+        ("state", None),
+        ("state", None),
+        ("frame", 2),
+        ("plan", 2),
+        ("verify", 2),
+        ("frame", 4),
+    ]
+    delivered: set[int] = set()
+    for kind, n in got:  # the rule itself: nothing before the frame it refers to
+        if kind == "frame":
+            delivered.add(n)
+        elif n is not None:
+            assert n in delivered, f"{kind} of frame {n} delivered before its frame"
+    assert queued == 5 and sub.stats().dropped == 0  # the frames let go are neither queued nor dropped
+    bus.close()
+
+
 def wait_until(cond, timeout_s: float = 10.0) -> bool:
     import time
 

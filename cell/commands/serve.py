@@ -133,7 +133,12 @@ def restore_ledger(service: LineService, config: CellConfig) -> None:
         service.prime_ledger_from_audit()
         return
     try:
-        service.ledger.restore(reader.counters(shift.start_utc, shift.end_utc), reader.last_picks())
+        store = service.history  # on PostgreSQL its outbox's unsent rows count too (after an outage)
+        if store is not None:
+            counters, last = store.shift_view(reader, shift.start_utc, shift.end_utc)
+        else:
+            counters, last = reader.counters(shift.start_utc, shift.end_utc), reader.last_picks()
+        service.ledger.restore(counters, last)
     except Exception as e:
         log.warning("counters from the audit files: the history store cannot be read (%s)", e)
         service.prime_ledger_from_audit()

@@ -40,6 +40,7 @@ import logging
 import random
 import re
 import socket
+import sqlite3
 import threading
 import time
 from collections import deque
@@ -215,6 +216,7 @@ class HistoryStore:
             if config.images
             else None
         )
+        self.reconcile_skipped = 0  # malformed audit lines skipped by the read-back (logged)
         self.reconciled = self._reconcile()
         self._writer = threading.Thread(target=self._write_loop, name="history-writer", daemon=True)
         self._writer.start()
@@ -618,9 +620,17 @@ class HistoryStore:
                 if path.stat().st_mtime < since.timestamp() - 60:
                     continue
                 with open(path, encoding="utf-8") as f:
-                    ops.extend(_reconcile_file(f, since, maker))
+                    read, skipped = _reconcile_file(f, since, maker, path)
+                ops.extend(read)
+                self.reconcile_skipped += skipped
             except OSError as e:
                 log.warning("history: cannot read %s back: %s", path, e)
+        if self.reconcile_skipped:
+            log.warning(
+                "history: %d malformed audit lines skipped while reading back after %s (the rest is read back)",
+                self.reconcile_skipped,
+                mark.isoformat(),
+            )
         if ops:
             with self.local.transaction():
                 if self.remote_url:
@@ -629,6 +639,54 @@ class HistoryStore:
                     _apply(self.local, ops)
             log.info("history: %d rows read back from the audit files after %s", len(ops), mark.isoformat())
         return len(ops)
+
+    # ---- after a restart: the counters -------------------------------------------------------------
+    def unsent(self) -> list[Op]:
+        """The rows still in the PostgreSQL outbox (none on SQLite: the database is written directly)."""
+        if not self.remote_url:
+            return []
+        return [_decode(text) for (text,) in self.local.execute("SELECT op FROM outbox ORDER BY seq")]
+
+    def shift_view(self, reader: Any, since: datetime, until: datetime) -> tuple[Any, list[Any]]:
+        """The shift's counters and the last picks (cell.history.query.HistoryReader's) as the store
+        holds them once its outbox is sent: after an outage and a restart the server lacks the rows
+        still in the outbox, so its rows of the span are copied into a database in memory and the
+        unsent rows applied over them, as the server will apply them (keyed, so none counts twice)."""
+        ops = self.unsent()
+        if not ops:
+            return reader.counters(since, until), reader.last_picks()
+        from cell.history.query import PICK_COLUMNS, HistoryReader, PickFilter
+
+        mem = Database(sqlite3.connect(":memory:", isolation_level=None, check_same_thread=False), "sqlite", "memory")
+        try:
+            migrate(mem)
+            src: Database = reader.db
+            where, params = PickFilter(since, until).where(reader.cell)
+            cols = ", ".join(PICK_COLUMNS)
+            newest = (
+                f"SELECT {cols} FROM picks{PickFilter().where(reader.cell)[0]} ORDER BY time_utc DESC, id DESC LIMIT 20"
+            )
+            jobs_where = "WHERE start_utc >= ? AND start_utc < ?" + (" AND cell = ?" if reader.cell else "")
+            copies = [
+                (f"INSERT OR IGNORE INTO picks ({cols})", src.execute(f"SELECT {cols} FROM picks{where}", params)),
+                (f"INSERT OR IGNORE INTO picks ({cols})", src.execute(newest, PickFilter().where(reader.cell)[1])),
+                ("INSERT OR IGNORE INTO unreachable", src.execute(f"SELECT * FROM unreachable{where}", params)),
+                (
+                    "INSERT OR IGNORE INTO jobs",
+                    src.execute(
+                        f"SELECT * FROM jobs {jobs_where}", [since, until] + ([reader.cell] if reader.cell else [])
+                    ),
+                ),
+            ]
+            with mem.transaction():
+                for insert, rows in copies:
+                    if rows:
+                        mem.executemany(f"{insert} VALUES ({', '.join('?' * len(rows[0]))})", rows)
+                _apply(mem, ops)
+            view = HistoryReader(mem, reader.cell)
+            return view.counters(since, until), view.last_picks()
+        finally:
+            mem.close()
 
     # ---- state and control --------------------------------------------------------------------------
     def stats(self) -> HistoryStats:
@@ -732,9 +790,14 @@ def _apply(db: Database, ops: Iterable[Op]) -> None:
         db.executemany(STATEMENTS[key], run)
 
 
-def _reconcile_file(lines: Iterable[str], since: datetime, maker: RowMaker) -> list[Op]:
+def _reconcile_file(
+    lines: Iterable[str], since: datetime, maker: RowMaker, where: Path | str = "an audit file"
+) -> tuple[list[Op], int]:
+    """The keyed rows of one audit file's lines since `since`, and how many lines were skipped as
+    malformed (a field missing or of the wrong type: logged, never a reason not to start)."""
     ops: list[Op] = []
-    for line in lines:
+    skipped = 0
+    for n, line in enumerate(lines, 1):
         m = _KIND_RE.search(line)
         if m is None or m.group(1) not in KEYED_KINDS:
             continue
@@ -742,9 +805,17 @@ def _reconcile_file(lines: Iterable[str], since: datetime, maker: RowMaker) -> l
             e = json.loads(line)
         except json.JSONDecodeError:
             continue  # a torn last line
-        t = parse_time(e.get("t_utc"))
-        if t is None or t < since:
-            continue
-        e["time"] = t
-        ops.extend(maker.ops(e))
-    return ops
+        try:
+            if not isinstance(e, dict):
+                raise TypeError(f"a {type(e).__name__}, not an object")
+            t = parse_time(e.get("t_utc"))
+            if t is None or t < since:
+                continue
+            e["time"] = t
+            ops.extend(maker.ops(e))
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            skipped += 1
+            if skipped <= 3:
+                what = f"no {err}" if isinstance(err, KeyError) else str(err)
+                log.warning("history: %s line %d (%s) skipped while reading back: %s", where, n, m.group(1), what)
+    return ops, skipped

@@ -105,6 +105,9 @@ _TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
 STILL_COMMANDS = frozenset({Command.CAPTURE_PLATE, Command.INSTALL_CALIBRATION})
 # Commands a hold (a recalibration awaiting its answer) refuses: nothing may start or move on.
 HELD_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.RESUME})
+# Commands a plate capture in progress refuses: each would move the arm (Stop and Abort home it from a
+# paused job) into the plate image. Halt is never refused: the safe stop comes before any image.
+CAPTURE_REFUSES = HELD_COMMANDS | {Command.STOP, Command.ABORT}
 JOB_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS})
 STATE_COMMANDS = (
     Command.START_SINGLE,
@@ -130,13 +133,25 @@ class Rest:
     state: VisionState
     pausing: bool = False
     paused: bool = False
+    ending: bool = False  # the job has ended (the arm parked or made safe) or a Halt's safe stop runs: only Halt acts
+    capturing: bool = False  # a plate image is being captured for recalibration: nothing may move into it
+
+
+# What a cell coming to rest (`Rest.ending`) still takes: Halt (its safe stop follows whatever the job
+# did) and the recipe files (nothing moves); anything else could only be recorded and then do nothing.
+WHILE_ENDING = frozenset({Command.HALT, Command.ADD_RECIPE, Command.REMOVE_RECIPE})
 
 
 def allowed(
-    state: VisionState, pausing: bool = False, paused: bool | None = None, hold: str = ""
+    state: VisionState,
+    pausing: bool = False,
+    paused: bool | None = None,
+    hold: str = "",
+    ending: bool = False,
+    capturing: bool = False,
 ) -> frozenset[Command]:
     """The commands the state accepts (any role), as every interface shows them (buttons enabled)."""
-    rest = Rest(state, pausing, pausing if paused is None else paused)
+    rest = Rest(state, pausing, pausing if paused is None else paused, ending, capturing)
     return frozenset(c for c in STATE_COMMANDS if state_refusal(c, rest, hold) is None)
 
 
@@ -146,6 +161,8 @@ def state_refusal(command: Command, rest: Rest, hold: str = "") -> str | None:
     where = f"{rest.state.value}{' (paused)' if rest.paused else ' (pausing)' if rest.pausing else ''}"
     if rest.state not in states:
         return f"{command.value} is not allowed in {where}"
+    if rest.ending and command not in WHILE_ENDING:
+        return f"{command.value} is not allowed in {where}: the cell is coming to rest (wait until it is)"
     if command is Command.PAUSE and rest.pausing:
         return f"{command.value} is not allowed in {where}: already pausing"
     if command is Command.RESUME and not rest.pausing:
@@ -153,6 +170,8 @@ def state_refusal(command: Command, rest: Rest, hold: str = "") -> str | None:
     if command in STILL_COMMANDS and rest.state in RUNNING and not rest.paused:
         why = "wait until it is paused" if rest.pausing else "pause or stop it first"
         return f"{command.value} is not allowed in {where}: the cell is moving ({why})"
+    if command in CAPTURE_REFUSES and rest.capturing:
+        return f"{command.value} is not allowed now: a plate image is being captured for recalibration (wait for it)"
     if command in HELD_COMMANDS and hold:
         return f"{command.value} is not allowed now: {hold}"
     return None

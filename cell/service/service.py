@@ -60,7 +60,7 @@ from cell.events import (
 from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
 from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
-from cell.runner import Runner
+from cell.runner import Runner, make_parked_arm_safe
 from cell.service.api import (
     AccessDenied,
     Alarm,
@@ -74,6 +74,7 @@ from cell.service.api import (
     LiveFrame,
     NotRecorded,
     RecipeRequest,
+    Refusal,
     Rest,
     ShuttingDown,
     Snapshot,
@@ -144,6 +145,9 @@ class _Job:
     halt: bool = False  # Halt or a signal: end in Halted
     abort: bool = False  # Abort: the safe stop, then Ready
     fault: tuple[str, str, str] | None = None  # (reason, hint, source) of a fault raised from outside the job
+    ended: bool = False  # its runner has returned (the counters catch up): only Halt can still act
+    halt_only: bool = False  # no job: a Halt between jobs, the safe stop of the parked arm
+    made_safe: bool = False  # the arm's torque was released (by the runner's safe stop or after it)
 
 
 HEIGHT_WARNING = "camera-height"  # the warning alarm's key while the calibration's camera height is in doubt
@@ -323,6 +327,11 @@ class LineService:
         )
         if refused is None:
             self.bus.emit(event)
+        elif refused.reason is Refusal.NOT_RECORDED:  # its record broke: a new file is tried for the refusal
+            try:
+                self.bus.emit(event)
+            except AuditWriteFailed as e:
+                log.error("not recorded (%s): %s", event.kind, e)
         else:
             self._emit_best_effort(event)
 
@@ -336,9 +345,14 @@ class LineService:
     def _start_job(self, mode: str, origin: Origin, request: Any) -> str:
         req = request if isinstance(request, JobRequest) else JobRequest()
         job = _Job(new_job_id(), mode, Controls(), origin, req)
-        self.bus.emit(
-            JobStarted(job_id=job.job_id, mode=mode, origin=origin, recipe=self._recipe_id, arguments=req.as_json())
+        started = JobStarted(
+            job_id=job.job_id, mode=mode, origin=origin, recipe=self._recipe_id, arguments=req.as_json()
         )
+        try:  # nothing starts without its record, and nobody hears of a start that was not recorded
+            self.bus.emit(started, unrecorded_too=False)
+        except AuditWriteFailed as e:
+            command = Command.START_SINGLE if mode == "single" else Command.START_CONTINUOUS
+            raise NotRecorded(command, f"{command.value} not carried out: {e}", self._vstate) from None
         self._job = job
         self._jobs.put(job)
         self._set_state(V.SINGLE_EXECUTION if mode == "single" else V.CONTINUOUS_EXECUTION, "job started")
@@ -362,9 +376,13 @@ class LineService:
         job.controls.request(job.controls.pause, on=False)
 
     def _cmd_halt(self, origin: Origin, request: Any) -> None:
+        """The safe stop, whatever the moment: a running job's runner makes the arm safe; between jobs
+        (or once the job has parked the arm) the worker does, and the state is Halted after it."""
         job = self._job
-        if job is None:  # between jobs the arm is already parked and at rest
-            self._set_state(V.HALTED, f"halted between jobs by {origin.describe()}")
+        if job is None:  # the last job parked the arm with its torque on: the worker releases it
+            job = _Job("", "halt", Controls(), origin, JobRequest(), halt=True, ended=True, halt_only=True)
+            self._job = job
+            self._jobs.put(job)
             return
         job.halt = True
         job.controls.request(job.controls.stop, reason=f"Halt from {origin.interface.value}")
@@ -556,12 +574,14 @@ class LineService:
                 alarm=self._alarm,
                 calibration=self._vision.info,
                 heartbeat=self.heartbeat,
-                allowed=allowed(self._vstate, rest.pausing, rest.paused, self._hold_reason()),
+                allowed=allowed(
+                    self._vstate, rest.pausing, rest.paused, self._hold_reason(), rest.ending, rest.capturing
+                ),
                 pausing=rest.pausing and not rest.paused,
-                job_id=job.job_id if job is not None else "",
+                job_id=job.job_id if job is not None else "",  # "" for a Halt between jobs
                 recipe=self._recipe_id,
                 simulated=self.cell.sim is not None or not self.cell.expect_motion,
-                job_mode=job.mode if job is not None else "",
+                job_mode=job.mode if job is not None and not job.halt_only else "",
                 hold=self._hold_reason(),
                 warnings=tuple(self._warnings.values()),
                 subscribers=self.bus.stats(),
@@ -644,6 +664,18 @@ class LineService:
             release_free_memory()  # at rest: what the job's frames used goes back to the system
 
     def _run_job(self, job: _Job) -> None:
+        if job.halt_only:
+            self._make_parked_arm_safe(job)
+            with self._lock:
+                self._job = None
+                if job.fault is not None:  # raised by another part while the arm was made safe
+                    reason, hint, source = job.fault
+                    self._raise_fault_alarm(reason, hint, source)
+                    self._set_state(V.ERROR, reason)
+                else:
+                    self._set_state(V.HALTED, f"halted between jobs by {job.origin.describe()}")
+            self._changed("state")
+            return
         outcome, reason, counts = "fault", "", {}
         try:
             self.record.best_effort = False
@@ -667,16 +699,35 @@ class LineService:
                 calibration_id=perception.calibration_id,
             )
             summary = job.runner.run()
+            job.made_safe = job.runner.made_safe
             outcome, reason, counts = summary.outcome, summary.reason, summary.counts()
         except (*REPORTED_ERRORS, OSError) as e:  # the record could not be opened: nothing moved
             reason = f"{type(e).__name__}: {e}"
         except Exception as e:  # a bug in the loop itself: the runner made the arm safe where it could
             log.exception("job %s ended by an internal error", job.job_id)
             reason = f"internal error: {type(e).__name__}: {e}"
-        self._ledger_sub.wait_idle(_LEDGER_CATCH_UP_S)  # the arm is at rest: the counters catch up before Ready
         with self._lock:
-            self._end_job(job, outcome, reason, counts)
+            job.ended = True  # from now on only Halt acts (on the parked arm, below)
+        self._changed("state")
+        self._ledger_sub.wait_idle(_LEDGER_CATCH_UP_S)  # the arm is at rest: the counters catch up before Ready
+        while True:
+            with self._lock:
+                if not ((job.halt or job.abort) and not job.made_safe):
+                    self._end_job(job, outcome, reason, counts)
+                    break
+            self._make_parked_arm_safe(job)  # a Halt came as the job ended: the arm only parked
         self._changed("alarm" if outcome == "fault" else "state")
+
+    def _make_parked_arm_safe(self, job: _Job) -> None:
+        """The worker's safe stop of an arm no runner holds (cell.runner.make_parked_arm_safe)."""
+        job.made_safe = True  # tried once: a failed step is in the record, the state says Halted anyway
+        make_parked_arm_safe(
+            self.cell.arm,
+            self.config.run.motion_timeout_s,
+            _JobEvents(self.bus),
+            f"{'Halt' if job.halt else 'Abort'} from {job.origin.describe()}",
+            job.job_id or None,
+        )
 
     def _end_job(self, job: _Job, outcome: str, reason: str, counts: Counts | None = None) -> None:
         """Under the lock: the job's end recorded, the outward state set, a fault's alarm raised."""
@@ -686,9 +737,10 @@ class LineService:
             outcome, (reason, hint, source) = "fault", job.fault
             reason = f"{reason} (hint: {hint})"
         ended = "halted" if job.halt and outcome != "fault" else outcome
-        self._emit_best_effort(
-            JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
-        )
+        if not job.halt_only:  # a Halt between jobs started no job: it ends none
+            self._emit_best_effort(
+                JobEnded(job_id=job.job_id, mode=job.mode, outcome=ended, reason=reason, counts=counts or {})
+            )
         if outcome == "fault":
             what, hint = split_hint(reason)
             self._raise_fault_alarm(what, hint, source)
@@ -700,13 +752,14 @@ class LineService:
 
     # ---- helpers ----------------------------------------------------------------------------------
     def _rest(self) -> Rest:
-        job = self._job
+        job, capturing = self._job, self._still_ops > 0
         if job is None:
-            return Rest(self._vstate)
+            return Rest(self._vstate, capturing=capturing)
         pausing = job.controls.pause.is_set()
         runner = job.runner
         paused = pausing and runner is not None and runner.sm.state is State.PAUSED
-        return Rest(self._vstate, pausing, paused)
+        ending = job.ended or (runner is not None and runner.ending)
+        return Rest(self._vstate, pausing and not ending, paused and not ending, ending, capturing)
 
     def _at_rest(self) -> bool:
         """Nothing moves and no job captures: Ready, Halted or Error between jobs, or a job paused."""
@@ -723,7 +776,20 @@ class LineService:
     def _hold_reason(self) -> str:
         if self._still_ops:
             return "a plate image is being captured for recalibration"
+        if broken := self._history_broken():
+            return broken
         return next(iter(self._holds.values()), "")
+
+    def _history_broken(self) -> str:
+        """Why no job may start while the required history cannot be written ("" when it can): the
+        fault's alarm is raised once, but a Reset does not mend the store, so this holds every start
+        (and resume) until the store's writer has written again."""
+        if self.history is None or not self.config.history.required:
+            return ""
+        error = str(getattr(self.history, "write_error", "") or "")
+        if not error:
+            return ""
+        return f"{error} (hint: free space on the data folder's disk (history.data_dir) or fix the database)"
 
     def _set_state(self, state: VisionState, reason: str) -> None:
         """Under the lock; the caller tells the interfaces once it has let go of it."""
@@ -736,8 +802,8 @@ class LineService:
 
     def _emit_best_effort(self, event: Event) -> None:
         """A record that must not stop what it records (a refusal, a fault's alarm, the service's end)."""
-        try:
-            self.bus.emit(event)
+        try:  # best effort down to the shift log: a broken file is not replaced for this event
+            self.bus.emit(event, best_effort=True)
         except AuditWriteFailed as e:
             log.error("not recorded (%s): %s", event.kind, e)
 
@@ -754,8 +820,8 @@ class _JobEvents:
         self.bus, self.best_effort = bus, False
 
     def emit(self, event: Event) -> None:
-        try:
-            self.bus.emit(event)
+        try:  # the switch goes down to the shift log: making safe on a full disk creates no file per event
+            self.bus.emit(event, best_effort=self.best_effort)
         except AuditWriteFailed:
             if not self.best_effort:
                 raise

@@ -90,10 +90,10 @@ class ShiftLog:
     def failed(self) -> OSError | None:
         return None if self._log is None else self._log.failed
 
-    def _current(self) -> AuditLog:
+    def _current(self, best_effort: bool = False) -> AuditLog:
         day = self._day()
         current = self._log
-        if current is not None and current.failed is not None and self.best_effort:
+        if current is not None and current.failed is not None and (self.best_effort or best_effort):
             return current  # making safe: drop the line rather than create a file per event on a full disk
         if (
             current is not None
@@ -118,20 +118,22 @@ class ShiftLog:
         log.info("audit log: %s", self._log.path)
         return self._log
 
-    def record(self, event: Event) -> dict[str, Any] | None:
-        """Write one event (raises AuditWriteFailed when it cannot, unless best_effort)."""
+    def record(self, event: Event, best_effort: bool = False) -> dict[str, Any] | None:
+        """Write one event (raises AuditWriteFailed when it cannot, unless best effort: the log's
+        switch or this call's; then a broken file is not replaced for it: no file per event)."""
         if not event.audited:
             return None
+        effort = self.best_effort or best_effort
         with self._lock:
             try:
-                audit = self._current()
+                audit = self._current(effort)
             except AuditWriteFailed:
-                if self.best_effort:
+                if effort:
                     return None
                 raise
             audit.state = self.state
             audit.best_effort = self.best_effort
-            line = audit.record(event)
+            line = audit.record(event, best_effort=effort)
             self.state = audit.state
             return line
 
