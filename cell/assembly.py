@@ -22,8 +22,8 @@ import numpy as np
 from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
+from cell.core.eventbus import EventBus
 from cell.errors import ConfigError
-from cell.eventbus import EventBus
 from cell.locks import device_locks
 from cell.planning import Planner, table_to_robot
 from cell.signals import Controls

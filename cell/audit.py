@@ -20,8 +20,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from cell.core.events import Event, StateChanged, to_json
 from cell.errors import CellError
-from cell.events import Event, StateChanged, to_json
 from cell.recordfile import RecordFile
 
 log = logging.getLogger(__name__)
@@ -34,10 +34,10 @@ class AuditWriteFailed(CellError):
 
 
 class AuditLog:
-    """Append-only JSON-lines writer of the cell's events (cell.events); the runner's state is
+    """Append-only JSON-lines writer of the cell's events (cell.core.events); the runner's state is
     stamped on every line (`state`: the state the event happened in).
 
-    It is the event stream's synchronous record (cell.eventbus): `record(event)` writes one
+    It is the event stream's synchronous record (cell.core.eventbus): `record(event)` writes one
     line before the emitter goes on, so what the arm is about to do is on disk first. It can
     stand in for a whole bus (`emit`) where nothing else listens (tests, benches).
     """

@@ -30,8 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from cell.errors import REPORTED_ERRORS, CellError, ConfigError
-from cell.events import (
+from cell.core.events import (
     ArmCommanded,
     Event,
     FaultRaised,
@@ -51,6 +50,7 @@ from cell.events import (
     new_job_id,
     pick_id,
 )
+from cell.errors import REPORTED_ERRORS, CellError, ConfigError
 from cell.planning import Planner, Target, Unreachable
 from cell.run_config import RunConfig
 from cell.signals import Controls, StopRequested
@@ -72,7 +72,7 @@ Step = tuple[State, str]  # what a state handler returns: the next state and why
 
 
 class EventSink(Protocol):
-    """Where the runner's events go: the event bus (cell.eventbus), or an AuditLog alone.
+    """Where the runner's events go: the event bus (cell.core.eventbus), or an AuditLog alone.
     `emit` writes the record before returning (and raises when it cannot: the job faults);
     with `best_effort` set it never raises (making safe, ending)."""
 

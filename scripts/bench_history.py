@@ -33,16 +33,8 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from cell.audit import AuditLog  # noqa: E402
-from cell.eventbus import EventBus  # noqa: E402
-from cell.events import (  # noqa: E402
-    ArmCommanded,
-    Event,
-    FrameLocated,
-    FrameRef,
-    PickVerified,
-    StateChanged,
-    TargetChosen,
-)
+from cell.core.eventbus import EventBus  # noqa: E402
+from cell.core.events import ArmCommanded, Event, FrameLocated, FrameRef, PickVerified, StateChanged, TargetChosen  # noqa: E402
 from cell.history.config import HistoryConfig  # noqa: E402
 from cell.history.store import EVENT_TYPES, HistoryStore  # noqa: E402
 

@@ -71,8 +71,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.commands.serve import open_service  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
-from cell.events import PickVerified, StateChanged  # noqa: E402
-from cell.service.api import Command, VisionState  # noqa: E402
+from cell.core.commands import Command, VisionState  # noqa: E402
+from cell.core.events import PickVerified, StateChanged  # noqa: E402
 
 
 def free_port() -> int:

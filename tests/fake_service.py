@@ -16,8 +16,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cell.eventbus import EventBus
-from cell.events import (
+from cell.core.commands import (
+    AccessDenied,
+    BadArgument,
+    Command,
+    CommandResult,
+    InvalidState,
+    RecipeRequest,
+    Rest,
+    VisionState,
+    allowed,
+    needed_role,
+    state_refusal,
+)
+from cell.core.eventbus import EventBus
+from cell.core.events import (
     SERVICE_ORIGIN,
     FrameLocated,
     FrameRef,
@@ -26,26 +39,8 @@ from cell.events import (
     PickVerified,
     SnapshotChanged,
 )
+from cell.core.records import Alarm, CalibrationInfo, Counters, LiveFrame, PickRecord, Snapshot
 from cell.recipes import RecipeBook, RecipeError
-from cell.service.api import (
-    AccessDenied,
-    Alarm,
-    BadArgument,
-    CalibrationInfo,
-    Command,
-    CommandResult,
-    Counters,
-    InvalidState,
-    LiveFrame,
-    PickRecord,
-    RecipeRequest,
-    Rest,
-    Snapshot,
-    VisionState,
-    allowed,
-    needed_role,
-    state_refusal,
-)
 from cell.vision.types import LocatedPart, LocateResult
 
 V = VisionState

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from cell.config import CellConfig
-from cell.events import (
+from cell.core.events import (
     AlarmCleared,
     AlarmRaised,
     CalibrationInstalled,

@@ -32,14 +32,14 @@ from starlette.requests import Request
 from starlette.responses import JSONResponse, StreamingResponse
 from starlette.routing import Route
 
+from cell.access.throttle import LoginThrottle
+from cell.access.users import Authenticator, UserEntry, hash_password, write_users
 from cell.config import CellConfig
+from cell.core.events import Role
 from cell.errors import CellError
-from cell.events import Role
 from cell.imagedecode import decode_limited
 from cell.oplog import log_to_file
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
-from cell.service.throttle import LoginThrottle
-from cell.service.users import Authenticator, UserEntry, hash_password, write_users
 from cell.web.shield import Shield, set_on_disconnect
 from cell.web.tls import server_context
 from cell.web.transport import ServerThread, TransportLimits

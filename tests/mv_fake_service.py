@@ -1,5 +1,5 @@
 """A LineServiceAPI for the Machine Vision interface's tests: the real command table
-(cell.service.api), the real event bus and recipe book, and a job that makes a pick every
+(cell.core.api), the real event bus and recipe book, and a job that makes a pick every
 `pick_interval_s` on its own thread (no camera, no arm). Only what the interface needs."""
 
 from __future__ import annotations
@@ -8,8 +8,24 @@ import threading
 from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 
-from cell.eventbus import EventBus, Subscription
-from cell.events import (
+from cell.core.commands import (
+    RUNNING,
+    AccessDenied,
+    BadArgument,
+    Command,
+    CommandRefused,
+    CommandResult,
+    InvalidState,
+    JobRequest,
+    RecipeRequest,
+    Rest,
+    VisionState,
+    allowed,
+    needed_role,
+    state_refusal,
+)
+from cell.core.eventbus import EventBus, Subscription
+from cell.core.events import (
     SERVICE_ORIGIN,
     CommandHandled,
     Event,
@@ -22,25 +38,8 @@ from cell.events import (
     new_job_id,
     pick_id,
 )
+from cell.core.records import Counters, Snapshot
 from cell.recipes import RecipeBook, RecipeError
-from cell.service.api import (
-    RUNNING,
-    AccessDenied,
-    BadArgument,
-    Command,
-    CommandRefused,
-    CommandResult,
-    Counters,
-    InvalidState,
-    JobRequest,
-    RecipeRequest,
-    Rest,
-    Snapshot,
-    VisionState,
-    allowed,
-    needed_role,
-    state_refusal,
-)
 
 
 class FakeLineService:

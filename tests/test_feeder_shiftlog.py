@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from cell.events import PartFailed, PartUnreachable, ServiceStarted
+from cell.core.events import PartFailed, PartUnreachable, ServiceStarted
 from cell.run_config import FeederConfig
 from cell.service.counters import ShiftCounts
 from cell.service.shiftlog import ShiftLog, read_shift, shift_files

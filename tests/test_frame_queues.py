@@ -13,7 +13,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from cell.events import Event, FrameLocated, FrameRef, PartFailed, PickVerified
+from cell.core.events import Event, FrameLocated, FrameRef, PartFailed, PickVerified
 from cell.web.metrics import CellMetrics
 from tests.fake_service import FakeLineService
 

@@ -9,9 +9,9 @@ from datetime import timedelta
 
 import pytest
 
+from cell.core.commands import Command, VisionState
 from cell.history.query import PickFilter, open_reader
 from cell.history.report import build_report
-from cell.service.api import Command, VisionState
 from tests.history_helpers import JOB, T0, history_config, verify
 from tests.pg_server import PostgresServer, why_no_postgresql
 from tests.test_history import Hooks, fill

@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from cell.cli import main
-from cell.service.api import Command, VisionState
+from cell.core.commands import Command, VisionState
 from cell.service.shiftlog import read_shift
 from tests.serve_process import ServeProcess
 from tests.test_service import picked, running, small_config, wait_for
@@ -98,7 +98,7 @@ def test_a_full_disk_stops_the_cell_safely_when_the_history_is_required(tmp_path
 def test_after_a_full_disk_fault_with_history_required_start_is_refused_while_the_disk_is_full(tmp_path, tiny_disk):
     """A Reset clears the fault's alarm, not the disk: every start is refused with the store's reason
     until the store has written again, also after the Reset; then the cell runs, with its history."""
-    from cell.service.api import InvalidState
+    from cell.core.commands import InvalidState
 
     cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False, retry_s=0.2)
     with running(cfg) as service:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from starlette.testclient import TestClient
 
-from cell.service.api import Alarm
+from cell.core.records import Alarm
 from cell.web.app import build_app
 from cell.web.auth import Access
 from cell.web.config import WebConfig

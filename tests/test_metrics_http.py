@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from cell.events import AlarmRaised, FrameLocated, FrameRef, PartFailed, PickVerified
+from cell.core.events import AlarmRaised, FrameLocated, FrameRef, PartFailed, PickVerified
 from cell.web.config import WebConfig
 from tests.fake_service import FakeLineService
 from tests.test_web_http import config, make_client, operator_pw7  # noqa: F401  (the config fixture)

@@ -10,8 +10,8 @@ import time
 import pytest
 
 from cell.config import CellConfig
-from cell.events import Interface, Origin, Role
-from cell.service.api import Command, CommandRefused, VisionState
+from cell.core.commands import Command, CommandRefused, VisionState
+from cell.core.events import Interface, Origin, Role
 from cell.service.shiftlog import read_shift
 from cell.telemetry import metrics as M
 from cell.telemetry.config import MqttConfig

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from cell.service.api import VisionState
+from cell.core.commands import VisionState
 from cell.service.machinevision import METHODS, REFUSAL_STATUS, STATE_PLACE, SYSTEM_STATE
 from cell.service.mv_config import MachineVisionConfig
 

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from asyncua import Client, Node, ua
 
-from cell.events import Role
+from cell.core.events import Role
 from tests.mv_harness import RECIPE_BOLTS, MachineVisionHarness, shared_cache_dir
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]

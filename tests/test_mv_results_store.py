@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from asyncua import Client, ua
 
-from cell.events import JobStarted
+from cell.core.events import JobStarted
 from cell.history.query import open_reader
 from cell.history.store import HistoryStore
 from cell.service.results import HistoryBackedResults, LookupsBusy, MemoryResultStore

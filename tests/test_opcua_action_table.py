@@ -19,8 +19,8 @@ from typing import Any
 import pytest
 from asyncua import Client, Node, ua
 
-from cell.events import Role
-from cell.service.users import UserEntry, hash_password, write_users
+from cell.access.users import UserEntry, hash_password, write_users
+from cell.core.events import Role
 from tests.mv_harness import RECIPE_BOLTS
 from tests.probes import Credentials, make_client_certificate, secure_client
 from tests.serve_process import ServeProcess

@@ -13,7 +13,7 @@ import pytest
 from asyncua import Client, ua
 from asyncua.crypto.permission_rules import User, UserRole
 
-from cell.events import Role
+from cell.core.events import Role
 from cell.service.opcua_security import CellUser, caller_origin, caller_role
 from tests.mv_harness import MachineVisionHarness, shared_cache_dir
 from tests.serve_process import ServeProcess

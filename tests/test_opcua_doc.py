@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from cell.service.api import Command, VisionState, allowed
+from cell.core.commands import Command, VisionState, allowed
 from cell.service.opcua import VARIABLES
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "opcua.md").read_text(encoding="utf-8")

@@ -11,8 +11,8 @@ import httpx
 import pytest
 from asyncua import ua
 
-from cell.events import Role
-from cell.service.users import UserEntry, hash_password, write_users
+from cell.access.users import UserEntry, hash_password, write_users
+from cell.core.events import Role
 from tests.probes import Credentials, make_client_certificate, secure_client
 from tests.serve_process import ServeProcess
 

@@ -10,13 +10,13 @@ import time
 
 import pytest
 
-from cell.events import Interface, Role
+from cell.access.throttle import Lockout, LoginThrottle
+from cell.access.users import Authenticator, UserEntry, hash_password, write_users
+from cell.core.events import Interface, Role
 from cell.logratelimit import LogRateLimiter
 from cell.oplog import log_to_file, stop_logging_to
 from cell.service.config import LoginConfig, ServiceConfig
 from cell.service.fdlimit import check_open_files, needed_descriptors
-from cell.service.throttle import Lockout, LoginThrottle
-from cell.service.users import Authenticator, UserEntry, hash_password, write_users
 from cell.web.auth import Access
 from cell.web.config import WebConfig
 

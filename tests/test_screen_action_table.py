@@ -26,13 +26,13 @@ import pytest
 from starlette.routing import Route
 from starlette.testclient import TestClient
 
+from cell.access.throttle import LoginThrottle
+from cell.access.users import Authenticator, UserEntry, hash_password, write_users
 from cell.commands.serve import open_service
 from cell.config import CellConfig
-from cell.events import Role
-from cell.service.api import VisionState
+from cell.core.commands import VisionState
+from cell.core.events import Role
 from cell.service.config import LoginConfig
-from cell.service.throttle import LoginThrottle
-from cell.service.users import Authenticator, UserEntry, hash_password, write_users
 from cell.web.app import build_app
 from cell.web.auth import Access
 from cell.web.config import WebConfig

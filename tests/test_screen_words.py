@@ -19,8 +19,9 @@ from cell.calibration.pipeline import calibrate
 from cell.calibration.recalibrate import gate_failure
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, DriftConfig
+from cell.core.commands import VisionState, allowed
+from cell.core.records import Alarm, Counters, Snapshot
 from cell.errors import CameraMoved, PlateNotFound
-from cell.service.api import Alarm, Counters, Snapshot, VisionState, allowed
 from cell.service.service import split_hint
 from cell.sim.cell import bumped
 from cell.sim.render import render_plate

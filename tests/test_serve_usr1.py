@@ -3,7 +3,7 @@
 import pytest
 
 from cell.commands.serve import toggle_pause
-from cell.service.api import Command, VisionState
+from cell.core.commands import Command, VisionState
 from tests.fake_service import FakeLineService
 
 

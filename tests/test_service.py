@@ -18,7 +18,8 @@ import pytest
 from cell.audit import read_events
 from cell.commands.serve import open_service
 from cell.config import CellConfig
-from cell.events import (
+from cell.core.commands import AccessDenied, Command, InvalidState, ShuttingDown, VisionState
+from cell.core.events import (
     AlarmCleared,
     AlarmRaised,
     FrameLocated,
@@ -29,7 +30,6 @@ from cell.events import (
     Role,
     TargetChosen,
 )
-from cell.service.api import AccessDenied, Command, InvalidState, ShuttingDown, VisionState
 from cell.service.ledger import Ledger
 from cell.service.shiftlog import read_shift, shift_files
 from cell.summary import counts_from_log
@@ -196,7 +196,7 @@ def test_as_a_job_ends_only_halt_is_taken_and_it_makes_the_parked_arm_safe(tmp_p
     """While the counters catch up after a job (the arm already parked), Pause, Stop and Abort
     can no longer act: they are refused, not recorded as accepted; a Halt then still gets the safe
     stop before the cell shows Halted."""
-    from cell.events import RunEnded
+    from cell.core.events import RunEnded
 
     monkeypatch.setattr("cell.service.service._LEDGER_CATCH_UP_S", 120.0)
     ended, go_on = threading.Event(), threading.Event()
@@ -461,8 +461,8 @@ def test_a_fault_from_another_part_stops_the_job_safely_into_error(tmp_path):
 def test_a_full_disk_faults_the_job_and_nothing_starts_until_the_record_can_be_written(tmp_path, monkeypatch):
     import errno
 
+    from cell.core.commands import NotRecorded
     from cell.recordfile import RecordFile
-    from cell.service.api import NotRecorded
 
     full = {"on": False}
 
@@ -501,9 +501,9 @@ def test_a_start_whose_job_start_cannot_be_recorded_is_refused_and_starts_nothin
     never an error out of the command path), no job runs, no subscriber hears of a start."""
     import errno
 
-    from cell.events import JobStarted, RunStarted
+    from cell.core.commands import NotRecorded
+    from cell.core.events import JobStarted, RunStarted
     from cell.recordfile import RecordFile
-    from cell.service.api import NotRecorded
 
     class FullAtJobStart(RecordFile):
         def _write(self, data):

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from cell.access.security import check_exposure, hash_password, password_ok
 from cell.errors import ConfigError
 from cell.service.config import ServiceConfig, is_loopback
-from cell.service.security import check_exposure, hash_password, password_ok
 
 pytestmark = pytest.mark.timeout(60)  # two cases run run-cell serve as a subprocess
 

@@ -172,7 +172,7 @@ def test_a_run_cell_job_is_not_published_and_says_so(caplog):
 
     from cell.assembly import RunHooks, attach_consumers
     from cell.config import CellConfig
-    from cell.eventbus import EventBus
+    from cell.core.eventbus import EventBus
     from cell.signals import Controls
 
     cfg = CellConfig()

@@ -14,9 +14,10 @@ from typing import Any
 
 import pytest
 
-from cell.eventbus import EventBus
-from cell.events import Origin, SnapshotChanged
-from cell.service.api import Command, CommandResult, Counters, Snapshot, VisionState
+from cell.core.commands import Command, CommandResult, VisionState
+from cell.core.eventbus import EventBus
+from cell.core.events import Origin, SnapshotChanged
+from cell.core.records import Counters, Snapshot
 from cell.telemetry.config import MqttConfig
 from cell.telemetry.publisher import SparkplugPublisher
 from cell.telemetry.sparkplug import Topics

@@ -16,9 +16,9 @@ import threading
 
 import pytest
 
-from cell.eventbus import EventBus
-from cell.events import PickVerified, SnapshotChanged, StateChanged
-from cell.service.api import Command, VisionState
+from cell.core.commands import Command, VisionState
+from cell.core.eventbus import EventBus
+from cell.core.events import PickVerified, SnapshotChanged, StateChanged
 from tests.serve_process import free_port
 from tests.test_service import picked, running, small_config, wait_for
 
@@ -87,7 +87,7 @@ def test_a_batching_subscriber_takes_what_came_meanwhile_in_one_wake_in_order():
 
 
 def test_frames_coalesce_a_slow_subscriber_sees_the_newest(tmp_path):
-    from cell.events import FrameLocated
+    from cell.core.events import FrameLocated
 
     bus = EventBus()
     gate, seen = threading.Event(), []
@@ -112,7 +112,7 @@ def test_a_coalesced_frame_never_goes_ahead_of_the_events_about_the_older_one(tm
     after the frame it refers to."""
     import numpy as np
 
-    from cell.events import FrameLocated, FrameRef, PickOrderChosen
+    from cell.core.events import FrameLocated, FrameRef, PickOrderChosen
 
     def located(n: int, ref=None) -> FrameLocated:
         return FrameLocated(frame=n, locate_ms=1.0, warnings=(), detections=(), ref=ref)
@@ -203,7 +203,7 @@ def test_thirty_screens_that_never_read_do_not_hold_up_the_job(tmp_path):
 def test_only_subscribers_that_ask_for_frames_get_them():
     import numpy as np
 
-    from cell.events import FrameRef, PickVerified
+    from cell.core.events import FrameRef, PickVerified
 
     bus = EventBus()
     plain, framed = [], []

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from cell.access.throttle import Lockout, LoginThrottle
 from cell.service.config import LoginConfig
-from cell.service.throttle import Lockout, LoginThrottle
 
 pytestmark = pytest.mark.timeout(30)
 

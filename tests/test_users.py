@@ -8,11 +8,11 @@ import stat
 
 import pytest
 
+from cell.access.users import Authenticator, UserEntry, UsersError, hash_password, read_users, write_users
 from cell.cli import main
 from cell.commands import users as users_cli
-from cell.events import Role
+from cell.core.events import Role
 from cell.service.config import ServiceConfig
-from cell.service.users import Authenticator, UserEntry, UsersError, hash_password, read_users, write_users
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -166,9 +166,9 @@ def test_removing_a_user_or_changing_their_role_or_password_ends_their_screen_se
 
     from starlette.testclient import TestClient
 
+    from cell.access.throttle import LoginThrottle
     from cell.config import CellConfig
     from cell.service.config import LoginConfig
-    from cell.service.throttle import LoginThrottle
     from cell.web.app import build_app
     from cell.web.auth import Access
     from cell.web.config import WebConfig

@@ -14,8 +14,8 @@ import pytest
 from starlette.testclient import TestClient
 
 from cell.config import CellConfig
+from cell.core.commands import Command, VisionState
 from cell.errors import ConfigError
-from cell.service.api import Command, VisionState
 from cell.web.app import build_app
 from cell.web.auth import Access, is_loopback
 from cell.web.config import WebConfig

@@ -164,7 +164,7 @@ def test_stop_ends_a_stream_whose_reader_takes_nothing_without_a_traceback(servi
     """A browser that stopped reading leaves its stream stuck in a send: stopping the server resets
     that connection and the stream ends cleanly, with no error logged (uvicorn would wait out its
     grace period, cancel the stream and log a traceback for it)."""
-    from cell.service.api import Command
+    from cell.core.commands import Command
 
     srv = WebServer(service, CellConfig(), WebConfig(send_buffer_kb=16), "127.0.0.1", 0)
     srv.start()
@@ -206,7 +206,7 @@ def test_non_loopback_without_password_refused_before_binding(service):
 def test_screen_uses_the_services_user_and_password(service, monkeypatch, tmp_path, where):
     import ssl
 
-    from cell.service.security import hash_password
+    from cell.access.security import hash_password
     from cell.web.server import screen_server
 
     config = CellConfig()
@@ -249,8 +249,8 @@ def test_frames_are_drawn_only_while_a_screen_can_take_one(service):
     frame (`want_frame`, as the stream does), the next is drawn."""
     import asyncio
 
-    from cell.events import FrameLocated
-    from cell.service.api import Command
+    from cell.core.commands import Command
+    from cell.core.events import FrameLocated
     from cell.web.hub import Hub
 
     loop = asyncio.new_event_loop()

@@ -14,9 +14,9 @@ from cell.assembly import Overrides, RunHooks, arm_only, assemble, attach_consum
 from cell.audit import AuditLog
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
+from cell.core.eventbus import EventBus
+from cell.core.events import ConfigLoaded, RunEnded
 from cell.errors import REPORTED_ERRORS, ConfigError, InputError
-from cell.eventbus import EventBus
-from cell.events import ConfigLoaded, RunEnded
 from cell.locks import holding
 from cell.oplog import log_to_file, stop_logging_to
 from cell.planning import save_taught

@@ -16,18 +16,18 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Protocol, get_args
 
+from cell.access.security import check_exposure, hash_password
+from cell.access.throttle import Lockout, LoginThrottle
 from cell.assembly import Overrides, assemble, attach_consumers, cell_config
 from cell.config import CellConfig
+from cell.core.commands import Command, CommandRefused
+from cell.core.eventbus import EventBus
+from cell.core.events import SIGNAL_ORIGIN
 from cell.errors import REPORTED_ERRORS, ConfigError
-from cell.eventbus import EventBus
-from cell.events import SIGNAL_ORIGIN
 from cell.oplog import log_to_file
-from cell.service.api import Command, CommandRefused
 from cell.service.fdlimit import check_open_files
-from cell.service.security import check_exposure, hash_password
 from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
-from cell.service.throttle import Lockout, LoginThrottle
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
 

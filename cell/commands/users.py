@@ -13,11 +13,7 @@ import getpass
 import sys
 from pathlib import Path
 
-from cell.config import load_config
-from cell.errors import ConfigError
-from cell.events import Role
-from cell.locks import holding
-from cell.service.users import (
+from cell.access.users import (
     ROLE_NAMES,
     UserEntry,
     UsersError,
@@ -28,6 +24,10 @@ from cell.service.users import (
     read_users,
     write_users,
 )
+from cell.config import load_config
+from cell.core.events import Role
+from cell.errors import ConfigError
+from cell.locks import holding
 
 LOCK_WAIT_S = 5.0
 

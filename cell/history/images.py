@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from cell.atomicfile import write_bytes_atomic
-from cell.events import FrameRef
+from cell.core.events import FrameRef
 from cell.history.config import HistoryConfig
 from cell.history.rows import ImageWanted, Op
 from cell.memory import release_free_memory

@@ -14,6 +14,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from cell.core.records import Counters, PickRecord
 from cell.history.config import data_dir, database_url
 from cell.history.db import (
     Database,
@@ -25,7 +26,6 @@ from cell.history.db import (
     sqlite_path,
 )
 from cell.history.store import cell_name
-from cell.service.api import Counters, PickRecord
 
 PICK_COLUMNS = (
     "id",

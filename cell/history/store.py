@@ -50,15 +50,7 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
-from cell.events import (
-    BY_KIND,
-    Event,
-    FaultRaised,
-    FrameRef,
-    PartFailed,
-    PickVerified,
-    RunEnded,
-)
+from cell.core.events import BY_KIND, Event, FaultRaised, FrameRef, PartFailed, PickVerified, RunEnded
 from cell.history.config import OUTBOX_FILE, HistoryConfig, data_dir, database_url
 from cell.history.db import (
     Database,

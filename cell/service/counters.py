@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from cell.service.api import Counters
+from cell.core.records import Counters
 
 
 class ShiftCounts:

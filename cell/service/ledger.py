@@ -17,8 +17,8 @@ from dataclasses import replace
 from datetime import datetime
 from typing import Any
 
-from cell.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
-from cell.service.api import Counters, PickRecord
+from cell.core.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
+from cell.core.records import Counters, PickRecord
 from cell.service.counters import ShiftCounts
 from cell.shifts import Shift, ShiftCalendar
 

@@ -44,8 +44,22 @@ from asyncua.server.event_generator import EventGenerator
 
 from cell.asyncwait import wait_event
 from cell.config import CellConfig
-from cell.eventbus import Subscription
-from cell.events import (
+from cell.core.api import LineServiceAPI
+from cell.core.commands import (
+    AccessDenied,
+    BadArgument,
+    Command,
+    CommandRefused,
+    InvalidState,
+    JobRequest,
+    NotRecorded,
+    RecipeRequest,
+    ShuttingDown,
+    VisionState,
+    needed_role,
+)
+from cell.core.eventbus import Subscription
+from cell.core.events import (
     AlarmCleared,
     AlarmRaised,
     CalibrationInstalled,
@@ -61,22 +75,8 @@ from cell.events import (
     TargetChosen,
     VisionStateChanged,
 )
+from cell.core.records import Snapshot
 from cell.recipes import RecipeBook, RecipeError, RecipeInfo, check_recipe_id
-from cell.service.api import (
-    AccessDenied,
-    BadArgument,
-    Command,
-    CommandRefused,
-    InvalidState,
-    JobRequest,
-    LineServiceAPI,
-    NotRecorded,
-    RecipeRequest,
-    ShuttingDown,
-    Snapshot,
-    VisionState,
-    needed_role,
-)
 from cell.service.mv_addressspace import DI_URI, MV_URI
 from cell.service.mv_results import ResultMaker, external_id, internal_id, result_data, result_message
 from cell.service.opcua_security import caller_origin

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pydantic import Field
 
-from cell.events import Role
+from cell.core.events import Role
 from drivers.config import Strict
 
 

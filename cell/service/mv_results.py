@@ -12,7 +12,7 @@ from typing import Any
 
 from asyncua import ua
 
-from cell.events import CalibrationInstalled, ConfigLoaded, Event, JobEnded, JobStarted, PickVerified, TargetChosen
+from cell.core.events import CalibrationInstalled, ConfigLoaded, Event, JobEnded, JobStarted, PickVerified, TargetChosen
 from cell.recipes import RecipeBook, RecipeError
 from cell.service.results import JOB_STATES, PICK_STATES, ResultStore, VisionResult
 from cell.service.ua_values import mv_struct

@@ -24,21 +24,23 @@ from typing import Any
 from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
+from cell.access.security import credentials_configured
+from cell.access.throttle import LoginThrottle
+from cell.access.users import Authenticator
 from cell.asyncwait import wait_event
 from cell.config import CellConfig
+from cell.core.api import LineServiceAPI
+from cell.core.commands import STATE_COMMANDS, Command, CommandRefused, Refusal
+from cell.core.eventbus import Subscription
+from cell.core.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
+from cell.core.records import PickRecord, Snapshot
 from cell.errors import ConfigError
-from cell.eventbus import Subscription
-from cell.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
-from cell.service.api import STATE_COMMANDS, Command, CommandRefused, LineServiceAPI, PickRecord, Refusal, Snapshot
 from cell.service.ledger import PickRecords
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin
 from cell.service.results import HistoryBackedResults, MemoryResultStore, ResultStore
-from cell.service.security import credentials_configured
-from cell.service.throttle import LoginThrottle
 from cell.service.ua_values import data_value, node_id, status
-from cell.service.users import Authenticator
 
 log = logging.getLogger(__name__)
 

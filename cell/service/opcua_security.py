@@ -18,8 +18,8 @@ asyncua Server whose every connection goes through `GuardedProcessor`:
 - session: one per connection; CreateSession's certificate must be the channel's and carry
   the application URI the client claims; a user name token is accepted only encrypted
   (a SignAndEncrypt channel, or the password encrypted with the policy), checked off the
-  event loop against the users (cell.service.users) after the login throttle
-  (cell.service.throttle); the session's user carries the cell's Role;
+  event loop against the users (cell.access.users) after the login throttle
+  (cell.access.throttle); the session's user carries the cell's Role;
 - limits: connections per client address and in total, a deadline to activate a session,
   a cap on the session timeout a client may ask for, subscriptions per session, and a
   session closed as soon as its connection drops (a client reconnecting makes a new one).
@@ -59,10 +59,10 @@ from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, uatcp_t
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from cell.access.throttle import LoginThrottle
 from cell.atomicfile import write_bytes_atomic
-from cell.events import Interface, Origin, Role
+from cell.core.events import Interface, Origin, Role
 from cell.logratelimit import Tally
-from cell.service.throttle import LoginThrottle
 from cell.service.ua_values import node_id, status
 
 log = logging.getLogger(__name__)
@@ -268,7 +268,7 @@ class GuardSettings:
 
     @classmethod
     def from_config(cls, config: Any, app_uri: str, secure: bool) -> GuardSettings:
-        from cell.service.security import certificate_dir
+        from cell.access.security import certificate_dir
 
         svc, limits = config.service, config.service.opcua_limits
         cert_dir = certificate_dir(config)

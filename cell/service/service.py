@@ -1,12 +1,12 @@
 """The line service: one worker thread runs the cell's jobs through the Runner and its state
 machine; every interface (OPC UA, the screen, MQTT, signals) only calls `command()`.
 
-A command is checked against the one command table (cell.service.api: states, guards,
+A command is checked against the one command table (cell.core.api: states, guards,
 roles) under the service's lock, recorded (accepted or refused, with who sent it), then
 becomes a job for the worker or a request on the running job's Controls: nothing reaches
 the arm or the camera another way.
 
-What happens goes out as typed events on one bus (cell.eventbus): the audit log is its
+What happens goes out as typed events on one bus (cell.core.eventbus): the audit log is its
 synchronous record; the ledger (counters, last picks), OPC UA, the screen and whatever
 comes next subscribe, each on its own thread. The service itself never waits on them.
 
@@ -39,9 +39,26 @@ from cell.assembly import Cell
 from cell.audit import AuditWriteFailed
 from cell.calibration.store import Calibration
 from cell.config import CellConfig
-from cell.errors import REPORTED_ERRORS, CellError
-from cell.eventbus import EventBus, Subscription
-from cell.events import (
+from cell.core.commands import (
+    AccessDenied,
+    BadArgument,
+    Command,
+    CommandRefused,
+    CommandResult,
+    InvalidState,
+    JobRequest,
+    NotRecorded,
+    RecipeRequest,
+    Refusal,
+    Rest,
+    ShuttingDown,
+    VisionState,
+    allowed,
+    needed_role,
+    state_refusal,
+)
+from cell.core.eventbus import EventBus, Subscription
+from cell.core.events import (
     SERVICE_ORIGIN,
     AlarmCleared,
     AlarmRaised,
@@ -57,32 +74,12 @@ from cell.events import (
     VisionStateChanged,
     new_job_id,
 )
+from cell.core.records import Alarm, CalibrationInfo, LiveFrame, Snapshot
+from cell.errors import REPORTED_ERRORS, CellError
 from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
 from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
 from cell.runner import Runner, make_parked_arm_safe
-from cell.service.api import (
-    AccessDenied,
-    Alarm,
-    BadArgument,
-    CalibrationInfo,
-    Command,
-    CommandRefused,
-    CommandResult,
-    InvalidState,
-    JobRequest,
-    LiveFrame,
-    NotRecorded,
-    RecipeRequest,
-    Refusal,
-    Rest,
-    ShuttingDown,
-    Snapshot,
-    VisionState,
-    allowed,
-    needed_role,
-    state_refusal,
-)
 from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_since
 from cell.shifts import ShiftCalendar
@@ -154,7 +151,7 @@ HEIGHT_WARNING = "camera-height"  # the warning alarm's key while the calibratio
 
 
 class LineService:
-    """Implements cell.service.api.LineServiceAPI."""
+    """Implements cell.core.api.LineServiceAPI."""
 
     def __init__(self, cell: Cell, bus: EventBus, record: ShiftLog):
         self.cell, self.config, self.bus, self.record = cell, cell.config, bus, record

@@ -1,7 +1,7 @@
 """The service's audit log: the same JSON lines as a run's, in files that roll over at each UTC
 day and past a size, so a shift of any length stays readable and no file grows without end.
 
-It is the event stream's synchronous record (cell.eventbus): each event is on disk before
+It is the event stream's synchronous record (cell.core.eventbus): each event is on disk before
 the emitter goes on. A roll happens only between two events, so every file holds whole
 lines. Files are named `cell-YYYYMMDD-N.jsonl` with N counting up from 000 for as many
 files as a day needs. A file that failed (a full disk) is never written again: the next
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.audit import AuditLog, AuditWriteFailed
-from cell.events import Event
+from cell.core.events import Event
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from cell.service.api import Command, PickRecord, Snapshot
+from cell.core.commands import Command
+from cell.core.records import PickRecord, Snapshot
 from cell.telemetry.sparkplug import DataType
 
 D = DataType

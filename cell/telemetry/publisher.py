@@ -34,9 +34,9 @@ from typing import Any, ParamSpec, Protocol, cast
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 
-from cell.errors import ConfigError
-from cell.eventbus import EventBus, Subscription
-from cell.events import (
+from cell.core.commands import AccessDenied, Command, CommandRefused, CommandResult
+from cell.core.eventbus import EventBus, Subscription
+from cell.core.events import (
     AlarmCleared,
     AlarmRaised,
     CalibrationInstalled,
@@ -52,7 +52,8 @@ from cell.events import (
     StateChanged,
     VisionStateChanged,
 )
-from cell.service.api import AccessDenied, Command, CommandRefused, CommandResult, Snapshot
+from cell.core.records import Snapshot
+from cell.errors import ConfigError
 from cell.service.ledger import PickRecords
 from cell.telemetry import metrics as M
 from cell.telemetry.config import MqttConfig
@@ -102,7 +103,7 @@ class _Throttled:
 
 
 class ServiceView(Protocol):
-    """What the publisher needs of the line service (cell.service.api.LineServiceAPI has it)."""
+    """What the publisher needs of the line service (cell.core.api.LineServiceAPI has it)."""
 
     def snapshot(self) -> Snapshot: ...
 

@@ -21,10 +21,12 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from cell.asyncwait import wait_event
 from cell.config import CellConfig
+from cell.core.api import LineServiceAPI
+from cell.core.commands import Command, CommandRefused, RecipeRequest, Refusal
+from cell.core.events import Origin
+from cell.core.records import Snapshot
 from cell.errors import REPORTED_ERRORS, CalibrationRejected
-from cell.events import Origin
 from cell.recipes import RecipeBook, RecipeError
-from cell.service.api import Command, CommandRefused, LineServiceAPI, RecipeRequest, Refusal, Snapshot
 from cell.web.auth import CSRF_HEADER, SESSION_COOKIE, Access
 from cell.web.camera_check import CameraCheck
 from cell.web.config import WebConfig

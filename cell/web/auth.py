@@ -6,7 +6,7 @@ page can read, and the Host header must name loopback, against DNS rebinding).
 With users (required for a non-loopback bind; the line service's users, shared with OPC UA,
 each with a role): the screen speaks only HTTPS, and a login gives an HttpOnly,
 SameSite=Strict, Secure session cookie and a CSRF token bound to that session. Logins are
-throttled per user and per client address (cell.service.throttle); the session remembers
+throttled per user and per client address (cell.access.throttle); the session remembers
 who logged in and their role, so each command carries an Origin (`origin()`). Removing the
 user, or changing their role or password, ends their sessions at the next request (each
 session keeps the users file's fingerprint of its user, `Authenticator.credential`).
@@ -23,9 +23,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cell.access.throttle import LoginThrottle
+from cell.core.events import Interface, Origin, Role
 from cell.errors import ConfigError
-from cell.events import Interface, Origin, Role
-from cell.service.throttle import LoginThrottle
 from cell.web.config import WebConfig
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ class Access:
         throttle: LoginThrottle | None = None,
         credential: Callable[[str], str | None] | None = None,
     ):
-        """`authenticate(user, password) -> Role | None`: the service's users (cell.service.users.Authenticator);
+        """`authenticate(user, password) -> Role | None`: the service's users (cell.access.users.Authenticator);
         or, older, `check_password(user, password) -> bool` (an admin). Neither: no login (loopback only).
         `credential(user) -> str | None` (Authenticator.credential): the user's fingerprint now; a session whose
         user's differs from the one at login (removed, new role, new password) ends at once."""

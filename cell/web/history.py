@@ -22,8 +22,8 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
 from cell.config import CellConfig
+from cell.core.api import LineServiceAPI
 from cell.errors import REPORTED_ERRORS
-from cell.service.api import LineServiceAPI
 
 if TYPE_CHECKING:  # imported where used: the screen without a store never loads them
     from cell.history.query import HistoryReader, PickFilter

@@ -32,9 +32,9 @@ from typing import Any
 
 import cv2
 
-from cell.errors import REPORTED_ERRORS
-from cell.eventbus import Subscription
-from cell.events import (
+from cell.core.api import LineServiceAPI
+from cell.core.eventbus import Subscription
+from cell.core.events import (
     Event,
     FrameLocated,
     FrameRef,
@@ -46,7 +46,8 @@ from cell.events import (
     SnapshotChanged,
     StateChanged,
 )
-from cell.service.api import FrameView, LineServiceAPI, Snapshot
+from cell.core.records import FrameView, Snapshot
+from cell.errors import REPORTED_ERRORS
 from cell.vision.annotate import annotate
 from cell.web.camera_check import CameraCheck
 

@@ -29,9 +29,10 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 
-from cell.eventbus import Subscription
-from cell.events import AlarmRaised, Event, FrameLocated, PartFailed, PickVerified
-from cell.service.api import LineServiceAPI, VisionState
+from cell.core.api import LineServiceAPI
+from cell.core.commands import VisionState
+from cell.core.eventbus import Subscription
+from cell.core.events import AlarmRaised, Event, FrameLocated, PartFailed, PickVerified
 from cell.web.auth import SESSION_COOKIE, Access
 
 CYCLE_BUCKETS_S = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 30.0, 60.0)

@@ -33,10 +33,12 @@ from cell.calibration.pipeline import CalibrationResult, calibrate
 from cell.calibration.recalibrate import check_image_size, gate_failure, replace_active
 from cell.calibration.report import annotate_plate, deviation_png
 from cell.config import CellConfig
+from cell.core.api import LineServiceAPI
+from cell.core.commands import Command, CommandRefused
+from cell.core.events import SERVICE_ORIGIN, Interface, Origin, Role
+from cell.core.records import CalibrationInfo
 from cell.errors import InputError
-from cell.events import SERVICE_ORIGIN, Interface, Origin, Role
 from cell.imagedecode import decode_limited
-from cell.service.api import CalibrationInfo, Command, CommandRefused, LineServiceAPI
 
 log = logging.getLogger(__name__)
 

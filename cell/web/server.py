@@ -15,10 +15,10 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+from cell.access.throttle import LoginThrottle
 from cell.config import CellConfig
-from cell.events import Role
-from cell.service.api import LineServiceAPI
-from cell.service.throttle import LoginThrottle
+from cell.core.api import LineServiceAPI
+from cell.core.events import Role
 from cell.web.app import build_app
 from cell.web.auth import Access
 from cell.web.config import WebConfig
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 def screen_server(service: LineServiceAPI, config: CellConfig, throttle: LoginThrottle | None = None) -> WebServer:
     """The screen on `service.host`:`service.http_port`, with the service's users if any (then HTTPS only).
     `throttle`: the service's login throttle, shared with OPC UA (one is made if not given)."""
-    from cell.service.users import Authenticator
+    from cell.access.users import Authenticator
 
     svc = config.service
     users = Authenticator(svc)
@@ -96,7 +96,7 @@ class WebServer:
         """`authenticate(user, password) -> Role | None` (or the older `check_password`): None without users.
         With users the screen is HTTPS only, its certificate from service.web or made in `certificate_dir`.
         `credential(user)`: the user's fingerprint now (Authenticator.credential): sessions end when it changes."""
-        from cell.service.security import certificate_dir as default_certificate_dir
+        from cell.access.security import certificate_dir as default_certificate_dir
 
         # refuses a non-loopback bind without users
         self.access = Access(

@@ -7,7 +7,8 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import Any
 
-from cell.service.api import STATE_COMMANDS, Alarm, PickRecord, Snapshot, VisionState
+from cell.core.commands import STATE_COMMANDS, VisionState
+from cell.core.records import Alarm, PickRecord, Snapshot
 from cell.web.words import alarm_words
 
 V = VisionState

@@ -14,7 +14,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from cell.service.api import Alarm
+from cell.core.records import Alarm
 
 # A hint written for the terminal: a command, an option, a config key (drift.limit_mm), code quotes.
 TECHNICAL = re.compile(r"run-cell|scripts/|`|--[a-z]|\b[a-z]+\.[a-z]+_[a-z_]+\b|\.toml\b")

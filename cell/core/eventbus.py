@@ -1,4 +1,4 @@
-"""One stream of typed events (cell.events), with two kinds of listener.
+"""One stream of typed events (cell.core.events), with two kinds of listener.
 
 - Records (`add_record`): called on the emitting thread, in order, before `emit` returns.
   Only the audit log is one: safety needs the record written before the next motion, so it
@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
-from cell.events import Event, FrameLocated, PickOrderChosen
+from cell.core.events import Event, FrameLocated, PickOrderChosen
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The cell's typed events: what happened, one dataclass per kind, on one stream.
 
-The runner and the line service emit them; everything else listens (cell.eventbus): the
+The runner and the line service emit them; everything else listens (cell.core.eventbus): the
 audit log (synchronously: the safety record is written before the next motion), and,
 each on its own thread behind its own bounded queue, the shift counters, OPC UA, the
 screen, the history store and plant telemetry.
@@ -327,7 +327,7 @@ class CommandHandled(Event):
     origin: Origin
     accepted: bool
     vision_state: str
-    refusal: str = ""  # the refusal's code (cell.service.api.Refusal value)
+    refusal: str = ""  # the refusal's code (cell.core.api.Refusal value)
     message: str = ""  # why, in words
     arguments: dict[str, Any] = field(default_factory=dict)
 

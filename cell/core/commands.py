@@ -1,33 +1,15 @@
-"""The line service's interface: what OPC UA, the web screen, MQTT, signals and the CLI may ask of
-the cell, and the one command table they all obey.
-
-Every interface holds a `LineServiceAPI` and nothing else: a command goes in with its
-`Origin` (interface, user, role, address) and comes back accepted (a `CommandResult`) or
-refused (`CommandRefused` with a `Refusal` code and the reason in words). The same command
-in the same state gets the same answer whoever sends it. State comes out as immutable
-`Snapshot`s; what happens comes out as typed events (cell.events) to which interfaces
-subscribe, each on its own thread (cell.eventbus). No interface touches the runner, the arm
-or the camera directly.
-
-The outward state follows OPC 40100-1 (Machine Vision): Preoperational, Halted, Error,
-and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution.
+"""The one command table every interface obeys: the commands, the states each is allowed in, the
+least role that may send it, the guards, and the refusals (each with a code an interface maps to
+its own status: OPC UA, HTTP, MQTT). The outward state follows OPC 40100-1 (Machine Vision).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
-from datetime import datetime
+from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any
 
-import numpy as np
-
-from cell.eventbus import SubscriberStats, Subscription
-from cell.events import SERVICE_ORIGIN, Event, Origin, Role
-
-if TYPE_CHECKING:
-    from cell.recipes import RecipeBook
+from cell.core.events import Role
 
 
 class VisionState(Enum):
@@ -50,6 +32,8 @@ class VisionState(Enum):
 
 
 V = VisionState
+
+
 RUNNING = frozenset({V.SINGLE_EXECUTION, V.CONTINUOUS_EXECUTION})
 
 
@@ -85,6 +69,8 @@ class Refusal(Enum):
 # The command table: the states each command is allowed in (pausing and guards below), and the
 # least role that may send it.
 _AT_REST = frozenset({V.READY, V.HALTED, V.ERROR})  # the arm parked or made safe
+
+
 _TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
     Command.START_SINGLE: (frozenset({V.READY}), Role.OPERATOR),
     Command.START_CONTINUOUS: (frozenset({V.READY}), Role.OPERATOR),
@@ -101,14 +87,24 @@ _TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
     Command.ADD_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
     Command.REMOVE_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
 }
+
+
 # Commands that need the cell at rest: Ready, Halted, Error, or a job paused at a safe point (not pausing).
 STILL_COMMANDS = frozenset({Command.CAPTURE_PLATE, Command.INSTALL_CALIBRATION})
+
+
 # Commands a hold (a recalibration awaiting its answer) refuses: nothing may start or move on.
 HELD_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS, Command.RESUME})
+
+
 # Commands a plate capture in progress refuses: each would move the arm (Stop and Abort home it from a
 # paused job) into the plate image. Halt is never refused: the safe stop comes before any image.
 CAPTURE_REFUSES = HELD_COMMANDS | {Command.STOP, Command.ABORT}
+
+
 JOB_COMMANDS = frozenset({Command.START_SINGLE, Command.START_CONTINUOUS})
+
+
 STATE_COMMANDS = (
     Command.START_SINGLE,
     Command.START_CONTINUOUS,
@@ -251,163 +247,3 @@ class RecipeRequest:
 class CommandResult:
     command: Command
     job_id: str | None = None  # a start command's new job
-
-
-@dataclass(frozen=True)
-class Counters:
-    picked_bolts: int = 0
-    picked_nuts: int = 0
-    misses: int = 0
-    retries: int = 0
-    failed: int = 0
-    unreachable: int = 0
-    unknown_left: int = 0
-
-
-@dataclass(frozen=True)
-class PickRecord:
-    """One finished pick attempt, as the screen's table and OPC UA's LastPick* show it."""
-
-    time_utc: datetime
-    track_id: int  # the part's number within its job
-    cls: str  # bolt | nut
-    table_mm: tuple[float, float]
-    robot_mm: tuple[float, float, float]
-    angle_deg: float | None  # jaw angle for bolts, None for nuts
-    outcome: str  # picked | missed | failed | rehearsed
-    pick_id: str = ""  # unique across jobs and restarts (cell.events.pick_id)
-    job_id: str = ""
-
-
-@dataclass(frozen=True)
-class Alarm:
-    reason: str  # what failed and where
-    hint: str  # what the operator can do about it
-    time_utc: datetime
-    alarm_id: str = ""
-    severity: str = "fault"  # fault (needs Reset) | warning (shown until its cause is gone)
-    source: str = "job"
-
-
-@dataclass(frozen=True)
-class CalibrationInfo:
-    model: str
-    cv_rms_mm: float
-    cv_max_mm: float
-    time_utc: datetime | None  # when it was made
-    source_image: str  # which image it was made from (a name for display, never a path to open)
-    calibration_id: str = ""  # content hash
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """Everything a client shows, consistent at one instant."""
-
-    vision_state: VisionState
-    cell_state: str  # the runner's State name (CAPTURE, PICK, PAUSED ...); between jobs IDLE, STOPPED or FAULT
-    paused: bool  # a job paused and at rest (nothing moves)
-    waiting_for_parts: bool  # continuous mode with an empty table
-    counters: Counters
-    parts_per_min: float  # 0 when no job runs
-    last_picks: tuple[PickRecord, ...]  # newest last, at most 20
-    alarm: Alarm | None  # the fault alarm (needs Reset)
-    calibration: CalibrationInfo | None
-    heartbeat: int  # +1 a second while the service runs
-    allowed: frozenset[Command]  # what the current state accepts (buttons enabled)
-    pausing: bool = False  # a pause was asked for; the last motion is finishing (paused once at rest)
-    job_id: str = ""
-    job_mode: str = ""  # single | continuous while a job runs
-    hold: str = ""  # a guard holding starts (e.g. a recalibration awaiting its answer)
-    warnings: tuple[Alarm, ...] = ()  # warning alarms (no Reset needed)
-    subscribers: tuple[SubscriberStats, ...] = ()  # every subscriber's delivered / dropped / failed
-    recipe: str = ""  # the prepared recipe's id
-    simulated: bool = False  # a dry run: the simulated cell, or a mock arm over a real table
-    shift: str = ""  # the shift the counters count (e.g. 2026-12-01 early)
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class FrameView:
-    """A located frame annotated for the screen (made off the control thread)."""
-
-    seq: int  # +1 per captured frame
-    capture_monotonic_s: float  # time.monotonic() at capture, for latency measurement
-    image_bgr: np.ndarray  # the annotated frame (outlines, class, pick order, jaw direction)
-    pick_order: tuple[int, ...] = ()  # the drawn order: part ids as PLAN chose them; empty if not planned
-
-
-@dataclass(frozen=True)
-class LiveFrame:
-    """A raw camera frame taken while the cell is at rest, for the screen's live view."""
-
-    image_bgr: np.ndarray
-    captured_monotonic_s: float  # time.monotonic() at capture
-    time_utc: datetime  # when it was taken
-
-
-class LineServiceAPI(Protocol):
-    """What every interface may call. All methods are thread-safe and return quickly, except
-    `capture_plate_image` and `preview_frame` (a camera frame)."""
-
-    recipes: RecipeBook  # the recipe files, for listing (changes go through PrepareRecipe / AddRecipe ...)
-
-    def command(
-        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
-    ) -> CommandResult:
-        """Accept the command or raise CommandRefused; the work happens in the service's own thread."""
-        ...
-
-    def snapshot(self) -> Snapshot: ...
-
-    def subscribe(
-        self,
-        name: str,
-        handler: Callable[[Event], object],
-        *,
-        kinds: Iterable[type[Event]] | None = None,
-        maxsize: int = 1024,
-        frames: bool | Callable[[Event], bool] = False,
-        batch_s: float = 0.0,
-    ) -> Subscription:
-        """`handler` gets every event (of `kinds`), on its own thread behind its own bounded queue;
-        with `frames` the images events carry too (otherwise `ref` is None); with `batch_s` it wakes at
-        most once a batch_s and takes the events of the meantime in one go (a screen: fewer wakes of
-        a thread beside the control thread); `unsubscribe(subscription)` ends it."""
-        ...
-
-    def unsubscribe(self, subscription: Subscription) -> None: ...
-
-    def hold(self, reason: str, origin: Origin = SERVICE_ORIGIN) -> Callable[[], None]:
-        """Hold starts and resumes (e.g. a recalibration awaiting its answer) until the returned
-        function is called; every interface then gets InvalidState with `reason`."""
-        ...
-
-    def authorize(
-        self,
-        command: Command,
-        origin: Origin,
-        action: str = "",
-        *,
-        state: bool = True,
-        arguments: dict[str, Any] | None = None,
-    ) -> None:
-        """Check `command`'s role (and with `state` its states and guards) in the command table for `origin`,
-        before an interface's own step does anything (an uploaded plate's fit, a report's answer): refused,
-        CommandRefused is raised and recorded; allowed, nothing happens but, with `action`, a record of it."""
-        ...
-
-    def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
-        """A frame from the cell's camera for recalibration; only at rest (Ready, Halted, or a job
-        paused at a safe point), and Resume and Start wait until it is taken."""
-        ...
-
-    def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
-        """A frame from the cell's camera for a live view, taken only while the cell is at rest (Ready,
-        Halted, Error, or a job paused at a safe point) under the device lock; None otherwise (a job's
-        own frames are the view then). Not a command: nothing moves, nothing is recorded."""
-        ...
-
-    def install_calibration(self, calibration: Any, info: CalibrationInfo, origin: Origin = SERVICE_ORIGIN) -> None:
-        """Use a calibration that passed the quality gate and was written atomically to the active
-        path: locate and the drift watch change together; only at rest."""
-        ...

@@ -1,7 +1,7 @@
 """Who may drive the cell from off the machine: a server listens on loopback unless configured
 otherwise, and then only with encryption and users whose passwords are checked here.
 
-Users come from the users file (`service.users_file`, cell.service.users: one per person,
+Users come from the users file (`service.users_file`, cell.access.users: one per person,
 each with a role) and, as before, the single `service.user` with a PBKDF2-SHA256
 `password_hash` (`run-cell hash-password`) or a password in an environment variable named
 by `password_env` (systemd's credentials, a secret store): that user is an admin.
@@ -13,10 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from cell.access.users import ITERATIONS, Authenticator, parse_hash, verify_hash
+from cell.access.users import hash_password as _hash_password
 from cell.errors import ConfigError
 from cell.service.config import ServiceConfig
-from cell.service.users import ITERATIONS, Authenticator, parse_hash, verify_hash
-from cell.service.users import hash_password as _hash_password
 
 
 def hash_password(password: str, iterations: int = ITERATIONS) -> str:

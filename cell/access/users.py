@@ -8,7 +8,7 @@ old config starts as before.
 `Authenticator.authenticate(user, password)` gives the user's Role, or None: the same answer
 in about the same time whether the name is unknown or the password wrong. A check costs a
 hash (about 0.14 s of CPU at 600,000 iterations): call it off an event loop, and ask the
-login throttle (cell.service.throttle) first. The file is read again when it changes, so a
+login throttle (cell.access.throttle) first. The file is read again when it changes, so a
 user added, removed or given a new password counts at the next login without a restart.
 
 Logins made before a change end too: `credential(user)` is a fingerprint of what the user
@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from cell.atomicfile import write_atomic
+from cell.core.events import Role
 from cell.errors import ConfigError
-from cell.events import Role
 
 if TYPE_CHECKING:
     from cell.service.config import ServiceConfig
