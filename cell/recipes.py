@@ -29,7 +29,6 @@ from __future__ import annotations
 import hashlib
 import re
 import tomllib
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
@@ -38,6 +37,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from cell.atomicfile import write_text_atomic
 from cell.config import CellConfig
+from cell.core.records import RecipeInfo
 from cell.errors import CellError
 from cell.run_config import ClassPlan
 from cell.vision.config import PartsConfig
@@ -85,18 +85,6 @@ class Recipe(Strict):
             update={"pick_order": self.pick_order, **{cls: plan for cls, plan in self.pick.items()}}
         )
         return config.model_copy(update={"planning": planning, "parts": self.parts})
-
-
-@dataclass(frozen=True)
-class RecipeInfo:
-    """A recipe file as listed: its id, content hash and when it was written."""
-
-    recipe_id: str
-    path: Path
-    sha256: str  # of the file's bytes: OPC 40100-1's recipe Hash
-    modified_utc: datetime
-    products: tuple[str, ...]
-    error: str = ""  # why the file is not a valid recipe; empty when it is
 
 
 def parse_recipe(text: str, where: str) -> Recipe:

@@ -94,8 +94,8 @@ def offenders(folders: tuple[str, ...], forbidden: tuple[str, ...]) -> list[str]
             "vision and calibration are below everything that uses them",
         ),
         (
-            ("cell/runner.py", "cell/statemachine.py", "cell/events.py", "cell/eventbus.py"),
-            ("cell.service", "cell.web", "cell.commands", "cell.cli", "cell.sim"),
+            ("cell/runner.py", "cell/statemachine.py", "cell/core"),
+            ("cell.service", "cell.web", "cell.commands", "cell.cli", "cell.sim", "cell.history", "cell.telemetry"),
             "the core knows no interface and no simulated world",
         ),
     ],
@@ -103,6 +103,65 @@ def offenders(folders: tuple[str, ...], forbidden: tuple[str, ...]) -> list[str]
 def test_the_application_layers_point_one_way(folders, forbidden, why):
     found = offenders(folders, forbidden)
     assert not found, f"{why}:\n" + "\n".join(found)
+
+
+def test_the_domain_core_imports_nothing_else_of_the_cell():
+    """cell/core (commands, roles, the command table, events, the records) is the bottom of the
+    application: everything else depends on it, it on nothing of the cell but itself."""
+    files = sources("cell/core")
+    assert len(files) >= 5, "expected the domain core under cell/core"
+    found = [
+        f"{path.relative_to(REPO)}:{line}: {module}"
+        for path in files
+        for line, module, _ in imports_of(path)
+        if is_cell(module) and not (module == "cell.core" or module.startswith("cell.core."))
+    ]
+    assert not found, "the domain core imports the rest of the cell:\n" + "\n".join(found)
+
+
+# What one interface or consumer package may import of another: the domain core, access (users,
+# throttle, certificates), the history readers' API, and any package's config models (leaves).
+SHARED = ("cell.core", "cell.access", "cell.history.query")
+PACKAGES = ("cell/service", "cell/web", "cell/history", "cell/telemetry", "cell/access")
+
+
+def crosses(module: str, own: str) -> bool:
+    """Whether `module` is another of PACKAGES than `own`, and not one of what they may share."""
+    dotted = {p.replace("/", "."): p for p in PACKAGES}
+    other = next((d for d in dotted if module == d or module.startswith(d + ".")), None)
+    if other is None or dotted[other] == own:
+        return False
+    if any(module == s or module.startswith(s + ".") for s in SHARED):
+        return False
+    return not module.endswith(".config")
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_interfaces_and_consumers_depend_on_the_core_not_on_each_other(package):
+    """History, telemetry, OPC UA and the service, the screen and access meet in cell/core; none
+    imports another (a config model or the history readers' API excepted)."""
+    found = [
+        f"{path.relative_to(REPO)}:{line}: {module}"
+        for path in sources(package)
+        for line, module, _ in imports_of(path)
+        if crosses(module, package)
+    ]
+    assert not found, f"{package} imports another interface or consumer:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    "module, own, expected",
+    [
+        ("cell.service.ledger", "cell/telemetry", True),
+        ("cell.web.config", "cell/service", False),
+        ("cell.core.records", "cell/web", False),
+        ("cell.history.store", "cell/web", True),
+        ("cell.history.query", "cell/web", False),
+        ("cell.service.service", "cell/service", False),
+    ],
+)
+def test_the_crossing_rule(module, own, expected):
+    assert crosses(module, own) is expected
 
 
 def test_devices_are_built_in_one_place():

@@ -16,7 +16,7 @@ and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -28,17 +28,28 @@ from cell.core.commands import (
 )
 from cell.core.eventbus import Subscription
 from cell.core.events import SERVICE_ORIGIN, Event, Origin
-from cell.core.records import CalibrationInfo, LiveFrame, Snapshot
+from cell.core.records import CalibrationInfo, LiveFrame, RecipeInfo, Snapshot
 
-if TYPE_CHECKING:
-    from cell.recipes import RecipeBook
+
+class RecipeCatalog(Protocol):
+    """The recipe files as an interface lists them (cell.recipes.RecipeBook has it); changes go
+    through the command table (AddRecipe, PrepareRecipe ...), never through this."""
+
+    def list(self) -> list[RecipeInfo]: ...
+
+    def info(self, recipe_id: str) -> RecipeInfo: ...
+
+    def sha256(self, recipe_id: str) -> str: ...
 
 
 class LineServiceAPI(Protocol):
     """What every interface may call. All methods are thread-safe and return quickly, except
     `capture_plate_image` and `preview_frame` (a camera frame)."""
 
-    recipes: RecipeBook  # the recipe files, for listing (changes go through PrepareRecipe / AddRecipe ...)
+    @property
+    def recipes(self) -> RecipeCatalog:
+        """The recipe files, for listing (changes go through PrepareRecipe / AddRecipe ...)."""
+        ...
 
     def command(
         self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None

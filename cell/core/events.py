@@ -70,23 +70,35 @@ class Role(Enum):
 
 @dataclass(frozen=True)
 class Origin:
-    """Who asked, through which interface, from where (an address for display, never a path)."""
+    """Who asked, through which interface, from where (an address for display, never a path).
+
+    Deny by default: an origin without a role (`role=None`, the default) may do nothing. Every
+    interface names the role it found for its caller; none is assumed."""
 
     interface: Interface
     user: str = ""
-    role: Role = Role.ADMIN
+    role: Role | None = None
     address: str = ""
+
+    def may(self, needed: Role) -> bool:
+        """Whether this origin's role allows what needs `needed`; never without a role."""
+        return self.role is not None and self.role.may(needed)
+
+    @property
+    def role_name(self) -> str:
+        return self.role.value if self.role is not None else "no role"
 
     def describe(self) -> str:
         who = self.user or "anonymous"
         where = f" from {self.address}" if self.address else ""
-        return f"{who} ({self.role.value}) via {self.interface.value}{where}"
+        return f"{who} ({self.role_name}) via {self.interface.value}{where}"
 
     def as_json(self) -> dict[str, Any]:
-        return {"interface": self.interface.value, "user": self.user, "role": self.role.value, "address": self.address}
+        role = self.role.value if self.role is not None else ""
+        return {"interface": self.interface.value, "user": self.user, "role": role, "address": self.address}
 
 
-SERVICE_ORIGIN = Origin(Interface.SERVICE, "service")
+SERVICE_ORIGIN = Origin(Interface.SERVICE, "service", Role.ADMIN)  # the service itself: start-up, shutdown
 SIGNAL_ORIGIN = Origin(Interface.SIGNAL, "signal", Role.OPERATOR)
 
 

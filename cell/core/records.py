@@ -5,8 +5,9 @@ OPC UA, the screen, history, telemetry and /metrics alike.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,19 @@ from cell.core.commands import (
     VisionState,
 )
 from cell.core.eventbus import SubscriberStats
+from cell.core.events import Event, JobStarted, PartFailed, PickVerified
+
+
+@dataclass(frozen=True)
+class RecipeInfo:
+    """A recipe file as listed: its id, content hash and when it was written."""
+
+    recipe_id: str
+    path: Path
+    sha256: str  # of the file's bytes: OPC 40100-1's recipe Hash
+    modified_utc: datetime
+    products: tuple[str, ...]
+    error: str = ""  # why the file is not a valid recipe; empty when it is
 
 
 @dataclass(frozen=True)
@@ -108,3 +122,44 @@ class LiveFrame:
     image_bgr: np.ndarray
     captured_monotonic_s: float  # time.monotonic() at capture
     time_utc: datetime  # when it was taken
+
+
+class PickRecords:
+    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place).
+
+    Only the records of parts missed and not yet picked or given up are kept (small records, never
+    the events: those carry frames, and a continuous job's parts never end)."""
+
+    def __init__(self) -> None:
+        self._missed: dict[tuple[str, int], PickRecord] = {}
+
+    def of(self, event: Event) -> PickRecord | None:
+        if isinstance(event, JobStarted):
+            self._missed.clear()
+        elif isinstance(event, PickVerified):
+            record = pick_record(event, event.result)
+            key = (event.job_id or "", event.track)
+            if event.result == "missed":
+                self._missed[key] = record  # it may yet be given up
+            else:
+                self._missed.pop(key, None)
+            return record
+        elif isinstance(event, PartFailed):
+            last = self._missed.pop((event.job_id or "", event.track), None)
+            if last is not None:
+                return replace(last, outcome="failed")
+        return None
+
+
+def pick_record(e: PickVerified, outcome: str) -> PickRecord:
+    return PickRecord(
+        e.time_utc,
+        e.track,
+        e.cls,
+        (float(e.table_mm[0]), float(e.table_mm[1])),
+        (float(e.robot_mm[0]), float(e.robot_mm[1]), float(e.robot_mm[2])),
+        e.jaw_angle_deg,
+        outcome,
+        e.pick_id,
+        e.job_id or "",
+    )

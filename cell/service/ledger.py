@@ -13,44 +13,16 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import replace
 from datetime import datetime
 from typing import Any
 
-from cell.core.events import Event, JobEnded, JobStarted, PartFailed, PickVerified
-from cell.core.records import Counters, PickRecord
+from cell.core.events import Event, JobEnded, JobStarted
+from cell.core.records import Counters, PickRecord, PickRecords
 from cell.service.counters import ShiftCounts
 from cell.shifts import Shift, ShiftCalendar
 
 PICKS_KEPT = 20
 RATE_WINDOW = 20  # picks the parts-per-minute figure is taken over
-
-
-class PickRecords:
-    """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place).
-
-    Only the records of parts missed and not yet picked or given up are kept (small records, never
-    the events: those carry frames, and a continuous job's parts never end)."""
-
-    def __init__(self) -> None:
-        self._missed: dict[tuple[str, int], PickRecord] = {}
-
-    def of(self, event: Event) -> PickRecord | None:
-        if isinstance(event, JobStarted):
-            self._missed.clear()
-        elif isinstance(event, PickVerified):
-            record = _record(event, event.result)
-            key = (event.job_id or "", event.track)
-            if event.result == "missed":
-                self._missed[key] = record  # it may yet be given up
-            else:
-                self._missed.pop(key, None)
-            return record
-        elif isinstance(event, PartFailed):
-            last = self._missed.pop((event.job_id or "", event.track), None)
-            if last is not None:
-                return replace(last, outcome="failed")
-        return None
 
 
 class Ledger:
@@ -143,17 +115,3 @@ class Ledger:
     @property
     def current_shift(self) -> Shift:
         return self._shift
-
-
-def _record(e: PickVerified, outcome: str) -> PickRecord:
-    return PickRecord(
-        e.time_utc,
-        e.track,
-        e.cls,
-        (float(e.table_mm[0]), float(e.table_mm[1])),
-        (float(e.robot_mm[0]), float(e.robot_mm[1]), float(e.robot_mm[2])),
-        e.jaw_angle_deg,
-        outcome,
-        e.pick_id,
-        e.job_id or "",
-    )

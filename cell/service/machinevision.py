@@ -492,7 +492,7 @@ class MachineVisionServer:
             values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
             try:
                 origin = self._origin()
-                if not origin.role.may(role):
+                if not origin.may(role):
                     raise MethodError(
                         ua.StatusCodes.BadUserAccessDenied,
                         f"{origin.describe()} may not call {name}: it needs the {role.value} role",

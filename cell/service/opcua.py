@@ -33,9 +33,8 @@ from cell.core.api import LineServiceAPI
 from cell.core.commands import STATE_COMMANDS, Command, CommandRefused, Refusal
 from cell.core.eventbus import Subscription
 from cell.core.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
-from cell.core.records import PickRecord, Snapshot
+from cell.core.records import PickRecord, PickRecords, Snapshot
 from cell.errors import ConfigError
-from cell.service.ledger import PickRecords
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
 from cell.service.opcua_security import GuardedServer, GuardSettings, caller_origin

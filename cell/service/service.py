@@ -253,10 +253,10 @@ class LineService:
         if not self._accepting:
             raise ShuttingDown(command, f"{command.value} refused: {self._closing_reason}", self._vstate)
         role = needed_role(command)
-        if not origin.role.may(role):
+        if not origin.may(role):
             raise AccessDenied(
                 command,
-                f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role.value}",
+                f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role_name}",
                 self._vstate,
             )
         why = state_refusal(command, self._rest(), self._hold_reason())
@@ -446,10 +446,10 @@ class LineService:
             try:
                 if state or not self._accepting:
                     self._check(command, origin)
-                elif not origin.role.may(role := needed_role(command)):
+                elif not origin.may(role := needed_role(command)):
                     raise AccessDenied(
                         command,
-                        f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role.value}",
+                        f"{command.value} needs the {role.value} role; {origin.user or 'this user'} is {origin.role_name}",
                         self._vstate,
                     )
             except CommandRefused as e:

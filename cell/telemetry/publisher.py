@@ -52,9 +52,8 @@ from cell.core.events import (
     StateChanged,
     VisionStateChanged,
 )
-from cell.core.records import Snapshot
+from cell.core.records import PickRecords, Snapshot
 from cell.errors import ConfigError
-from cell.service.ledger import PickRecords
 from cell.telemetry import metrics as M
 from cell.telemetry.config import MqttConfig
 from cell.telemetry.sparkplug import Metric, Topics, decode, next_seq, now_ms, payload, value_of
