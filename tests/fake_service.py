@@ -39,6 +39,7 @@ from cell.core.events import (
     PickVerified,
     SnapshotChanged,
 )
+from cell.core.parts import BUILT_IN_PARTS
 from cell.core.records import Alarm, CalibrationInfo, Counters, LiveFrame, PickRecord, Snapshot
 from cell.recipes import RecipeBook, RecipeError
 from cell.vision.types import LocatedPart, LocateResult
@@ -73,6 +74,7 @@ class FakeLineService:
     def __init__(self, frame_size=(960, 540), interval_s: float = 0.1, plate_size=(1920, 1080), recipes_dir=None):
         self.frame_size, self.interval_s, self.plate_size = frame_size, interval_s, plate_size
         self.recipes = RecipeBook(Path(recipes_dir or "/nonexistent/recipes"))
+        self.parts = BUILT_IN_PARTS
         self.recipe = ""
         self.previews = 0
         self._lock = threading.RLock()
@@ -122,7 +124,7 @@ class FakeLineService:
                 paused=self.paused,
                 waiting_for_parts=False,
                 counters=c,
-                parts_per_min=60.0 * (c.picked_bolts + c.picked_nuts) / max(self.heartbeat, 1),
+                parts_per_min=60.0 * c.picked_total / max(self.heartbeat, 1),
                 last_picks=tuple(self.picks),
                 alarm=self.alarm,
                 calibration=self.calibration,
@@ -264,8 +266,9 @@ class FakeLineService:
         if self._seq % 3:
             return
         cls = "bolt" if self._seq % 2 else "nut"
-        field = "picked_bolts" if cls == "bolt" else "picked_nuts"
-        self.counters = replace(self.counters, **{field: getattr(self.counters, field) + 1})
+        picked = dict(self.counters.picked)
+        picked[cls] = picked.get(cls, 0) + 1
+        self.counters = replace(self.counters, picked=tuple(sorted(picked.items())))
         pick = PickRecord(
             _now(),
             self._seq // 3,

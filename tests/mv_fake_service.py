@@ -38,6 +38,7 @@ from cell.core.events import (
     new_job_id,
     pick_id,
 )
+from cell.core.parts import BUILT_IN_PARTS
 from cell.core.records import Counters, Snapshot
 from cell.recipes import RecipeBook, RecipeError
 
@@ -46,6 +47,7 @@ class FakeLineService:
     def __init__(self, recipes: RecipeBook, pick_interval_s: float = 0.05, single_picks: int = 3):
         self.bus = EventBus()
         self.recipes = recipes
+        self.parts = BUILT_IN_PARTS
         self.pick_interval_s, self.single_picks = pick_interval_s, single_picks
         self.state = VisionState.READY
         self.recipe = ""

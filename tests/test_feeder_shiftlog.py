@@ -142,7 +142,7 @@ def test_shift_counts_agree_with_the_summary_recount():
         ref["unknown_left"],
         ref["attempts"],
     )
-    assert c.counters().picked_bolts == 1 and c.counters().retries == 1
+    assert c.counters().picked_of("bolt") == 1 and c.counters().retries == 1
 
 
 def test_a_torn_last_line_is_skipped_when_the_shift_is_read_back(tmp_path):

@@ -311,7 +311,14 @@ def test_the_query_api_filters_and_gets_by_id(tmp_path):
         assert [p["id"] for p in reader.list_picks(window)] == [f"{JOB}/2", f"{JOB}/3"]
         assert reader.count_picks(PickFilter(job_id=JOB, cls="nut")) == 4
         c = reader.counters(T0, T0 + timedelta(hours=1))
-        assert (c.picked_bolts, c.picked_nuts, c.misses, c.retries, c.failed, c.unreachable) == (1, 2, 2, 1, 1, 1)
+        assert (c.picked_of("bolt"), c.picked_of("nut"), c.misses, c.retries, c.failed, c.unreachable) == (
+            1,
+            2,
+            2,
+            1,
+            1,
+            1,
+        )
         last = reader.last_picks(2)
         assert [p.pick_id for p in last] == [f"{JOB}/4", f"{JOB}/6"] and last[0].outcome == "failed"
         report = build_report(reader, "test", T0 - timedelta(minutes=10), T0 + timedelta(minutes=10))

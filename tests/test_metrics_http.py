@@ -78,7 +78,7 @@ def test_metrics_count_events_and_show_the_snapshot(service, config):  # noqa: F
     assert got[("cell_state", (("cell_state", "Ready"),))] == 1
     assert got[("cell_state", (("cell_state", "Error"),))] == 0
     assert got[("cell_calibration_cv_rms_mm", ())] == pytest.approx(0.0101)
-    assert got[("cell_shift_parts", (("counter", "picked_bolts"),))] == service.snapshot().counters.picked_bolts
+    assert got[("cell_shift_parts", (("counter", "picked_bolts"),))] == service.snapshot().counters.picked_of("bolt")
     assert got[("cell_subscriber_events_dropped_total", (("subscriber", "metrics"),))] == 0
     assert got[("cell_subscriber_events_delivered_total", (("subscriber", "metrics"),))] >= 7
 

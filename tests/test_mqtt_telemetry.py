@@ -133,7 +133,7 @@ def test_births_every_pick_rebirth_and_ndeath(tmp_path):
             pick = next(m for m in listener.of("DDATA", "cell-a") if "Last Pick/Id" in m.metrics)
             assert pick.metrics["Last Pick/Class"] in ("bolt", "nut") and pick.metrics["Last Pick/Cycle ms"] > 0
             assert pick.metrics["Last Pick/Id"].startswith(snap.job_id or "")
-            assert latest(listener, "cell-a", "Counters/Picked Bolts") == service.snapshot().counters.picked_bolts
+            assert latest(listener, "cell-a", "Counters/Picked Bolts") == service.snapshot().counters.picked_of("bolt")
         ndeath = wait_for(lambda: listener.of("NDEATH", "cell-a"), 30, "NDEATH at stop")[0]
         assert ndeath.metrics == {"bdSeq": 0} and ndeath.datatypes == {"bdSeq": DataType.INT64}
         # bdSeq is kept in `data` beside the log folder: the next start continues at 1

@@ -382,8 +382,8 @@ def test_the_drift_alarm_from_the_real_watch_is_followed_by_recalibrate_and_rese
     screen.key("stopped")
     screen.press("Start")  # the new calibration sees the marks where they are: the job runs
     screen.wait(
-        "Number(document.getElementById('count-picked_bolts').textContent) + "
-        "Number(document.getElementById('count-picked_nuts').textContent) >= 1",
+        "Number(document.getElementById('count-picked_bolts')?.textContent ?? 0) + "
+        "Number(document.getElementById('count-picked_nuts')?.textContent ?? 0) >= 1",
         120,
     )
     assert screen.js("screenStats.lastState.display.key") != "fault"

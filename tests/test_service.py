@@ -67,7 +67,7 @@ def wait_for(cond, timeout_s=30.0, what="condition"):
 
 def picked(service) -> int:
     c = service.snapshot().counters
-    return c.picked_bolts + c.picked_nuts
+    return c.picked_total
 
 
 def test_commands_outside_the_table_are_refused_and_change_nothing(tmp_path):
@@ -267,11 +267,11 @@ def test_single_job_counters_survive_a_restart_and_match_the_log(tmp_path):
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.READY and picked(service) >= 17, what="the job")
         before = service.snapshot().counters
-        assert (before.picked_bolts, before.picked_nuts, before.unknown_left) == (9, 8, 1)  # the washer stays
+        assert (before.picked_of("bolt"), before.picked_of("nut"), before.unknown_left) == (9, 8, 1)  # the washer stays
     with running(cfg) as again:
         assert again.snapshot().counters == before
     counts = counts_from_log(read_shift(tmp_path / "logs"))
-    assert counts["picked"] == {"bolt": before.picked_bolts, "nut": before.picked_nuts}
+    assert counts["picked"] == {"bolt": before.picked_of("bolt"), "nut": before.picked_of("nut")}
 
 
 def open_fds() -> set[str]:

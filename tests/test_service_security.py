@@ -9,9 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from cell.access.network import is_loopback
 from cell.access.security import check_exposure, hash_password, password_ok
 from cell.errors import ConfigError
-from cell.service.config import ServiceConfig, is_loopback
+from cell.service.config import ServiceConfig
 
 pytestmark = pytest.mark.timeout(60)  # two cases run run-cell serve as a subprocess
 
@@ -19,8 +20,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_loopback_names():
-    assert all(is_loopback(h) for h in ("127.0.0.1", "127.0.0.2", "::1", "localhost"))
-    assert not any(is_loopback(h) for h in ("0.0.0.0", "192.168.1.10", "::", "no-such-host.invalid"))
+    """One rule for every server (cell.access.network): literal loopback addresses and localhost only."""
+    assert all(is_loopback(h) for h in ("127.0.0.1", "127.0.0.2", "::1", "[::1]", "localhost", "LocalHost"))
+    assert not any(is_loopback(h) for h in ("0.0.0.0", "192.168.1.10", "::", "no-such-host.invalid", "cellpc.local"))
 
 
 def test_a_hashed_password_checks_and_is_not_stored_in_clear():

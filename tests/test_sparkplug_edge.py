@@ -51,7 +51,7 @@ class Plant:
         self.on_snapshot(n)
         state = f"IDLE {n:.>{self.padding}}" if self.padding else "IDLE"  # padded: changes with the count
         return Snapshot(
-            VisionState.READY, state, False, False, Counters(picked_bolts=n), 0.0, (), None, None, 0, frozenset()
+            VisionState.READY, state, False, False, Counters(picked=(("bolt", n),)), 0.0, (), None, None, 0, frozenset()
         )
 
     def command(self, command: Command, origin: Any = None, request: Any = None) -> CommandResult:

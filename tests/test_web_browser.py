@@ -107,8 +107,8 @@ class Screen:
 
     def wait_picked_over(self, n: int, timeout_s: float = TIMEOUT_MS / 1000) -> None:
         self.wait(
-            f"Number(document.getElementById('count-picked_bolts').textContent) + "
-            f"Number(document.getElementById('count-picked_nuts').textContent) > {n}",
+            f"Number(document.getElementById('count-picked_bolts')?.textContent ?? 0) + "
+            f"Number(document.getElementById('count-picked_nuts')?.textContent ?? 0) > {n}",
             timeout_s,
         )
 

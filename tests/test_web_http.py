@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 from starlette.testclient import TestClient
 
+from cell.access.network import is_loopback
 from cell.config import CellConfig
 from cell.core.commands import Command, VisionState
 from cell.errors import ConfigError
 from cell.web.app import build_app
-from cell.web.auth import Access, is_loopback
+from cell.web.auth import Access
 from cell.web.config import WebConfig
 from tests.fake_service import FakeLineService, plate_image
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from zoneinfo import ZoneInfo
 
 from cell.config import CellConfig, load_config
+from cell.core.parts import NAME_PATTERN
 from cell.errors import InputError
 from cell.history.query import OUTCOMES, PICK_COLUMNS
 
@@ -21,6 +22,13 @@ CSV_COLUMNS = tuple(c for c in PICK_COLUMNS if c != "cell")  # the store's, but 
 def add_store_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", dest="store_config", type=Path, help="cell config (TOML): [history], [shifts]")
     p.add_argument("--url", help="the store to read instead of history.url (sqlite:///PATH or postgresql://...)")
+
+
+def part_class(text: str) -> str:
+    """argparse type: a part class's name as the registry allows it (cell.core.parts)."""
+    if not NAME_PATTERN.match(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a part class's name (bolt, nut, a taught type's name)")
+    return text
 
 
 def register(sub) -> None:
@@ -35,7 +43,7 @@ def register(sub) -> None:
     p.add_argument("--until", help="before this time (ISO 8601, or a date)")
     p.add_argument("--shift", help="one shift, e.g. 2026-12-01/early")
     p.add_argument("--job", help="one job's picks (its id)")
-    p.add_argument("--class", dest="cls", choices=("bolt", "nut"), help="one class")
+    p.add_argument("--class", dest="cls", type=part_class, help="one part class (bolt, nut, a taught type's name)")
     p.add_argument("--outcome", choices=OUTCOMES, help="one outcome")
     p.add_argument("--limit", type=int, default=None, help="at most this many (default: all)")
     p.add_argument(

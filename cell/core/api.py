@@ -28,6 +28,7 @@ from cell.core.commands import (
 )
 from cell.core.eventbus import Subscription
 from cell.core.events import SERVICE_ORIGIN, Event, Origin
+from cell.core.parts import PartRegistry
 from cell.core.records import CalibrationInfo, LiveFrame, RecipeInfo, Snapshot
 
 
@@ -45,6 +46,11 @@ class RecipeCatalog(Protocol):
 class LineServiceAPI(Protocol):
     """What every interface may call. All methods are thread-safe and return quickly, except
     `capture_plate_image` and `preview_frame` (a camera frame)."""
+
+    @property
+    def parts(self) -> PartRegistry:
+        """The part classes the cell tells apart and counts (cell.core.parts)."""
+        ...
 
     @property
     def recipes(self) -> RecipeCatalog:

@@ -34,13 +34,34 @@ class RecipeInfo:
 
 @dataclass(frozen=True)
 class Counters:
-    picked_bolts: int = 0
-    picked_nuts: int = 0
+    """The shift's counters. `picked` counts each part class by name (cell.core.parts: the registry
+    decides which classes there are and what each interface calls their counters)."""
+
+    picked: tuple[tuple[str, int], ...] = ()  # (class name, parts picked), classes never picked left out
     misses: int = 0
     retries: int = 0
     failed: int = 0
     unreachable: int = 0
     unknown_left: int = 0
+
+    def picked_of(self, cls: str) -> int:
+        return dict(self.picked).get(cls, 0)
+
+    @property
+    def picked_total(self) -> int:
+        return sum(n for _, n in self.picked)
+
+    def as_json(self) -> dict[str, Any]:
+        """The counters as JSON: `picked` a mapping of class name to count."""
+        return {
+            "picked": dict(self.picked),
+            "picked_total": self.picked_total,
+            "misses": self.misses,
+            "retries": self.retries,
+            "failed": self.failed,
+            "unreachable": self.unreachable,
+            "unknown_left": self.unknown_left,
+        }
 
 
 @dataclass(frozen=True)
@@ -49,7 +70,7 @@ class PickRecord:
 
     time_utc: datetime
     track_id: int  # the part's number within its job
-    cls: str  # bolt | nut
+    cls: str  # the part class's name (cell.core.parts)
     table_mm: tuple[float, float]
     robot_mm: tuple[float, float, float]
     angle_deg: float | None  # jaw angle for bolts, None for nuts

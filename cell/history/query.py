@@ -179,22 +179,25 @@ class HistoryReader:
         where, params = PickFilter(since, until).where(self.cell)
         rows = self.db.execute(
             f"""SELECT
-                sum(CASE WHEN outcome = 'picked' AND class = 'bolt' THEN 1 ELSE 0 END),
-                sum(CASE WHEN outcome = 'picked' AND class = 'nut' THEN 1 ELSE 0 END),
                 sum(CASE WHEN outcome IN ('missed', 'failed') THEN 1 ELSE 0 END),
                 sum(CASE WHEN attempt > 1 THEN 1 ELSE 0 END),
                 sum(CASE WHEN outcome = 'failed' THEN 1 ELSE 0 END)
                 FROM picks{where}""",
             params,
         )
-        bolts, nuts, misses, retries, failed = (int(v or 0) for v in rows[0])
+        misses, retries, failed = (int(v or 0) for v in rows[0])
+        picked_where = f"{where} AND outcome = 'picked'" if where else " WHERE outcome = 'picked'"
+        by_class = self.db.execute(
+            f"SELECT class, count(*) FROM picks{picked_where} GROUP BY class ORDER BY class", params
+        )
+        picked = tuple((str(cls), int(n)) for cls, n in by_class if n)
         uw, up = PickFilter(since, until).where(self.cell)
         unreachable = int(self.db.execute(f"SELECT count(*) FROM unreachable{uw}", up)[0][0])
         jw = "WHERE start_utc >= ? AND start_utc < ?" + (" AND cell = ?" if self.cell else "")
         jp = [since, until] + ([self.cell] if self.cell else [])
         last = self.db.execute(f"SELECT unknown_left FROM jobs {jw} ORDER BY start_utc DESC LIMIT 1", jp)
         unknown = int(last[0][0] or 0) if last else 0
-        return Counters(bolts, nuts, misses, retries, failed, unreachable, unknown)
+        return Counters(picked, misses, retries, failed, unreachable, unknown)
 
     # ---- alarms, images ----------------------------------------------------------------------------
     def alarms(self, limit: int = 50, offset: int = 0) -> list[dict]:

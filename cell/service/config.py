@@ -4,13 +4,12 @@ docs/security.md."""
 
 from __future__ import annotations
 
-import ipaddress
-import socket
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
 
+from cell.access.network import is_loopback
 from cell.service.mv_config import MachineVisionConfig
 from cell.web.config import WebConfig
 from drivers.config import Strict
@@ -118,18 +117,3 @@ class ServiceConfig(Strict):
     @property
     def loopback(self) -> bool:
         return is_loopback(self.host)
-
-
-def is_loopback(host: str) -> bool:
-    """True when every address the name resolves to is a loopback one (so nothing off the machine can connect)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(host, None)
-    except OSError:
-        return False
-    return bool(infos) and all(ipaddress.ip_address(i[4][0]).is_loopback for i in infos)

@@ -46,15 +46,14 @@ class ShiftCounts:
     def from_counters(cls, c: Counters) -> ShiftCounts:
         """Counts restored from a store (attempts are not kept there: only the shown counters)."""
         counts = cls()
-        counts.picked = {k: v for k, v in (("bolt", c.picked_bolts), ("nut", c.picked_nuts)) if v}
+        counts.picked = {k: v for k, v in c.picked if v}
         counts.misses, counts.retries, counts.failed = c.misses, c.retries, c.failed
         counts.unreachable, counts.unknown_left = c.unreachable, c.unknown_left
         return counts
 
     def counters(self) -> Counters:
         return Counters(
-            self.picked.get("bolt", 0),
-            self.picked.get("nut", 0),
+            tuple(sorted((k, v) for k, v in self.picked.items() if v)),
             self.misses,
             self.retries,
             self.failed,

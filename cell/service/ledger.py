@@ -93,8 +93,8 @@ class Ledger:
         with self._lock:
             return self._counts.counters()
 
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.counters().__dict__)
+    def as_dict(self) -> dict[str, Any]:
+        return self.counters().as_json()
 
     def last_picks(self) -> tuple[PickRecord, ...]:
         with self._lock:

@@ -33,7 +33,9 @@ from cell.core.api import LineServiceAPI
 from cell.core.commands import STATE_COMMANDS, Command, CommandRefused, Refusal
 from cell.core.eventbus import Subscription
 from cell.core.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
+from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import PickRecord, PickRecords, Snapshot
+from cell.core.values import Kind, snapshot_table, snapshot_values
 from cell.errors import ConfigError
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
@@ -48,74 +50,80 @@ APP_URI = "urn:pick-cell:server"
 _T = ua.VariantType
 _EPOCH = datetime(1601, 1, 1, tzinfo=UTC)  # OPC UA's "no time"
 
-# BrowseName -> (type, array?) ; the values come from a Snapshot in _values().
-VARIABLES: dict[str, tuple[ua.VariantType, bool]] = {
-    "VisionState": (_T.String, False),
-    "CellState": (_T.String, False),
-    "Paused": (_T.Boolean, False),
-    "Pausing": (_T.Boolean, False),
-    "WaitingForParts": (_T.Boolean, False),
-    "PickedBolts": (_T.UInt32, False),
-    "PickedNuts": (_T.UInt32, False),
-    "Misses": (_T.UInt32, False),
-    "Retries": (_T.UInt32, False),
-    "Failed": (_T.UInt32, False),
-    "Unreachable": (_T.UInt32, False),
-    "UnknownLeft": (_T.UInt32, False),
-    "PartsPerMinute": (_T.Double, False),
-    "LastPickClass": (_T.String, False),
-    "LastPickTableMm": (_T.Double, True),
-    "LastPickRobotMm": (_T.Double, True),
-    "LastPickAngleDeg": (_T.Double, False),
-    "LastPickOutcome": (_T.String, False),
-    "LastPickTime": (_T.DateTime, False),
-    "ActiveAlarm": (_T.String, False),
-    "ActiveWarnings": (_T.String, True),
-    "Heartbeat": (_T.UInt32, False),
-    "CalibrationModel": (_T.String, False),
-    "CalibrationCvRmsMm": (_T.Double, False),
-    "CalibrationCvMaxMm": (_T.Double, False),
-    "CalibrationTime": (_T.DateTime, False),
-    "JobId": (_T.String, False),
-    "DroppedEvents": (_T.UInt32, False),
-    "Shift": (_T.String, False),
+# The Cell object's variables: BrowseName -> the value's key in cell.core.values (one mapping from
+# the Snapshot for OPC UA, Sparkplug and /metrics). Between "WaitingForParts" and "Misses" come the
+# counters of the part classes, named by the registry (cell.core.parts: PickedBolts, PickedNuts ...).
+_BEFORE_CLASSES = {
+    "VisionState": "vision_state",
+    "CellState": "cell_state",
+    "Paused": "paused",
+    "Pausing": "pausing",
+    "WaitingForParts": "waiting_for_parts",
 }
+_AFTER_CLASSES = {
+    "Misses": "misses",
+    "Retries": "retries",
+    "Failed": "failed",
+    "Unreachable": "unreachable",
+    "UnknownLeft": "unknown_left",
+    "PartsPerMinute": "parts_per_minute",
+    "LastPickClass": "last_pick_class",
+    "LastPickTableMm": "last_pick_table_mm",
+    "LastPickRobotMm": "last_pick_robot_mm",
+    "LastPickAngleDeg": "last_pick_angle_deg",
+    "LastPickOutcome": "last_pick_outcome",
+    "LastPickTime": "last_pick_time",
+    "ActiveAlarm": "fault",
+    "ActiveWarnings": "warnings",
+    "Heartbeat": "heartbeat",
+    "CalibrationModel": "calibration_model",
+    "CalibrationCvRmsMm": "calibration_cv_rms_mm",
+    "CalibrationCvMaxMm": "calibration_cv_max_mm",
+    "CalibrationTime": "calibration_time",
+    "JobId": "job_id",
+    "DroppedEvents": "dropped_events",
+    "Shift": "shift",
+}
+_UA_TYPE: dict[Kind, tuple[ua.VariantType, bool]] = {
+    Kind.TEXT: (_T.String, False),
+    Kind.FLAG: (_T.Boolean, False),
+    Kind.COUNT: (_T.UInt32, False),
+    Kind.NUMBER: (_T.Double, False),
+    Kind.TIME: (_T.DateTime, False),
+    Kind.NUMBERS: (_T.Double, True),
+    Kind.TEXTS: (_T.String, True),
+}
+# OPC UA has no null: what a value that is not known reads as
+_NONE: dict[Kind, Any] = {Kind.TEXT: "", Kind.NUMBER: 0.0, Kind.TIME: _EPOCH, Kind.TEXTS: []}
+_NONE_BY_KEY = {"last_pick_table_mm": [0.0, 0.0], "last_pick_robot_mm": [0.0, 0.0, 0.0]}
 
 
-def _values(s: Snapshot) -> dict[str, Any]:
-    c, last, cal = s.counters, (s.last_picks[-1] if s.last_picks else None), s.calibration
-    alarm = "" if s.alarm is None else f"{s.alarm.reason} (hint: {s.alarm.hint})"
-    return {
-        "VisionState": s.vision_state.value,
-        "CellState": s.cell_state,
-        "Paused": s.paused,
-        "Pausing": s.pausing,
-        "WaitingForParts": s.waiting_for_parts,
-        "PickedBolts": c.picked_bolts,
-        "PickedNuts": c.picked_nuts,
-        "Misses": c.misses,
-        "Retries": c.retries,
-        "Failed": c.failed,
-        "Unreachable": c.unreachable,
-        "UnknownLeft": c.unknown_left,
-        "PartsPerMinute": round(s.parts_per_min, 3),
-        "LastPickClass": last.cls if last else "",
-        "LastPickTableMm": [float(v) for v in last.table_mm] if last else [0.0, 0.0],
-        "LastPickRobotMm": [float(v) for v in last.robot_mm] if last else [0.0, 0.0, 0.0],
-        "LastPickAngleDeg": float(last.angle_deg) if last and last.angle_deg is not None else 0.0,
-        "LastPickOutcome": last.outcome if last else "",
-        "LastPickTime": last.time_utc if last else _EPOCH,
-        "ActiveAlarm": alarm,
-        "ActiveWarnings": [f"{w.reason} (hint: {w.hint})" for w in s.warnings],
-        "Heartbeat": s.heartbeat,
-        "CalibrationModel": cal.model if cal else "",
-        "CalibrationCvRmsMm": _finite(cal.cv_rms_mm) if cal else 0.0,
-        "CalibrationCvMaxMm": _finite(cal.cv_max_mm) if cal else 0.0,
-        "CalibrationTime": (cal.time_utc or _EPOCH) if cal else _EPOCH,
-        "JobId": s.job_id,
-        "DroppedEvents": sum(x.dropped + x.failed for x in s.subscribers),
-        "Shift": s.shift,
-    }
+def browse_names(parts: PartRegistry) -> dict[str, str]:
+    """BrowseName -> value key, in the Cell object's order."""
+    return {**_BEFORE_CLASSES, **{p.opcua_name: p.counter_key for p in parts}, **_AFTER_CLASSES}
+
+
+def variables(parts: PartRegistry) -> dict[str, tuple[ua.VariantType, bool]]:
+    """BrowseName -> (type, array?) of every Cell variable."""
+    kinds = {v.key: v.kind for v in snapshot_table(parts)}
+    return {name: _UA_TYPE[kinds[key]] for name, key in browse_names(parts).items()}
+
+
+VARIABLES = variables(BUILT_IN_PARTS)  # the variables with the built-in part classes (documented in docs/opcua.md)
+
+
+def _values(s: Snapshot, parts: PartRegistry) -> dict[str, Any]:
+    values = snapshot_values(s, parts)
+    kinds = {v.key: v.kind for v in snapshot_table(parts)}
+    out: dict[str, Any] = {}
+    for name, key in browse_names(parts).items():
+        value = values[key]
+        if value is None or (key in _NONE_BY_KEY and not value):
+            value = _NONE_BY_KEY.get(key, _NONE.get(kinds[key]))
+        elif kinds[key] is Kind.NUMBER:
+            value = _finite(value)
+        out[name] = value
+    return out
 
 
 # The PickEventType's own fields (besides BaseEventType's Message, Severity, Time ...).
@@ -176,6 +184,8 @@ class OpcUaServer:
             users.authenticate if self.secure else None,
             throttle or LoginThrottle(self.cfg.login),
         )
+        self.parts = service.parts  # the part classes, whose counters are variables of their own
+        self.variables = variables(self.parts)
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
@@ -210,8 +220,8 @@ class OpcUaServer:
             s.set_identity_tokens([ua.AnonymousIdentityToken])
         ns = await s.register_namespace(NAMESPACE)
         cell = await s.nodes.objects.add_object(node_id("Cell", ns), ua.QualifiedName("Cell", ns))
-        values = _values(self.service.snapshot())
-        for name, (vtype, array) in VARIABLES.items():
+        values = _values(self.service.snapshot(), self.parts)
+        for name, (vtype, array) in self.variables.items():
             var = await cell.add_variable(
                 node_id(name, ns), ua.QualifiedName(name, ns), ua.Variant(values[name], vtype, is_array=array or None)
             )
@@ -342,9 +352,9 @@ class OpcUaServer:
             await self._fire(self._picks[0])
             self._picks.popleft()
         now = datetime.now(UTC)
-        for name, value in _values(self.service.snapshot()).items():
+        for name, value in _values(self.service.snapshot(), self.parts).items():
             if self._written.get(name) != value:
-                vtype, array = VARIABLES[name]
+                vtype, array = self.variables[name]
                 variant = ua.Variant(value, vtype, is_array=array or None)
                 await self.server.write_attribute_value(self.nodes[name], data_value(variant, now))
                 self._written[name] = value

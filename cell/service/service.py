@@ -74,6 +74,7 @@ from cell.core.events import (
     VisionStateChanged,
     new_job_id,
 )
+from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import Alarm, CalibrationInfo, LiveFrame, Snapshot
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.memory import release_free_memory
@@ -176,6 +177,7 @@ class LineService:
         self.capture_interval_s = interval / self.config.sim.speed_factor if cell.sim is not None else interval
         self.camera = _Locked(cell.camera, self._device_lock)
         self.recipes = RecipeBook(self.config.service.machine_vision.recipes_dir)
+        self.parts: PartRegistry = BUILT_IN_PARTS
         self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)
         self._recipe: Recipe | None = None
         bus.add_record(record.record, owner=record)

@@ -4,12 +4,13 @@ service's snapshot and from each finished pick."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 from cell.core.commands import Command
+from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import PickRecord, Snapshot
+from cell.core.values import snapshot_values as core_values
 from cell.telemetry.sparkplug import DataType
 
 D = DataType
@@ -33,7 +34,7 @@ NODE = (
     Spec(DROPPED, D.UINT64, "messages", "updates not published since start (broker away, queue full)"),
 )
 
-DEVICE = (
+_BEFORE_CLASSES = (
     Spec(
         "State",
         D.STRING,
@@ -47,9 +48,9 @@ DEVICE = (
     Spec("Job/Mode", D.STRING, "", "single or continuous while a job runs; empty between jobs"),
     Spec("Recipe", D.STRING, "", "the prepared recipe's id"),
     Spec("Hold", D.STRING, "", "why starts are held (e.g. a recalibration awaiting its answer); empty if none"),
-    Spec("Counters/Picked", D.UINT64, "parts", "parts picked this shift (bolts and nuts)"),
-    Spec("Counters/Picked Bolts", D.UINT64, "parts", "bolts picked this shift"),
-    Spec("Counters/Picked Nuts", D.UINT64, "parts", "nuts picked this shift"),
+    Spec("Counters/Picked", D.UINT64, "parts", "parts picked this shift, every class"),
+)
+_AFTER_CLASSES = (
     Spec("Counters/Misses", D.UINT64, "picks", "picks that left the part on the table this shift"),
     Spec("Counters/Retries", D.UINT64, "picks", "second and later attempts at a part this shift"),
     Spec("Counters/Failed", D.UINT64, "parts", "parts given up after their last attempt this shift"),
@@ -79,6 +80,51 @@ DEVICE = (
     Spec("Calibration/CV Max mm", D.DOUBLE, "mm", "its cross-validated largest error"),
 )
 
+
+def class_specs(parts: PartRegistry) -> tuple[Spec, ...]:
+    """A picked counter for each part class of the registry (Counters/Picked Bolts ...)."""
+    return tuple(Spec(p.sparkplug_name, D.UINT64, "parts", f"{' '.join(p.words)} picked this shift") for p in parts)
+
+
+def device_table(parts: PartRegistry) -> tuple[Spec, ...]:
+    """The device metrics the snapshot decides, the part classes' counters among them."""
+    return _BEFORE_CLASSES + class_specs(parts) + _AFTER_CLASSES
+
+
+DEVICE = device_table(BUILT_IN_PARTS)  # with the built-in part classes (documented in docs/plant.md)
+
+# metric name -> the value's key in cell.core.values (one mapping from the Snapshot for OPC UA,
+# Sparkplug and /metrics)
+_KEYS = {
+    "State": "vision_state",
+    "Cell State": "cell_state",
+    "Paused": "paused",
+    "Waiting For Parts": "waiting_for_parts",
+    "Job/Id": "job_id",
+    "Job/Mode": "job_mode",
+    "Recipe": "recipe",
+    "Hold": "hold",
+    "Counters/Picked": "picked",
+    "Counters/Misses": "misses",
+    "Counters/Retries": "retries",
+    "Counters/Failed": "failed",
+    "Counters/Unreachable": "unreachable",
+    "Counters/Unknown Left": "unknown_left",
+    "Rate/Parts Per Minute": "parts_per_minute",
+    "Alarm/Active": "alarm_active",
+    "Alarm/Id": "alarm_id",
+    "Alarm/Severity": "alarm_severity",
+    "Alarm/Reason": "alarm_reason",
+    "Alarm/Hint": "alarm_hint",
+    "Alarm/Source": "alarm_source",
+    "Alarm/Warnings": "warnings_active",
+    "Calibration/Id": "calibration_id",
+    "Calibration/Model": "calibration_model",
+    "Calibration/CV RMS mm": "calibration_cv_rms_mm",
+    "Calibration/CV Max mm": "calibration_cv_max_mm",
+}
+
+
 # Commands over MQTT (with telemetry.mqtt.commands): a host writes true to one of these (DCMD); the
 # answer comes back in the Command/Last metrics. Only these four verbs (and both starts) are offered.
 MQTT_COMMANDS = {
@@ -106,49 +152,15 @@ COMMANDS = tuple(
 COMMAND_RESULT_NAMES = tuple(s.name for s in COMMANDS if s.name not in MQTT_COMMANDS)
 
 
-def device_specs(commands: bool) -> tuple[Spec, ...]:
-    return DEVICE + (COMMANDS if commands else ())
+def device_specs(commands: bool, parts: PartRegistry = BUILT_IN_PARTS) -> tuple[Spec, ...]:
+    return device_table(parts) + (COMMANDS if commands else ())
 
 
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
-def snapshot_values(s: Snapshot) -> dict[str, Any]:
+def snapshot_values(s: Snapshot, parts: PartRegistry = BUILT_IN_PARTS) -> dict[str, Any]:
     """Every device metric the snapshot decides (all but Last Pick and Command)."""
-    c = s.counters
-    alarm = s.alarm or (s.warnings[-1] if s.warnings else None)
-    cal = s.calibration
-    return {
-        "State": s.vision_state.value,
-        "Cell State": s.cell_state,
-        "Paused": s.paused,
-        "Waiting For Parts": s.waiting_for_parts,
-        "Job/Id": s.job_id,
-        "Job/Mode": s.job_mode,
-        "Recipe": s.recipe,
-        "Hold": s.hold,
-        "Counters/Picked": c.picked_bolts + c.picked_nuts,
-        "Counters/Picked Bolts": c.picked_bolts,
-        "Counters/Picked Nuts": c.picked_nuts,
-        "Counters/Misses": c.misses,
-        "Counters/Retries": c.retries,
-        "Counters/Failed": c.failed,
-        "Counters/Unreachable": c.unreachable,
-        "Counters/Unknown Left": c.unknown_left,
-        "Rate/Parts Per Minute": round(s.parts_per_min, 3),
-        "Alarm/Active": alarm is not None,
-        "Alarm/Id": alarm.alarm_id if alarm else "",
-        "Alarm/Severity": alarm.severity if alarm else "",
-        "Alarm/Reason": alarm.reason if alarm else "",
-        "Alarm/Hint": alarm.hint if alarm else "",
-        "Alarm/Source": alarm.source if alarm else "",
-        "Alarm/Warnings": len(s.warnings),
-        "Calibration/Id": cal.calibration_id if cal else "",
-        "Calibration/Model": cal.model if cal else "",
-        "Calibration/CV RMS mm": _finite(cal.cv_rms_mm) if cal else None,
-        "Calibration/CV Max mm": _finite(cal.cv_max_mm) if cal else None,
-    }
+    values = core_values(s, parts)
+    names = {**_KEYS, **{p.sparkplug_name: p.counter_key for p in parts}}
+    return {name: values[key] for name, key in names.items()}
 
 
 def pick_values(p: PickRecord, cycle_ms: float | None) -> dict[str, Any]:

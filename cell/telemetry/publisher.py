@@ -52,6 +52,7 @@ from cell.core.events import (
     StateChanged,
     VisionStateChanged,
 )
+from cell.core.parts import PartRegistry
 from cell.core.records import PickRecords, Snapshot
 from cell.errors import ConfigError
 from cell.telemetry import metrics as M
@@ -105,6 +106,9 @@ class ServiceView(Protocol):
     """What the publisher needs of the line service (cell.core.api.LineServiceAPI has it)."""
 
     def snapshot(self) -> Snapshot: ...
+
+    @property
+    def parts(self) -> PartRegistry: ...
 
     def command(self, command: Command, origin: Origin = ..., request: Any = None) -> CommandResult: ...
 
@@ -465,7 +469,7 @@ class SparkplugPublisher:
         return False
 
     def _birth_sent(self) -> bool:
-        self._values.update(M.snapshot_values(self.service.snapshot()))
+        self._values.update(M.snapshot_values(self.service.snapshot(), self.service.parts))
         node = [
             Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq),
             Metric(M.REBIRTH, M.D.BOOLEAN, False),
@@ -474,7 +478,7 @@ class SparkplugPublisher:
         self._seq = 0
         if not self._send(self.topics.node("NBIRTH"), node, birth=True):
             return False
-        specs = M.device_specs(self.commands)
+        specs = M.device_specs(self.commands, self.service.parts)
         device = [Metric(s.name, s.dtype, self._values.get(s.name)) for s in specs]
         return self._send(self.topics.device("DBIRTH"), device, birth=True)
 
@@ -490,7 +494,7 @@ class SparkplugPublisher:
             with self._counts:
                 self.dropped += 1
             return
-        types = {s.name: s.dtype for s in M.device_specs(self.commands)}
+        types = {s.name: s.dtype for s in M.device_specs(self.commands, self.service.parts)}
         self._send(self.topics.device("DDATA"), [Metric(k, types[k], v) for k, v in changed.items()], birth=False)
 
     def _send(self, topic: str, metrics: list[Metric], birth: bool) -> bool:
@@ -525,7 +529,7 @@ class SparkplugPublisher:
         if isinstance(event, StateChanged) and not self.born and not self._birth_due:
             return  # the runner's steps while the broker is away: the next birth reads the snapshot again
         with self._lock:  # read and published under one lock: no birth between them (it would be newer)
-            self._data(M.snapshot_values(self.service.snapshot()))
+            self._data(M.snapshot_values(self.service.snapshot(), self.service.parts))
 
     # ---- the service's warning while the broker is away ---------------------------------------------
     def _warn(self, reason: str) -> None:

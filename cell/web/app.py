@@ -255,7 +255,9 @@ class ScreenApp:
     # ---- state and frames ------------------------------------------------------------
     def _state(self, snapshot: Snapshot | None = None) -> dict[str, Any]:
         snapshot = snapshot or self.service.snapshot()
-        state = snapshot_json(snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration))
+        state = snapshot_json(
+            snapshot, self.desk.open is not None, self.desk.has_pictures(snapshot.calibration), self.service.parts
+        )
         state["camera_check"] = self.check.on and self.web.live_interval_s > 0
         return state
 

@@ -16,13 +16,13 @@ Every control needs a session where logins are required: there is no anonymous o
 from __future__ import annotations
 
 import hmac
-import ipaddress
 import logging
 import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cell.access.network import is_loopback
 from cell.access.throttle import LoginThrottle
 from cell.core.events import Interface, Origin, Role
 from cell.errors import ConfigError
@@ -34,16 +34,6 @@ SESSION_COOKIE = "cell_session"
 CSRF_HEADER = "x-csrf-token"
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 MAX_SESSIONS = 64
-
-
-def is_loopback(host: str) -> bool:
-    name = host.strip("[]").lower()
-    if name == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False  # a host name other than localhost may resolve anywhere
 
 
 @dataclass

@@ -23,6 +23,7 @@ from starlette.routing import Route
 
 from cell.config import CellConfig
 from cell.core.api import LineServiceAPI
+from cell.core.parts import NAME_PATTERN
 from cell.errors import REPORTED_ERRORS
 
 if TYPE_CHECKING:  # imported where used: the screen without a store never loads them
@@ -130,8 +131,8 @@ class HistoryRoutes:
         if job is not None and not _JOB_ID.match(job):
             raise ValueError("job: letters, digits and -_.: only")
         cls = q.get("class") or None
-        if cls not in (None, "bolt", "nut"):
-            raise ValueError("class: bolt or nut")
+        if cls is not None and not NAME_PATTERN.match(cls):
+            raise ValueError("class: a part class's name (bolt, nut, a taught type's name)")
         outcome = q.get("outcome") or None
         if outcome is not None and outcome not in OUTCOMES:
             raise ValueError(f"outcome: one of {', '.join(OUTCOMES)}")

@@ -33,6 +33,7 @@ from cell.core.api import LineServiceAPI
 from cell.core.commands import VisionState
 from cell.core.eventbus import Subscription
 from cell.core.events import AlarmRaised, Event, FrameLocated, PartFailed, PickVerified
+from cell.core.values import counter_values
 from cell.web.auth import SESSION_COOKIE, Access
 
 CYCLE_BUCKETS_S = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 30.0, 60.0)
@@ -128,9 +129,9 @@ class _SnapshotCollector:
             "cell_state", "OPC 40100-1 state of the cell", value={v.value: v is s.vision_state for v in VisionState}
         )
         shift = GaugeMetricFamily("cell_shift_parts", "This shift's counters", labels=["counter"])
-        c = s.counters
-        for name in ("picked_bolts", "picked_nuts", "misses", "retries", "failed", "unreachable", "unknown_left"):
-            shift.add_metric([name], getattr(c, name))
+        for name, value in counter_values(s, self.service.parts).items():
+            if name != "picked":  # the total is the sum of the classes' series
+                shift.add_metric([name], value)
         yield shift
         yield GaugeMetricFamily(
             "cell_parts_per_minute", "Pick rate over the last 20 picks; 0 between jobs", value=s.parts_per_min

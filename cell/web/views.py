@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import asdict
 from datetime import datetime
 from typing import Any
 
 from cell.core.commands import STATE_COMMANDS, VisionState
+from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import Alarm, PickRecord, Snapshot
+from cell.core.values import counter_values
 from cell.web.words import alarm_words
 
 V = VisionState
@@ -88,7 +89,12 @@ def alarm_json(a: Alarm) -> dict[str, Any]:
     }
 
 
-def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pictures: bool = False) -> dict[str, Any]:
+def snapshot_json(
+    s: Snapshot,
+    recalibration_open: bool = False,
+    calibration_pictures: bool = False,
+    parts: PartRegistry = BUILT_IN_PARTS,
+) -> dict[str, Any]:
     key, label = display_state(s)
     cal = s.calibration
     return {
@@ -101,7 +107,8 @@ def snapshot_json(s: Snapshot, recalibration_open: bool = False, calibration_pic
         "hold": s.hold,
         "dropped_events": {x.name: x.dropped + x.failed for x in s.subscribers if x.dropped or x.failed},
         "waiting_for_parts": s.waiting_for_parts,
-        "counters": asdict(s.counters),
+        "counters": counter_values(s, parts),
+        "part_classes": [{"key": p.counter_key, "label": " ".join(p.words).capitalize()} for p in parts],
         "parts_per_min": _rate(s),
         "last_picks": [pick_json(p) for p in reversed(s.last_picks)],  # newest first
         "alarm": None if s.alarm is None else alarm_json(s.alarm),

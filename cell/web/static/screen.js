@@ -90,6 +90,7 @@ function render(s) {
   $("heartbeat").textContent = s.heartbeat;
   if (s.shift !== undefined) $("shift").textContent = s.shift || "-";
   renderButtons(s);
+  renderClasses(s.part_classes || []);
   for (const [name, value] of Object.entries(s.counters)) {
     const cell = $(`count-${name}`);
     if (cell) cell.textContent = value;
@@ -101,6 +102,22 @@ function render(s) {
   renderCheckToggle(s);
   renderCalibration(s.calibration);
   renderPicks(s.last_picks);
+}
+
+// One counter row per part class, in the registry's order, before "Parts / min" (made once per class).
+function renderClasses(classes) {
+  const end = $("count-classes-end");
+  for (const c of classes) {
+    if ($(`count-${c.key}`)) continue;
+    const row = document.createElement("div");
+    const dt = document.createElement("dt");
+    const dd = document.createElement("dd");
+    dt.textContent = c.label;
+    dd.id = `count-${c.key}`;
+    dd.textContent = "0";
+    row.append(dt, dd);
+    end.parentNode.insertBefore(row, end);
+  }
 }
 
 function renderButtons(s) {
