@@ -181,7 +181,9 @@ def test_parallel_guesses_get_no_more_password_checks_than_the_rule_allows(tmp_p
 
         async def probe():
             good = await trusted_credentials(server, "plc")
-            guessers = [await secure_client(server.opcua_url, good, password=f"guess-{i}") for i in range(8)]
+            guessers = [
+                await secure_client(server.opcua_url, good, password=f"guess-{i}", timeout_s=30) for i in range(8)
+            ]
             return await asyncio.gather(*(refusal(g) for g in guessers))
 
         assert asyncio.run(probe()) == ["BadUserAccessDenied"] * 8
