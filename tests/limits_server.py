@@ -10,7 +10,9 @@ times a second, as a running cell's screen gets), `/api/status` (this process's 
 descriptors, the transport's and OPC UA's counts: what the probes check). OPC UA: object
 Cell (namespace urn:pick-cell) with variable Heartbeat and method Halt, which returns the
 caller's role (cell.service.opcua_security.caller_origin). Users (with --users): op/op-pass-1
-(operator) and eng/eng-pass-1 (engineer), PBKDF2 at 1,000 iterations to keep tests fast.
+(operator) and eng/eng-pass-1 (engineer), PBKDF2 at 1,000 iterations to keep tests fast;
+`--check-delay-s` makes each password check last that long (as the real 600,000 iterations do),
+and /api/status counts the checks made (`password_checks`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import os
 import resource
 import signal
 import threading
+import time
 from pathlib import Path
 
 from asyncua import ua
@@ -121,6 +124,16 @@ async def serve(args: argparse.Namespace) -> None:
             setattr(config.service, key, value)
     users = Authenticator(config.service)
     throttle = LoginThrottle(config.service.login)
+    checks = {"made": 0}
+    counting = threading.Lock()
+
+    def authenticate(user: str, password: str) -> Role | None:
+        with counting:
+            checks["made"] += 1
+        if args.check_delay_s > 0:
+            time.sleep(args.check_delay_s)  # the time a real hash takes (off the event loop, as the server calls it)
+        return users.authenticate(user, password)
+
     status: dict = {"heartbeat": 0}
 
     # the screen's transport
@@ -134,7 +147,7 @@ async def serve(args: argparse.Namespace) -> None:
     # OPC UA
     secure = users.configured
     settings = GuardSettings.from_config(config, "urn:pick-cell:server", secure)
-    opcua = GuardedServer(settings, users.authenticate if secure else None, throttle)
+    opcua = GuardedServer(settings, authenticate if secure else None, throttle, users.credential if secure else None)
     await opcua.init()
     endpoint = f"opc.tcp://127.0.0.1:{args.opcua_port}/cell"
     opcua.set_endpoint(endpoint)
@@ -167,6 +180,7 @@ async def serve(args: argparse.Namespace) -> None:
             "opcua_sessions": len(iserver._external_sessions),
             "opcua_subscriptions": len(iserver.subscription_service.subscriptions),
             "opcua_tally": dict(opcua.guard.tally.total),
+            "password_checks": checks["made"],
             "cpu_s": sum(os.times()[:2]),
         }
 
@@ -193,6 +207,7 @@ def main() -> None:
     p.add_argument("--users", action="store_true")
     p.add_argument("--http-port", type=int, default=0)
     p.add_argument("--opcua-port", type=int, required=True)
+    p.add_argument("--check-delay-s", type=float, default=0.0, help="how long each password check takes")
     p.add_argument("--limits", default="{}", help="JSON: service sub-sections and fields to override")
     args = p.parse_args()
     logging.basicConfig(level=logging.WARNING)

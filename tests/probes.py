@@ -36,11 +36,13 @@ class ProbeServer:
         nofile: int | None = None,
         limits: dict | None = None,
         timeout_s: float = 60.0,
+        check_delay_s: float = 0.0,
     ) -> None:
         self.workdir = workdir
         self.opcua_port = free_port()
         cmd = [sys.executable, "-m", "tests.limits_server", str(workdir), "--opcua-port", str(self.opcua_port)]
         cmd += ["--tls"] * tls + ["--users"] * users + ["--limits", json.dumps(limits or {})]
+        cmd += ["--check-delay-s", str(check_delay_s)]
 
         def limit() -> None:
             if nofile is not None:

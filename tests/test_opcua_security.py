@@ -166,14 +166,47 @@ def test_guessing_passwords_locks_the_user_out(tmp_path):
         assert server.stop() == 0
 
 
+def test_parallel_guesses_get_no_more_password_checks_than_the_rule_allows(tmp_path):
+    """issue 28 defect 10 on OPC UA: the throttle was asked (refuse_for) but counted a try only once its check
+    had failed, so guesses sent at once were all checked. Now each try counts as it begins: of 8 parallel
+    guesses from one address, at most max_failures_per_user (3) get their password checked. Each check lasts
+    0.5 s here (as the real hash does), so the guesses meet while the first ones are being checked."""
+    server = ProbeServer(
+        tmp_path,
+        users=True,
+        limits={"login": {"backoff_first_s": 0, "max_failures_per_user": 3, "lockout_s": 600}},
+        check_delay_s=0.5,
+    )
+    try:
+
+        async def probe():
+            good = await trusted_credentials(server, "plc")
+            guessers = [
+                await secure_client(server.opcua_url, good, password=f"guess-{i}", timeout_s=30) for i in range(8)
+            ]
+            return await asyncio.gather(*(refusal(g) for g in guessers))
+
+        assert asyncio.run(probe()) == ["BadUserAccessDenied"] * 8
+        report = status(server)
+        assert report["password_checks"] == 3, report
+        assert report["opcua_tally"].get("refused: login throttled") == 5, report
+    finally:
+        assert server.stop() == 0
+
+
 @pytest.mark.timeout(300)  # ~20 s of CPU for 1,000 secure handshakes on both sides; wall time follows the load
 def test_vanished_clients_are_reclaimed_and_a_fresh_client_gets_in(tmp_path):
     """The issue's probe: clients that subscribe and drop their TCP connection. Their sessions must
     go with their connections; meanwhile a live client is answered all along (within 1 s is the
     acceptance, a wall time: scripts/bench_security.py measures it), and afterwards a fresh client
     gets a session. All from 127.0.0.1, so the cap per address is raised above a batch (50 at a
-    time) for this test."""
-    server = ProbeServer(tmp_path, users=True, limits={"opcua_limits": {"max_connections_per_address": 64}})
+    time) for this test; and as they all log in as one user from that address, 8 at a time, the login
+    throttle's limits too (it lets one check of a name or an address be in flight at a time with back-off,
+    and counts the checks in flight towards the lockout: issue 28)."""
+    login = {"backoff_first_s": 0, "max_failures_per_user": 1000, "max_failures_per_address": 1000}
+    server = ProbeServer(
+        tmp_path, users=True, limits={"opcua_limits": {"max_connections_per_address": 64}, "login": login}
+    )
     try:
         good = asyncio.run(trusted_credentials(server, "plc"))
         key, cert, server_cert = good.paths

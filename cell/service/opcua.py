@@ -183,6 +183,7 @@ class OpcUaServer:
             GuardSettings.from_config(config, APP_URI, self.secure),
             users.authenticate if self.secure else None,
             throttle or LoginThrottle(self.cfg.login),
+            users.credential if self.secure else None,  # a removed or changed user's sessions end (issue 28)
         )
         self.parts = service.parts  # the part classes, whose counters are variables of their own
         self.variables = variables(self.parts)

@@ -19,7 +19,11 @@ asyncua Server whose every connection goes through `GuardedProcessor`:
   the application URI the client claims; a user name token is accepted only encrypted
   (a SignAndEncrypt channel, or the password encrypted with the policy), checked off the
   event loop against the users (cell.access.users) after the login throttle
-  (cell.access.throttle); the session's user carries the cell's Role;
+  (cell.access.throttle: each try counts as it begins, so parallel guesses get no more checks);
+  the session's user carries the cell's Role and the fingerprint of their entry in the users
+  file (cell.access.users.Authenticator.credential): a user removed or given another role or
+  password has every request refused (BadUserAccessDenied) and their session and connection
+  closed, at their next request or within USERS_CHECK_S, whichever comes first;
 - limits: connections per client address and in total, a deadline to activate a session,
   a cap on the session timeout a client may ask for, subscriptions per session, and a
   session closed as soon as its connection drops (a client reconnecting makes a new one).
@@ -84,6 +88,8 @@ _CREATE_SESSION, _ACTIVATE_SESSION, _CREATE_SUBSCRIPTION = (
     _request("CreateSubscription"),
 )
 _DISCOVERY = frozenset({_request("GetEndpoints"), _request("FindServers")})
+_SESSION_SERVICES = _DISCOVERY | {_CREATE_SESSION, _ACTIVATE_SESSION, _request("CloseSession")}
+USERS_CHECK_S = 1.0  # how often open sessions are compared with the users file (a removed user's end)
 
 
 # ---- who is calling ----------------------------------------------------------------------
@@ -92,6 +98,8 @@ class CellUser(User):
     """asyncua's user, with the cell's role (what the command table checks)."""
 
     cell_role: Role = Role.VIEWER
+    # the user's fingerprint at login (Authenticator.credential): when it changes, the session ends
+    credential: str | None = None
 
 
 @dataclass(frozen=True)
@@ -102,7 +110,7 @@ class _Caller:
 
 
 _CALLER: contextvars.ContextVar[_Caller | None] = contextvars.ContextVar("opcua_caller", default=None)
-_VERIFIED: contextvars.ContextVar[tuple[str, str, Role | None] | None] = contextvars.ContextVar(
+_VERIFIED: contextvars.ContextVar[tuple[str, str, Role | None, str | None] | None] = contextvars.ContextVar(
     "opcua_verified_login", default=None
 )
 
@@ -140,10 +148,10 @@ class CellUserManager(UserManager):
         if verified is None or username is None or password is None:
             log.error("OPC UA: a login reached the user manager without being checked first: refused")
             return None
-        name, secret, role = verified
+        name, secret, role, credential = verified
         if name != username or not hmac.compare_digest(secret.encode(), password.encode()) or role is None:
             return None
-        return CellUser(role=UserRole.User, name=username, cell_role=role)
+        return CellUser(role=UserRole.User, name=username, cell_role=role, credential=credential)
 
 
 # ---- the trust list ------------------------------------------------------------------------
@@ -311,14 +319,37 @@ class Guard:
         settings: GuardSettings,
         authenticate: Callable[[str, str], Role | None] | None,
         throttle: LoginThrottle | None,
+        credential: Callable[[str], str | None] | None = None,
     ) -> None:
+        """`credential(user)`: the user's fingerprint now (Authenticator.credential), None once removed."""
         self.settings, self.authenticate, self.throttle = settings, authenticate, throttle
+        self.credential = credential
+        self.processors: set[GuardedProcessor] = set()  # one per open connection (the sweep of ended users)
         self.allowed = _allowed(settings.policy_types()) if settings.secure else frozenset()
         self.allowed_uris = frozenset(uri for uri, _ in self.allowed)
         self.trust = TrustList(settings.trusted_dir, settings.rejected_dir) if settings.secure else None
         self.per_address: Counter[str] = Counter()
         self.tally = Tally("OPC UA")
         self.hashing = asyncio.Semaphore(HASH_CHECKS_AT_ONCE)
+
+    def user_ended(self, user: User | None) -> bool:
+        """True when the session's user was removed or given another role or password since they logged in
+        (issue 28: their sessions end at once). Costs a stat of the users file (read again when it changed)."""
+        if not isinstance(user, CellUser) or self.credential is None:
+            return False
+        try:
+            now = self.credential(user.name or "")
+        except Exception as e:  # an unreadable users file: deny rather than keep a login it cannot check
+            log.error("OPC UA: cannot check user %r against the users file, their session ends: %s", user.name, e)
+            return True
+        return now is None or now != user.credential
+
+    async def end_changed_users(self) -> None:
+        """Close every session whose user was removed or changed, with its connection."""
+        for processor in list(self.processors):
+            session = processor.session
+            if session is not None and session.state is SessionState.Activated and self.user_ended(session.user):
+                await processor.end_session("ended: its user was removed or changed")
 
     def check_channel(self, uri: str | None, sender_certificate: bytes | None, address: str) -> int | None:
         """The status code refusing an OpenSecureChannel with this policy and certificate, or None."""
@@ -366,6 +397,22 @@ class GuardedProcessor(UaProcessor):
         super().__init__(*args)
         self.guard, self.address = guard, address
 
+    async def end_session(self, why: str) -> None:
+        """Close this connection's session (its subscriptions go) and the connection itself."""
+        session = self.session
+        if session is None or session.state is SessionState.Closed:
+            self._transport.close()
+            return
+        self.guard.tally.note(why, self.address)
+        user = session.user.name if isinstance(session.user, CellUser) else "?"
+        log.warning(
+            "OPC UA: the session of user %r from %s ended: the user was removed or given another role or password",
+            user,
+            self.address,
+        )
+        await session.close_session(True)
+        self._transport.close()
+
     async def process(self, header: Any, body: Buffer) -> bool:
         if header.MessageType == _OPEN and not self._connection.is_open():
             refused = self._refuse_channel(body.copy(header.body_size))
@@ -409,6 +456,10 @@ class GuardedProcessor(UaProcessor):
             _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadSecurityModeInsufficient)
             return False
         user = self.session.user if self.session else None
+        if typeid not in _SESSION_SERVICES and self.guard.user_ended(user):
+            _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadUserAccessDenied)
+            await self.end_session("refused and ended: its user was removed or changed")
+            return False
         settings = self.guard.settings
         caller = _CALLER.set(_Caller(user, self.address, caller_role(user, settings.secure, settings.client_role)))
         try:
@@ -464,30 +515,44 @@ class GuardedProcessor(UaProcessor):
             return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadIdentityTokenRejected)
         user = token.UserName or ""
         throttle = self.guard.throttle
-        if throttle is not None and throttle.refuse_for(user, self.address) > 0:
+        # begin() counts the try at once (issue 28): tries sent in parallel get no further than one after another
+        if throttle is not None and throttle.begin(user, self.address) > 0:
             self.guard.tally.note("refused: login throttled", self.address)
             return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadUserAccessDenied)
+        settled = False
         try:
-            name, password = self.iserver.decrypt_user_token(session, token)
-        except Exception:
-            return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadIdentityTokenInvalid)
-        role = await self._check_password(name or "", password or "")
-        if throttle is not None:
-            if role is None:
-                throttle.failed(user, self.address, "opcua")
-            else:
-                throttle.succeeded(user, self.address)
-        verified = _VERIFIED.set((name or "", password or "", role))
+            try:
+                name, password = self.iserver.decrypt_user_token(session, token)
+            except Exception:
+                return _fault(self, requesthdr, seqhdr, ua.StatusCodes.BadIdentityTokenInvalid)
+            credential, role = await self._check_password(name or "", password or "")
+            if throttle is not None:
+                if role is None:
+                    throttle.failed(user, self.address, "opcua")
+                else:
+                    throttle.succeeded(user, self.address)
+            settled = True
+        finally:
+            if throttle is not None and not settled:  # no password checked (a bad token, or the task ended)
+                throttle.abandon(user, self.address)
+        verified = _VERIFIED.set((name or "", password or "", role, credential))
         try:
             return bool(await super().process_message(seqhdr, body))  # type: ignore[no-untyped-call]  # untyped in asyncua
         finally:
             _VERIFIED.reset(verified)
 
-    async def _check_password(self, name: str, password: str) -> Role | None:
+    async def _check_password(self, name: str, password: str) -> tuple[str | None, Role | None]:
+        """(the user's credential fingerprint, read before the check; their role, None if refused)."""
         if self.guard.authenticate is None:
-            return None
+            return None, None
         async with self.guard.hashing:
-            return await asyncio.to_thread(self.guard.authenticate, name, password)
+            return await asyncio.to_thread(self._verify, name, password)
+
+    def _verify(self, name: str, password: str) -> tuple[str | None, Role | None]:
+        assert self.guard.authenticate is not None
+        # the fingerprint first: a change made during the check then ends the session at its first request
+        credential = self.guard.credential(name) if self.guard.credential is not None else None
+        return credential, self.guard.authenticate(name, password)
 
     def _subscriptions(self) -> int:
         if self.session is None:
@@ -528,6 +593,7 @@ class GuardedProtocol(OPCUAProtocol):
         self.transport = transport
         self.processor = GuardedProcessor(self.guard, address, self.iserver, self.transport, self.limits)
         self.processor.set_policies(self.policies)  # type: ignore[no-untyped-call]  # untyped in asyncua
+        self.guard.processors.add(self.processor)
         self.iserver.asyncio_transports.append(transport)
         self.clients.append(self)
         self._task = asyncio.create_task(self._process_received_message_loop())
@@ -542,6 +608,8 @@ class GuardedProtocol(OPCUAProtocol):
         super().data_received(data)
 
     def connection_lost(self, ex: BaseException | None) -> None:
+        if isinstance(self.processor, GuardedProcessor):
+            self.guard.processors.discard(self.processor)
         if self.address is not None:
             self.guard.per_address[self.address] -= 1
             if self.guard.per_address[self.address] <= 0:
@@ -577,9 +645,13 @@ class GuardedServer(Server):
         settings: GuardSettings,
         authenticate: Callable[[str, str], Role | None] | None = None,
         throttle: LoginThrottle | None = None,
+        credential: Callable[[str], str | None] | None = None,
     ) -> None:
+        """`credential`: Authenticator.credential; with it a session ends when its user is removed or given another
+        role or password (checked at each request and every USERS_CHECK_S)."""
         super().__init__(user_manager=CellUserManager() if settings.secure else None)
-        self.guard = Guard(settings, authenticate, throttle)
+        self.guard = Guard(settings, authenticate, throttle, credential)
+        self._users_watch: asyncio.Task[None] | None = None
 
     async def secure(self) -> None:
         s = self.guard.settings
@@ -623,3 +695,21 @@ class GuardedServer(Server):
         except Exception:
             await iserver.stop()
             raise
+        if self.guard.credential is not None:
+            self._users_watch = asyncio.create_task(self._watch_users(), name="opcua-users-watch")
+
+    async def stop(self) -> None:
+        if self._users_watch is not None:
+            self._users_watch.cancel()
+            await asyncio.gather(self._users_watch, return_exceptions=True)
+            self._users_watch = None
+        await super().stop()
+
+    async def _watch_users(self) -> None:
+        """Sessions of a removed or changed user end even while they send nothing (issue 28)."""
+        while True:
+            await asyncio.sleep(USERS_CHECK_S)
+            try:
+                await self.guard.end_changed_users()
+            except Exception:  # the watch must go on: the next request's check still holds
+                log.exception("OPC UA: checking open sessions against the users file failed")
