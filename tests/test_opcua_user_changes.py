@@ -13,8 +13,8 @@ import sys
 import pytest
 from asyncua import ua
 
-from cell.events import Role
-from cell.service.users import UserEntry, hash_password, read_users, write_users
+from cell.access.users import UserEntry, hash_password, read_users, write_users
+from cell.core.events import Role
 from tests.probes import REPO, Credentials, make_client_certificate, secure_client, wait_until
 from tests.serve_process import ServeProcess
 
