@@ -97,7 +97,7 @@ class FakeLineService:
     # ---- the contract ---------------------------------------------------------------
     def command(self, command: Command, origin: Origin = SERVICE_ORIGIN, request=None) -> CommandResult:
         with self._lock:
-            if not origin.role.may(needed_role(command)):
+            if not origin.may(needed_role(command)):
                 raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
             why = state_refusal(command, Rest(self.state, self.paused, self.paused), self._hold())
             if why is not None:
@@ -161,7 +161,7 @@ class FakeLineService:
         name = action or command.value
         with self._lock:
             try:
-                if not origin.role.may(needed_role(command)):
+                if not origin.may(needed_role(command)):
                     raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
                 why = (
                     state_refusal(command, Rest(self.state, self.paused, self.paused), self._hold()) if state else None
@@ -224,7 +224,7 @@ class FakeLineService:
 
     def _check_recalibration(self, command: Command, origin: Origin) -> None:
         with self._lock:
-            if not origin.role.may(needed_role(command)):
+            if not origin.may(needed_role(command)):
                 raise AccessDenied(command, f"{command.value} needs the {needed_role(command).value} role")
             why = state_refusal(command, Rest(self.state, self.paused, self.paused))
             if why is not None:
