@@ -17,6 +17,7 @@ import pytest
 from cell.core.commands import Command, CommandResult, VisionState
 from cell.core.eventbus import EventBus
 from cell.core.events import Origin, SnapshotChanged
+from cell.core.parts import BUILT_IN_PARTS
 from cell.core.records import Counters, Snapshot
 from cell.telemetry.config import MqttConfig
 from cell.telemetry.publisher import SparkplugPublisher
@@ -35,6 +36,7 @@ class Plant:
 
     def __init__(self) -> None:
         self.bus = EventBus()
+        self.parts = BUILT_IN_PARTS
         self.picked = 0
         self.moving = False  # True: each snapshot counts one more pick (every read a change to publish)
         self.padding = 0  # characters added to the cell state (the runner's step): larger messages
