@@ -298,6 +298,29 @@ def test_a_failed_write_faults_when_required_and_warns_otherwise_keeping_the_row
         assert required or "history" in hooks.cleared
 
 
+def test_closing_while_every_write_fails_ends_the_writer_at_once_and_says_what_was_left(tmp_path, caplog):
+    """The writer (a cell.core.worker.QueueWorker) waits retry_s between tries; closing ends that
+    wait: no further try, the thread ends, the rows not written are counted and logged."""
+    cfg = history_config(tmp_path, retry_s=600)  # a close that waited out a retry would hit the test's timeout
+    hooks = Hooks()
+    store = HistoryStore(cfg.history, cfg.run.log_dir, hooks)
+    real, store.local.conn = store.local.conn, sqlite3.connect(":memory:", isolation_level=None)  # no tables
+    store.handle(verify(1))
+    store.handle(verify(2))
+    deadline = datetime.now() + timedelta(seconds=20)
+    while not (hooks.faults or hooks.warnings) and datetime.now() < deadline:
+        store.wait_idle(0.05)
+    assert hooks.faults or hooks.warnings  # failed once; waiting 600 s for the next try
+    pending = store.stats().rows_pending
+    assert pending > 0
+    with caplog.at_level("ERROR", logger="cell.history.store"):
+        store.close(timeout_s=0.2)
+    assert not store._writer.is_alive()
+    assert store.stats().rows_pending == pending and store.written == 0
+    assert any(f"{pending} rows not written at close" in r.getMessage() for r in caplog.records)
+    real.close()
+
+
 # ---- reading ---------------------------------------------------------------------------------
 def test_the_query_api_filters_and_gets_by_id(tmp_path):
     cfg = history_config(tmp_path)

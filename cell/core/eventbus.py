@@ -4,7 +4,8 @@
   Only the audit log is one: safety needs the record written before the next motion, so it
   stays synchronous and cheap (one JSON line). A record that fails raises into the emitter
   (the job faults safely) unless `best_effort` is set (while making safe and ending).
-- Subscribers (`subscribe`): each on its own thread behind its own bounded queue. `emit`
+- Subscribers (`subscribe`): each on its own thread behind its own bounded queue (a
+  cell.core.worker.QueueWorker, the worker the history store's threads use too). `emit`
   only appends (never blocks, never raises for them); a subscriber that is slow loses the
   newest events once its queue is full, one that raises is logged; both are counted
   (`stats()`), and neither ever delays or faults a pick. Frames (FrameLocated) coalesce:
@@ -27,12 +28,12 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from cell.core.events import Event, FrameLocated, PickOrderChosen
+from cell.core.worker import QueueWorker
 
 log = logging.getLogger(__name__)
 
 Handler = Callable[[Event], object]  # its return value is not used
 _GONE = Event()  # what a dropped slot holds: the frame it held is let go at once
-_LOG_EVERY_S = 60.0  # a failing or overflowing subscriber is logged at most this often
 
 
 @dataclass(frozen=True)
@@ -69,8 +70,70 @@ def _frame_of(event: Event) -> int | None:
     return ref.frame_no if ref is not None else None
 
 
+class FrameQueue:
+    """A subscriber's queue (cell.core.worker.WorkQueue): at most `maxsize` events, the newest dropped
+    when full; frames (the `coalesce` kinds) coalesce, see the module's text."""
+
+    def __init__(self, maxsize: int, coalesce: frozenset[type[Event]]):
+        self.maxsize, self.coalesce = maxsize, coalesce
+        self._queue: deque[_Box] = deque()
+        self._latest: dict[type[Event], _Box] = {}
+        self._dead = 0  # slots in the queue whose frame a newer one replaced (skipped, not counted as queued)
+
+    def put(self, event: Event) -> bool:
+        kind = type(event)
+        if kind in self.coalesce:
+            stale = self._latest.get(kind)
+            if stale is not None and not stale.taken and not stale.dead:
+                if self._queue and self._queue[-1] is stale:
+                    stale.event = event  # nothing came after the older frame: the newer one takes its place
+                    return True
+                if not stale.pinned:  # never delivered ahead of what came after the older frame:
+                    self._drop(stale)  # the older one goes (with its pick order), the newer one at the end
+        frame = None if kind in self.coalesce or not self._latest else _frame_of(event)
+        if len(self._queue) - self._dead >= self.maxsize:
+            return False
+        box = _Box(event)
+        if kind in self.coalesce:
+            self._latest[kind] = box
+        elif frame is not None:
+            for latest in self._latest.values():
+                if not latest.taken and not latest.dead and getattr(latest.event, "frame", None) == frame:
+                    if kind in _FRAME_ONLY:
+                        latest.followers.append(box)
+                    else:
+                        latest.pinned = True  # delivered after the frame it refers to, so the frame stays
+        self._queue.append(box)
+        return True
+
+    def _drop(self, box: _Box) -> None:
+        """A frame's slot and its followers' are skipped (their events let go now)."""
+        for b in (box, *box.followers):
+            if not b.dead and not b.taken:
+                b.dead, b.event = True, _GONE
+                self._dead += 1
+        box.followers = []
+
+    def take(self) -> Event:
+        while True:
+            box = self._queue.popleft()
+            box.taken = True
+            if not box.dead:
+                return box.event
+            self._dead -= 1
+
+    def __len__(self) -> int:
+        return len(self._queue) - self._dead
+
+    def clear(self) -> int:
+        n = len(self)
+        self._queue.clear()
+        self._dead = 0
+        return n
+
+
 class Subscription:
-    """One subscriber: its queue, its thread, its counters."""
+    """One subscriber: its queue and its thread (a cell.core.worker.QueueWorker), its counters."""
 
     def __init__(
         self,
@@ -82,20 +145,18 @@ class Subscription:
         frames: bool | Callable[[Event], bool] = False,
         batch_s: float = 0.0,
     ):
-        self.batch_s = batch_s  # > 0: wake at most once a batch_s, taking every event queued meanwhile
         self.name, self.handler, self.kinds, self.maxsize, self.coalesce = name, handler, kinds, maxsize, coalesce
+        self.batch_s = batch_s  # > 0: wake at most once a batch_s, taking every event queued meanwhile
         self.frames = frames  # False: events reach it without their frame (`ref`), so its queue holds no images
-        self.delivered = self.dropped = self.failed = 0
-        self._queue: deque[_Box] = deque()
-        self._latest: dict[type[Event], _Box] = {}
-        self._dead = 0  # slots in the queue whose frame a newer one replaced (skipped, not counted as queued)
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closing = False
-        self._closed = threading.Event()  # ends a batch's wait at once
-        self._last_log = {"dropped": -_LOG_EVERY_S, "failed": -_LOG_EVERY_S}
-        self._thread = threading.Thread(target=self._run, name=f"events-{name}", daemon=True)
-        self._thread.start()
+        self._worker: QueueWorker[Event, Event] = QueueWorker(
+            name,
+            handler,
+            FrameQueue(maxsize, coalesce),
+            label=f"subscriber {name}",
+            thread_name=f"events-{name}",
+            batch_s=batch_s,
+            describe=lambda event: f"a {event.kind} event",
+        )
 
     # ---- the emitter's side (never blocks) ---------------------------------------------
     def offer(self, event: Event) -> None:
@@ -105,115 +166,32 @@ class Subscription:
             self.frames(event) if callable(self.frames) else self.frames
         ):
             event = dataclasses.replace(event, ref=None)  # type: ignore[call-arg]
-        with self._cond:
-            if self._closing:
-                return
-            kind = type(event)
-            if kind in self.coalesce:
-                stale = self._latest.get(kind)
-                if stale is not None and not stale.taken and not stale.dead:
-                    if self._queue and self._queue[-1] is stale:
-                        stale.event = event  # nothing came after the older frame: the newer one takes its place
-                        return
-                    if not stale.pinned:  # never delivered ahead of what came after the older frame:
-                        self._drop(stale)  # the older one goes (with its pick order), the newer one at the end
-            frame = None if kind in self.coalesce or not self._latest else _frame_of(event)
-            if len(self._queue) - self._dead >= self.maxsize:
-                self.dropped += 1
-                self._note("dropped", "queue full (%d events): dropping; %d dropped so far", self.maxsize, self.dropped)
-                return
-            box = _Box(event)
-            if kind in self.coalesce:
-                self._latest[kind] = box
-            elif frame is not None:
-                for latest in self._latest.values():
-                    if not latest.taken and not latest.dead and getattr(latest.event, "frame", None) == frame:
-                        if kind in _FRAME_ONLY:
-                            latest.followers.append(box)
-                        else:
-                            latest.pinned = True  # delivered after the frame it refers to, so the frame stays
-            self._queue.append(box)
-            self._cond.notify()
+        self._worker.offer(event)
 
-    def _drop(self, box: _Box) -> None:
-        """Under the lock: a frame's slot and its followers' are skipped (their events let go now)."""
-        for b in (box, *box.followers):
-            if not b.dead and not b.taken:
-                b.dead, b.event = True, _GONE
-                self._dead += 1
-        box.followers = []
+    # ---- counters and control -------------------------------------------------------------
+    @property
+    def delivered(self) -> int:
+        return self._worker.handled
 
-    # ---- the subscriber's thread -------------------------------------------------------
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._queue and not self._closing:
-                    self._cond.wait()
-                if not self._queue:
-                    return
-                self._busy = True
-            if self.batch_s > 0:
-                self._closed.wait(self.batch_s)  # let the batch gather (emit's notify wakes nobody meanwhile)
-            while True:
-                with self._cond:
-                    if not self._queue:
-                        self._busy = False
-                        self._cond.notify_all()
-                        break
-                    box = self._queue.popleft()
-                    box.taken = True
-                    if box.dead:
-                        self._dead -= 1
-                        continue
-                self._handle(box.event)
+    @property
+    def dropped(self) -> int:
+        return self._worker.dropped
 
-    def _handle(self, event: Event) -> None:
-        try:
-            self.handler(event)
-            self.delivered += 1
-        except Exception:
-            self.failed += 1
-            self._note("failed", "handler raised on a %s event (%d so far)", event.kind, self.failed, exc=True)
+    @property
+    def failed(self) -> int:
+        return self._worker.failed
 
-    def _note(self, what: str, message: str, *args: object, exc: bool = False) -> None:
-        now = time.monotonic()
-        if now - self._last_log[what] >= _LOG_EVERY_S:
-            self._last_log[what] = now
-            log.warning("subscriber %s: " + message, self.name, *args, exc_info=exc)
-
-    # ---- control ------------------------------------------------------------------------
     def wait_idle(self, timeout_s: float) -> bool:
         """True once every event offered so far has been handled (for tests and orderly shutdown)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._queue or self._busy:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-        return True
+        return self._worker.wait_idle(timeout_s)
 
     def close(self, timeout_s: float = 5.0) -> bool:
         """Stop taking events, deliver what is queued (up to the timeout), end the thread; True if it ended."""
-        with self._cond:
-            self._closing = True
-            self._cond.notify_all()
-        self._closed.set()
-        if threading.current_thread() is not self._thread:
-            self._thread.join(timeout_s)
-        if self._thread.is_alive():  # too slow to finish: what it has not taken is dropped, so its thread ends
-            with self._cond:
-                left = len(self._queue) - self._dead
-                self.dropped += left
-                self._queue.clear()
-                self._dead = 0
-            log.warning("subscriber %s: still busy %.1f s after close; %d events dropped", self.name, timeout_s, left)
-            return False
-        return True
+        return self._worker.close(timeout_s)
 
     def stats(self) -> SubscriberStats:
-        with self._cond:
-            return SubscriberStats(self.name, self.delivered, self.dropped, self.failed, len(self._queue) - self._dead)
+        s = self._worker.stats()
+        return SubscriberStats(self.name, s.handled, s.dropped, s.failed, s.queued)
 
 
 class Record(Protocol):

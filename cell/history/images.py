@@ -16,7 +16,6 @@ import contextlib
 import logging
 import os
 import shutil
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -29,6 +28,7 @@ import numpy as np
 
 from cell.atomicfile import write_bytes_atomic
 from cell.core.events import FrameRef
+from cell.core.worker import BoundedQueue, QueueWorker
 from cell.history.config import HistoryConfig
 from cell.history.rows import ImageWanted, Op
 from cell.memory import release_free_memory
@@ -41,14 +41,36 @@ _RECENT = 256  # ids remembered so one frame (a miss, then its part failed) is s
 @dataclass
 class ImageStats:
     saved: int = 0
-    dropped: int = 0  # the queue was full
+    dropped: int = 0  # the queue was full (or still held it at close)
     skipped_low_disk: int = 0
     failed: int = 0
     deleted: int = 0
 
 
+_Item = tuple[ImageWanted, FrameRef, datetime]
+
+
+class _ImageQueue(BoundedQueue[_Item]):
+    """The saver's queue: an image already queued or saved (one frame: a miss, then its part
+    failed) is not queued again, and counts as taken."""
+
+    def __init__(self, maxsize: int):
+        super().__init__(maxsize)
+        self.recent: deque[str] = deque(maxlen=_RECENT)
+
+    def put(self, item: _Item) -> bool:
+        image = item[0].image_id
+        if image in self.recent:
+            return True
+        if not super().put(item):
+            return False
+        self.recent.append(image)
+        return True
+
+
 class ImageSaver:
-    """A thread writing images from a bounded queue; each saved image becomes an `image` row (via `emit`)."""
+    """A thread writing images from a bounded queue (a cell.core.worker.QueueWorker); each saved
+    image becomes an `image` row (via `emit`)."""
 
     def __init__(
         self,
@@ -61,53 +83,32 @@ class ImageSaver:
     ):
         self.folder, self.config, self.cell = Path(folder), config, cell
         self.emit, self.warn, self.clear = emit, warn, clear
-        self.stats = ImageStats()
-        self._queue: deque[tuple[ImageWanted, FrameRef, datetime]] = deque()
-        self._recent: deque[str] = deque(maxlen=_RECENT)
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closing = False
+        self._counts = ImageStats()  # saved, skipped_low_disk, deleted (the worker counts the rest)
         self._low_disk = False
         self._files: dict[Path, tuple[float, int]] = {}  # path -> (mtime, bytes), for retention
         self._scanned = False
-        self._thread = threading.Thread(target=self._run, name="history-images", daemon=True)
-        self._thread.start()
+        self._queue = _ImageQueue(config.images_queue)
+        self._worker: QueueWorker[_Item, _Item] = QueueWorker(
+            "history-images",
+            lambda item: self._save(*item),
+            self._queue,
+            label="history: image saver",
+            on_drained=release_free_memory,  # a rare burst of PNG work done: its buffers go back to the system
+            describe=lambda item: f"image {item[0].image_id} (not saved)",
+        )
+
+    @property
+    def stats(self) -> ImageStats:
+        w = self._worker.stats()
+        c = self._counts
+        return ImageStats(c.saved, w.dropped, c.skipped_low_disk, w.failed, c.deleted)
 
     # ---- the converter's side (never blocks) -------------------------------------------
     def offer(self, wanted: ImageWanted, ref: FrameRef, t: datetime) -> bool:
-        with self._cond:
-            if self._closing or wanted.image_id in self._recent:
-                return wanted.image_id in self._recent
-            if len(self._queue) >= self.config.images_queue:
-                self.stats.dropped += 1
-                return False
-            self._recent.append(wanted.image_id)
-            self._queue.append((wanted, ref, t))
-            self._cond.notify()
+        """True if the image is queued (or was already); False if dropped (queue full) or closing."""
+        if wanted.image_id in self._queue.recent:  # only this thread (the offerer's) changes it
             return True
-
-    # ---- the thread --------------------------------------------------------------------------
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._queue and not self._closing:
-                    self._cond.wait()
-                if not self._queue:
-                    return
-                item = self._queue.popleft()
-                self._busy = True
-            try:
-                self._save(*item)
-            except Exception:
-                self.stats.failed += 1
-                log.exception("history: image %s not saved", item[0].image_id)
-            finally:
-                with self._cond:
-                    self._busy = False
-                    drained = not self._queue
-                    self._cond.notify_all()
-            if drained:  # a rare burst of PNG work done: its buffers go back to the system, not kept
-                release_free_memory()
+        return self._worker.offer((wanted, ref, t))
 
     def _room(self) -> bool:
         try:
@@ -115,7 +116,7 @@ class ImageSaver:
         except OSError:
             free_mb = 0.0
         if free_mb < self.config.min_free_mb:
-            self.stats.skipped_low_disk += 1
+            self._counts.skipped_low_disk += 1
             if not self._low_disk:
                 self._low_disk = True
                 self.warn(
@@ -148,7 +149,7 @@ class ImageSaver:
             size += len(buf)
             self._files[path] = (time.time(), len(buf))
         rel = lambda p: str(p.relative_to(self.folder))  # noqa: E731
-        self.stats.saved += 1
+        self._counts.saved += 1
         self.emit(
             [
                 Op(
@@ -192,7 +193,7 @@ class ImageSaver:
                 os.unlink(path)
             del self._files[path]
             total -= size
-            self.stats.deleted += 1
+            self._counts.deleted += 1
             if not path.stem.endswith("-annotated"):
                 gone.append(Op("image_deleted", (datetime.now(UTC), path.stem)))
         if gone:
@@ -203,24 +204,11 @@ class ImageSaver:
 
     # ---- control ----------------------------------------------------------------------------------
     def wait_idle(self, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._queue or self._busy:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-        return True
+        return self._worker.wait_idle(timeout_s)
 
-    def close(self, timeout_s: float) -> None:
-        """Save what is queued within the time given; drop (and count) the rest."""
-        self.wait_idle(timeout_s)
-        with self._cond:
-            self.stats.dropped += len(self._queue)
-            self._queue.clear()
-            self._closing = True
-            self._cond.notify_all()
-        self._thread.join(max(timeout_s, 1.0))
+    def close(self, timeout_s: float) -> bool:
+        """Save what is queued within the time given; drop (and count) the rest. True if the thread ended."""
+        return self._worker.close(timeout_s)
 
 
 def _annotated(ref: FrameRef) -> np.ndarray:

@@ -5,7 +5,8 @@ Three threads, none of them the control thread:
 - the bus's subscriber thread (`handle`) turns each event into row operations (cell.history.rows)
   and hands a frame worth keeping to the image saver; it only computes, so it keeps up and
   lets go of frames at once;
-- the writer takes the pending rows in batches, each batch one transaction (all or nothing,
+- the writer (a cell.core.worker.QueueWorker, as the image saver and the bus's subscribers)
+  takes the pending rows in batches, each batch one transaction (all or nothing,
   never a half-written row), with this cell's mark (the time of its last event) in the same
   transaction; on SQLite straight into the database, on PostgreSQL into a local SQLite outbox;
 - on PostgreSQL a forwarder sends the outbox to the server in order, deleting what the server
@@ -51,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.core.events import BY_KIND, Event, FaultRaised, FrameRef, PartFailed, PickVerified, RunEnded
+from cell.core.worker import QueueWorker
 from cell.history.config import OUTBOX_FILE, HistoryConfig, data_dir, database_url
 from cell.history.db import (
     Database,
@@ -80,6 +82,52 @@ _OUTBOX_DDL = [
         refused_utc TEXT NOT NULL, op TEXT NOT NULL, error TEXT NOT NULL)""",
 ]
 EVENT_TYPES = tuple(BY_KIND[k] for k in sorted(KINDS) if k in BY_KIND)
+
+
+_Pending = tuple[list[Op], datetime]  # a handful of row operations, and the time of the event they record
+
+
+class _RowQueue:
+    """The writer's queue (cell.core.worker.WorkQueue): row operations waiting, bounded by rows
+    (MAX_PENDING, the batch being written counted until it is); `take` gives one transaction's
+    worth, up to batch_max_rows (at least one item)."""
+
+    def __init__(self, batch_max_rows: int):
+        self.batch_max_rows = batch_max_rows
+        self.items: deque[_Pending] = deque()
+        self.pending_rows = 0  # queued or being written
+        self.lost = 0  # rows dropped: MAX_PENDING were pending
+        self._lock = threading.Lock()  # `done` comes from the writer's thread without the worker's lock
+
+    def put(self, item: _Pending) -> bool:
+        with self._lock:
+            if self.pending_rows >= MAX_PENDING:
+                self.lost += len(item[0])
+                return False
+            self.items.append(item)
+            self.pending_rows += len(item[0])
+            return True
+
+    def take(self) -> list[_Pending]:
+        batch, rows = [], 0
+        while self.items and (rows == 0 or rows + len(self.items[0][0]) <= self.batch_max_rows):
+            item = self.items.popleft()
+            batch.append(item)
+            rows += len(item[0])
+        return batch
+
+    def done(self, rows: int) -> None:
+        with self._lock:
+            self.pending_rows -= rows
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def clear(self) -> int:
+        """At close: the items are let go, their rows still counted as pending (not written)."""
+        n = len(self.items)
+        self.items.clear()
+        return n
 
 
 class Hooks:
@@ -188,12 +236,9 @@ class HistoryStore:
         self.remote_url = self.url if self.url.startswith(("postgresql://", "postgres://")) else ""
         self.local = self._open_local()
         self.rows = RowMaker(self.cell)
-        self._pending: deque[tuple[list[Op], datetime]] = deque()
-        self._pending_rows = 0
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closing = False
-        self.written = self.lost = 0
+        self._rows = _RowQueue(config.batch_max_rows)
+        self._gave_up = False  # a write failed while closing: the rows left are not tried again
+        self.written = 0
         self.write_error = ""
         self._faulted = False
         self.images = (
@@ -210,8 +255,9 @@ class HistoryStore:
         )
         self.reconcile_skipped = 0  # malformed audit lines skipped by the read-back (logged)
         self.reconciled = self._reconcile()
-        self._writer = threading.Thread(target=self._write_loop, name="history-writer", daemon=True)
-        self._writer.start()
+        self._writer: QueueWorker[_Pending, list[_Pending]] = QueueWorker(
+            "history-writer", self._write_batch, self._rows, label="history: writer"
+        )
         self.remote: Database | None = None  # the forwarder's connection (only it does I/O on it)
         self._forwarder: threading.Thread | None = None
         self._watchdog: threading.Thread | None = None
@@ -356,55 +402,32 @@ class HistoryStore:
         self._enqueue(ops, None)
 
     def _enqueue(self, ops: list[Op], t: datetime | None) -> None:
-        with self._cond:
-            if self._pending_rows >= MAX_PENDING:
-                self.lost += len(ops)
-                return
-            self._pending.append((ops, t or datetime.now(UTC)))
-            self._pending_rows += len(ops)
-            self._cond.notify()
+        self._writer.offer((ops, t or datetime.now(UTC)))  # past MAX_PENDING rows: dropped, counted as lost
 
-    # ---- the writer --------------------------------------------------------------------------------
-    def _take(self) -> list[tuple[list[Op], datetime]]:
-        batch, rows = [], 0
-        while self._pending and (rows == 0 or rows + len(self._pending[0][0]) <= self.config.batch_max_rows):
-            item = self._pending.popleft()
-            batch.append(item)
-            rows += len(item[0])
-        return batch
+    @property
+    def lost(self) -> int:
+        return self._rows.lost
 
-    def _write_loop(self) -> None:
-        while True:
-            with self._cond:
-                while not self._pending and not self._closing:
-                    self._cond.wait()
-                if not self._pending:
-                    return
-                batch = self._take()
-                self._busy = True
+    # ---- the writer (its QueueWorker's thread) ------------------------------------------------------
+    def _write_batch(self, batch: list[_Pending]) -> None:
+        """One transaction's worth of rows; while it cannot be written it is kept and tried again
+        every retry_s, in order (nothing behind it goes first), until the store closes."""
+        while not self._gave_up:
             try:
                 self._write(batch)
             except Exception as e:
-                with self._cond:
-                    self._pending.extendleft(reversed(batch))  # kept, in order, for the next try
-                    self._busy = False
-                    self._cond.notify_all()
                 self._write_failed(e)
-                with self._cond:
-                    if self._closing:
-                        return  # close() says how many rows were left
-                    self._cond.wait(self.config.retry_s)
+                if self._writer.closing_wait(self.config.retry_s):
+                    self._gave_up = True  # close() says how many rows were left
                 continue
             n = sum(len(ops) for ops, _ in batch)
-            with self._cond:
-                self._pending_rows -= n
-                self.written += n
-                self._busy = False
-                self._cond.notify_all()
+            self._rows.done(n)
+            self.written += n
             if self.write_error:
                 self._write_recovered()
+            return
 
-    def _write(self, batch: list[tuple[list[Op], datetime]]) -> None:
+    def _write(self, batch: list[_Pending]) -> None:
         ops = [op for item, _ in batch for op in item]
         last = max(t for _, t in batch)
         db = self.local
@@ -685,7 +708,7 @@ class HistoryStore:
         images = self.images.stats if self.images is not None else None
         return HistoryStats(
             self.written,
-            self._pending_rows,
+            self._rows.pending_rows,
             self.lost,
             self._outbox_count() if self.remote_url else 0,
             images.saved if images else 0,
@@ -700,13 +723,7 @@ class HistoryStore:
         deadline = time.monotonic() + timeout_s
         if self.images is not None and not self.images.wait_idle(timeout_s):
             return False
-        with self._cond:
-            while self._pending or self._busy:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-        return True
+        return self._writer.wait_idle(max(deadline - time.monotonic(), 0.0))
 
     def wait_sent(self, timeout_s: float) -> bool:
         """PostgreSQL: True once the outbox is empty (everything on the server)."""
@@ -729,11 +746,8 @@ class HistoryStore:
         if self.images is not None:
             self.images.close(timeout_s / 2)
         self.wait_idle(timeout_s)
-        with self._cond:
-            self._closing = True
-            left = self._pending_rows
-            self._cond.notify_all()
-        self._writer.join(timeout_s)
+        self._writer.close(timeout_s)  # a write failing now is not tried again
+        left = self._rows.pending_rows
         if left:
             log.error("history: %d rows not written at close (%s)", left, self.write_error or "timed out")
         forwarder_done = True
