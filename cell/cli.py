@@ -32,6 +32,7 @@ COMMAND_MODULES = [
     "cell.commands.users",
     "cell.commands.history",
     "cell.commands.report",
+    "cell.commands.config",
 ]
 
 log = logging.getLogger(__name__)
