@@ -32,6 +32,7 @@ COMMAND_MODULES = [
     "cell.commands.users",
     "cell.commands.history",
     "cell.commands.report",
+    "cell.commands.config",
 ]
 
 log = logging.getLogger(__name__)
@@ -50,6 +51,51 @@ Common starts:
 `run-cell --help` lists every command and option; docs/commissioning.md sets up a new cell."""
 
 
+DISTRIBUTION = "pick-cell"  # [project] name in pyproject.toml
+
+
+def version_text() -> str:
+    """What `run-cell --version` prints: the package, then each file format's schema and version, so an
+    upgrade can be checked against what a cell holds (a calibration file of another version is refused)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from cell.calibration.store import SCHEMA, SCHEMA_VERSION
+    from cell.history.schema import VERSION as HISTORY_VERSION
+    from cell.planning import SCHEMA as FRAME_SCHEMA
+
+    try:
+        package = version(DISTRIBUTION)
+    except PackageNotFoundError:
+        package = "unknown (not installed: running from a source tree)"
+    return "\n".join(
+        [
+            f"run-cell ({DISTRIBUTION}) {package}",
+            f"calibration file: schema {SCHEMA} version {SCHEMA_VERSION}",
+            f"robot frame file: schema {FRAME_SCHEMA} (not versioned)",
+            f"history database: schema version {HISTORY_VERSION} (older stores are migrated when opened)",
+            "config: no schema version; checked against this version's models, unknown keys are errors "
+            "(run-cell config check FILE; docs/config.md)",
+        ]
+    )
+
+
+class VersionAction(argparse.Action):
+    """`--version`: print version_text() and exit 0; computed only when asked (it imports the stores)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)  # type: ignore[arg-type]
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        print(version_text())
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="run-cell",
@@ -58,6 +104,11 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail to stderr")
+    parser.add_argument(
+        "--version",
+        action=VersionAction,
+        help="print the package's version and the versions of the files it reads and writes, and exit",
+    )
     run.add_run_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
