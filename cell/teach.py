@@ -14,8 +14,9 @@ import numpy as np
 
 from cell.config import CellConfig
 from cell.errors import InputError
-from cell.planning import TableToRobot, TeachRejected, fit_table_to_robot
+from cell.planning import TableToRobot, TeachRejected, fit_table_to_robot, load_taught
 from drivers.arm.base import Arm
+from drivers.arm.errors import OutOfReach
 
 JOG_HELP = (
     "commands: 'x 1.5', 'y -0.5', 'z -10' (relative mm), 'to X Y Z' (absolute), "
@@ -42,6 +43,63 @@ def circle_table_mm(number: int, config: CellConfig) -> tuple[float, float]:
     return col * plate.pitch_x_mm, row * plate.pitch_y_mm
 
 
+def expected_frame(config: CellConfig) -> tuple[TableToRobot, str]:
+    """Where the circles should be before teaching: the taught frame if there is one (teaching
+    again), else planning.offset_x_mm / offset_y_mm; and words saying which."""
+    cfg = config.planning
+    if cfg.frame == "taught" and cfg.taught_path.exists():
+        return load_taught(cfg.taught_path), f"the taught frame {cfg.taught_path}"
+    offset = f"planning.offset_x_mm {cfg.offset_x_mm:g} mm, offset_y_mm {cfg.offset_y_mm:g} mm"
+    return TableToRobot.from_offset(cfg), offset
+
+
+def check_circles_reachable(arm: Arm, circles: list[int], config: CellConfig) -> None:
+    """InputError, before anything moves, naming every chosen circle whose expected robot
+    position (expected_frame, at the table's height) the arm refuses: outside its workspace
+    or reach. A jog towards one would stop at the arm's limit, half-way through the session."""
+    frame, source = expected_frame(config)
+    z_mm = config.planning.table_z_mm
+
+    def refusal(circle: int) -> str | None:
+        rx, ry = frame.to_robot([circle_table_mm(circle, config)])[0]
+        try:
+            arm.check_target(float(rx), float(ry), z_mm)
+        except OutOfReach as e:
+            return f"circle {circle} at robot ({rx:.1f}, {ry:.1f}) mm: {e.args[0]}"
+        return None
+
+    for circle in circles:
+        circle_table_mm(circle, config)  # the circle exists
+    refused = [(c, why) for c in circles if (why := refusal(c)) is not None]
+    if not refused:
+        return
+    inside = [n for n in range(1, config.plate.count + 1) if refusal(n) is None]
+    names = ", ".join(str(c) for c, _ in refused)
+    raise InputError(
+        (f"circles {names} lie" if len(refused) > 1 else f"circle {names} lies")
+        + f" outside the arm's reach by {source}; "
+        f"nothing moved: " + "; ".join(why for _, why in refused),
+        hint=_circles_hint(inside, config),
+    )
+
+
+def _circles_hint(inside: list[int], config: CellConfig) -> str:
+    """Circles far apart that the arm reaches, or what to correct when it reaches too few."""
+    fix = "or set planning.offset_x_mm / offset_y_mm to where circle 1 lies on the machine"
+    if len(inside) < 3:
+        return f"the arm reaches {len(inside)} of the plate's circles: move the plate into its workspace, {fix}"
+    table = {n: circle_table_mm(n, config) for n in inside}
+    corners = sorted(
+        {
+            min(inside, key=lambda n: table[n][0] + table[n][1]),
+            max(inside, key=lambda n: table[n][0] - table[n][1]),
+            max(inside, key=lambda n: table[n][1] - table[n][0]),
+            max(inside, key=lambda n: table[n][0] + table[n][1]),
+        }
+    )
+    return f"choose circles inside it, e.g. --circles {' '.join(map(str, corners))}, {fix}"
+
+
 def fit_points(points: list[TaughtPoint], config: CellConfig) -> tuple[TableToRobot, np.ndarray]:
     """The fit and each point's residual, mm; refused unless the points can determine it."""
     check_points(points)
@@ -57,7 +115,7 @@ def fit_points(points: list[TaughtPoint], config: CellConfig) -> tuple[TableToRo
 def check_points(points: list[TaughtPoint]) -> None:
     """Three or more distinct circles not on one line, every robot position a finite number:
     the same circle three times (or three in a row) cannot fix a rotation."""
-    hint = "--point CIRCLE X_MM Y_MM for three circles not in one row or column, e.g. --circles 1 13 144 156"
+    hint = "--point CIRCLE X_MM Y_MM for three circles not in one row or column, e.g. --circles 1 9 144 153"
     for p in points:
         if not np.all(np.isfinite(p.robot_mm)):
             raise InputError(f"circle {p.circle}: robot position {p.robot_mm} is not a finite number")

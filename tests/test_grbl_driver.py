@@ -1,13 +1,16 @@
 """The serial G-code driver against the GRBL emulator on a real pseudo-terminal, via pyserial."""
 
+import math
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
+from cell.config import load_config
 from drivers.arm.config import SerialArmConfig, SerialCommands
 from drivers.arm.errors import AlarmResponse, ConnectionLost, ErrorResponse, NoResponse, OutOfReach, PositionLost
-from drivers.arm.serial_gcode import SerialGcodeArm
+from drivers.arm.serial_gcode import SerialGcodeArm, expected_move_s
 from drivers.arm.serial_line import SerialLine
 from drivers.sim.grbl_emulator import GrblEmulator
 from drivers.sim.pty_port import serve_pty
@@ -361,3 +364,62 @@ def test_firmware_without_status_reports_or_reset_by_configuration(grbl):
             arm.move_to(10, 10, 10)
         assert_at(emu, 40, 30, 20)
     assert "?" not in "".join(emu.lines_received)
+
+
+def shipped_grbl_config() -> SerialArmConfig:
+    return load_config(Path("configs/arm-grbl.toml")).arm.serial
+
+
+def test_shipped_grbl_config_moves_corner_to_corner_within_its_timeout():
+    """The workspace's diagonal takes 37.5 s at the shipped feed (8 mm/s): more than the fixed
+    30 s the timeout once was. The emulator runs 400 times faster than the machine; its own
+    motion clock says how long the machine took, and the driver waits for longer than that."""
+    cfg = shipped_grbl_config()
+    ws = cfg.workspace
+    far, near = (ws.x_max_mm, ws.y_max_mm, ws.z_max_mm), (ws.x_min_mm, ws.y_min_mm, ws.z_min_mm)
+    emu = GrblEmulator(speed_scale=400)
+    with serve_pty(emu) as path, SerialGcodeArm(SerialLine(path, cfg.baud), cfg) as arm:
+        for corner in (far, near):
+            before_s = emu.motion_time_s
+            arm.move_to(*corner)
+            assert_at(emu, *corner)
+            machine_s = emu.motion_time_s - before_s
+            assert machine_s == pytest.approx(37.5)  # 300 mm at 480 mm/min, in the emulator's time
+            # GRBL also accelerates (the emulator does not): 8 mm/s at 10 * 300 / 200 mm/s^2 along the path.
+            assert expected_move_s(cfg, near, far) == pytest.approx(37.5 + 8 / 15)
+            assert arm.last_motion_timeout_s >= 1.5 * expected_move_s(cfg, near, far) + 2.0
+
+
+def test_expected_move_time_follows_grbl_axis_limits():
+    cfg = SerialArmConfig(speed_mm_s=100.0, acceleration_mm_s2=(1e9, 1e9, 1e9))
+    # A feed above an axis' $110 is capped at it: 100 mm along X at 500 mm/min.
+    assert expected_move_s(cfg, (0, 0, 0), (100, 0, 0)) == pytest.approx(12.0, rel=1e-6)
+    # On a diagonal each axis may run at its own top rate: 100 mm/s along the path is 70.7 mm/s per axis.
+    slow = cfg.model_copy(update=dict(max_rate_mm_min=(6000.0, 6000.0, 500.0)))
+    assert expected_move_s(slow, (0, 0, 0), (100, 100, 0)) == pytest.approx(math.hypot(100, 100) / 100, rel=1e-6)
+    rapid = slow.model_copy(update=dict(rapid_moves=True))
+    assert expected_move_s(rapid, (0, 0, 0), (0, 0, 50)) == pytest.approx(6.0, rel=1e-6)  # Z's 500 mm/min
+    assert expected_move_s(cfg, (5, 5, 5), (5, 5, 5)) == 0.0
+
+
+def test_a_stalled_move_times_out_naming_its_expected_time():
+    """The feed-hold input trips mid-move: the controller answers but nothing moves; the wait
+    gives up after the move's own timeout and says what it expected."""
+    emu = GrblEmulator(speed_scale=20)
+    quick = dict(
+        speed_mm_s=100.0,
+        acceleration_mm_s2=(1000.0, 1000.0, 1000.0),
+        max_rate_mm_min=(6000.0, 6000.0, 6000.0),
+        motion_margin_factor=1.0,
+        motion_margin_s=0.2,
+        motion_timeout_s=0.5,
+    )
+    with serve_pty(emu) as path, make_arm(path, **quick) as arm:
+        emu.inject("hold", after_s=0.001)
+        with pytest.raises(NoResponse) as info:
+            arm.move_to(100, 0, 0)  # 1 s at 100 mm/s, plus 0.1 s to reach the speed
+        message = str(info.value)
+        assert "motion not finished within 1.3 s (expected 1.1 s for the moves sent" in message
+        assert "motion_margin_factor" in message and "$110-$112" in info.value.hint
+        assert emu.state == "Hold:0"
+        assert emu.motion_time_s < 1.0 and emu.tool_pose()[0] < 100  # it really stalled

@@ -25,7 +25,7 @@ from cell.run_config import RunConfig
 from cell.runner import EXIT_FAULT, EXIT_STOPPED, Runner
 from cell.signals import Controls
 from cell.statemachine import markdown, mermaid
-from cell.teach import TaughtPoint, check_fit, circle_table_mm, fit_points, jog_session
+from cell.teach import TaughtPoint, check_circles_reachable, check_fit, circle_table_mm, fit_points, jog_session
 from drivers.arm.config import ArmKind
 
 log = logging.getLogger(__name__)
@@ -112,8 +112,10 @@ def cmd_teach(args: argparse.Namespace) -> int:
     if args.point and args.circles:
         raise InputError("give either --point (recorded positions) or --circles (jog the arm now), not both")
     if args.circles:
-        with arm_only(config, args.arm, args.port) as arm, arm:
-            points = jog_session(arm, args.circles, config, input, print)
+        with arm_only(config, getattr(args, "arm", None), getattr(args, "port", None)) as arm:
+            check_circles_reachable(arm, args.circles, config)  # refuse before connecting, let alone moving
+            with arm:
+                points = jog_session(arm, args.circles, config, input, print)
     else:
         points = []
         for circle, x, y in args.point:

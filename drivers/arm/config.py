@@ -102,7 +102,36 @@ class SerialArmConfig(Strict):
 
     baud: int = Field(115200, ge=300, le=4_000_000)
     command_timeout_s: float = Field(2.0, gt=0, le=60, description="longest wait for 'ok' to a command")
-    motion_timeout_s: float = Field(30.0, gt=0, le=600, description="longest wait for a move to finish")
+    motion_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        le=600,
+        description="shortest wait for motion to finish: the floor of each move's own timeout (its expected time "
+        "from length, feed, max_rate_mm_min and acceleration_mm_s2, times motion_margin_factor, plus "
+        "motion_margin_s), and the wait when nothing is queued",
+    )
+    motion_margin_factor: float = Field(
+        1.5, ge=1, le=10, description="a move's timeout is its expected time times this, plus motion_margin_s"
+    )
+    motion_margin_s: float = Field(
+        2.0, ge=0, le=600, description="added to a move's timeout: status polling, the wait barrier, the link's latency"
+    )
+    max_rate_mm_min: tuple[float, float, float] = Field(
+        (500.0, 500.0, 500.0),
+        description="each axis' top speed X, Y, Z in mm/min, the firmware's $110-$112 (GRBL's default 500): "
+        "caps the feed and is the rapid rate; for the motion timeout only",
+    )
+    acceleration_mm_s2: tuple[float, float, float] = Field(
+        (10.0, 10.0, 10.0),
+        description="each axis' acceleration X, Y, Z in mm/s^2, the firmware's $120-$122 (GRBL's default 10); "
+        "for the motion timeout only",
+    )
+    rotation_rate_deg_min: float = Field(
+        500.0, gt=0, le=1_000_000, description="speed of commands.rotate in deg/min ($113 on 4-axis firmware)"
+    )
+    homing_timeout_s: float = Field(
+        120.0, gt=0, le=1800, description="longest wait for the homing cycle (commands.home, GRBL's $H)"
+    )
     connect_timeout_s: float = Field(3.0, gt=0, le=60, description="longest wait for the start-up banner")
     reconnect_timeout_s: float = Field(10.0, ge=0, le=600, description="how long to wait for a re-plugged port")
     poll_interval_s: float = Field(0.05, gt=0, le=5, description="period of '?' status queries while moving")
@@ -120,6 +149,9 @@ class SerialArmConfig(Strict):
     def _consistent(self) -> SerialArmConfig:
         if not self.commands.home and (why := self.workspace.violation(*self.home_position_mm)):
             raise ValueError(f"home_position_mm: {why}")
+        for name in ("max_rate_mm_min", "acceleration_mm_s2"):
+            if not all(math.isfinite(v) and v > 0 for v in getattr(self, name)):
+                raise ValueError(f"{name}: every axis needs a positive number, got {list(getattr(self, name))}")
         if not self.commands.wait and not self.status_query:
             raise ValueError("commands.wait is empty and status_query is false: the end of a move could not be known")
         return self

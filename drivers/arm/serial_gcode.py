@@ -100,6 +100,35 @@ def plan_move(cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle
     return lines
 
 
+def expected_move_s(
+    cfg: SerialArmConfig, start_mm: tuple[float, float, float], end_mm: tuple[float, float, float]
+) -> float:
+    """Longest time the controller takes for one move from rest to rest, as GRBL plans it: a G1
+    at the configured feed (a rapid at top speed), the speed along the path capped where any
+    axis would exceed its max_rate_mm_min, and the acceleration capped by the slowest-accelerating
+    axis' share of the path. Reaching the cruise speed v costs at most v / a over the cruise time
+    (a triangular profile takes less: 2 sqrt(d / a) <= d / v + v / a)."""
+    deltas = [abs(b - a) for a, b in zip(start_mm, end_mm, strict=True)]
+    dist_mm = math.hypot(*deltas)
+    if dist_mm == 0:
+        return 0.0
+    moving = [
+        (d, r / 60.0, acc)
+        for d, r, acc in zip(deltas, cfg.max_rate_mm_min, cfg.acceleration_mm_s2, strict=True)
+        if d > 0
+    ]
+    top_mm_s = min(rate * dist_mm / d for d, rate, _ in moving)
+    speed_mm_s = top_mm_s if cfg.rapid_moves else min(cfg.speed_mm_s, top_mm_s)
+    accel_mm_s2 = min(acc * dist_mm / d for d, _, acc in moving)
+    return dist_mm / speed_mm_s + speed_mm_s / accel_mm_s2
+
+
+def motion_timeout_s(cfg: SerialArmConfig, expected_s: float) -> float:
+    """How long to wait for motion expected to take expected_s: with the margins, never below
+    motion_timeout_s."""
+    return max(cfg.motion_timeout_s, expected_s * cfg.motion_margin_factor + cfg.motion_margin_s)
+
+
 class SerialGcodeArm(Arm):
     """Drives a G-code arm through a SerialLine; see the module docstring for the protocol."""
 
@@ -115,6 +144,8 @@ class SerialGcodeArm(Arm):
         self._state: ArmState = "disconnected"
         self._pose: Pose | None = None
         self._target_mm: tuple[float, float, float] | None = None  # end of the last move sent
+        self._queued_s = 0.0  # expected time of the motion sent since the controller was last idle
+        self.last_motion_timeout_s: float | None = None  # the wait for the last motion, for diagnostics
         self._stale = False  # the controller restarted under the driver: its session must be set up again
         self._position_lost_hint = None if cfg.commands.home else NO_HOMING_CYCLE_HINT
         self._angle_deg = 0.0
@@ -154,7 +185,7 @@ class SerialGcodeArm(Arm):
             self._ready(cmd, allow_alarm=True, recover=True)
             try:
                 # GRBL answers $H only once the cycle is done.
-                self._command(cmd, self.cfg.motion_timeout_s)
+                self._command(cmd, self.cfg.homing_timeout_s)
             except ErrorResponse as e:
                 if e.code == 5:
                     e.hint = (
@@ -164,7 +195,7 @@ class SerialGcodeArm(Arm):
                 raise
             self._state = "idle"
             self._setup()
-            self._wait_idle(self.cfg.motion_timeout_s)
+            self._wait_idle(self.cfg.homing_timeout_s, "the homing cycle (arm.serial.homing_timeout_s)")
             self._target_mm = None  # where homing ends is the controller's to report
             self._position_regained("homed")
 
@@ -175,13 +206,15 @@ class SerialGcodeArm(Arm):
         self._refuse_while_position_lost(lines[-1])
         with self._guard(lines[-1]):
             self._ready(lines[-1])
+            expected_s = self._move_time_s((x_mm, y_mm, z_mm), angle_deg)
             self._target_mm = (x_mm, y_mm, z_mm)  # before sending: a link lost mid-send may have delivered it
+            self._queued_s += expected_s  # likewise
             for line in lines:
                 self._command(line, self.cfg.command_timeout_s)
             if angle_deg is not None:
                 self._angle_deg = angle_deg
             if wait:
-                self._wait_idle(self.cfg.motion_timeout_s)
+                self._wait_motion()
 
     def open_gripper(self) -> None:
         self._gripper(self.cfg.commands.gripper_open, closed=False)
@@ -194,7 +227,7 @@ class SerialGcodeArm(Arm):
         self._refuse_while_position_lost(cmd)
         with self._guard(cmd):
             self._ready(cmd)
-            self._wait_idle(timeout_s or self.cfg.motion_timeout_s)
+            self._wait_motion(timeout_s)
 
     def stop(self) -> None:
         """Stop motion now, keeping the grip. With GRBL's feed hold '!' the machine decelerates
@@ -255,6 +288,7 @@ class SerialGcodeArm(Arm):
         self._pose = None  # what the controller reports now, not what it reported before
         self._setup_done = self._held = self._stale = False
         if self.cfg.soft_reset_on_connect:
+            self._queued_s = 0.0  # the soft reset flushed anything queued
             self.line.reset_input()
             self.line.write(SOFT_RESET, "Ctrl-X")
             self._await_banner()
@@ -302,6 +336,7 @@ class SerialGcodeArm(Arm):
             self.line.write(SOFT_RESET, "Ctrl-X")
             self._await_banner()
             self._held = False
+            self._queued_s = 0.0
             self._gripper_closed = False
         for line in self.cfg.commands.setup:
             self._command(line, self.cfg.command_timeout_s)
@@ -360,9 +395,9 @@ class SerialGcodeArm(Arm):
         with self._guard(cmd):
             self._ready(cmd)
             # GRBL runs spindle commands in order with motion: the ok may wait for moves to end.
-            self._command(cmd, self.cfg.motion_timeout_s)
+            self._command(cmd, motion_timeout_s(self.cfg, self._queued_s))
             self._gripper_closed = closed
-            self._wait_idle(self.cfg.motion_timeout_s)
+            self._wait_motion()
 
     def _command(self, cmd: str, timeout_s: float) -> None:
         """Send one line and wait for its `ok`."""
@@ -438,9 +473,46 @@ class SerialGcodeArm(Arm):
             self._note(reply, "?")
         raise NoResponse(f"no status report within {self.cfg.command_timeout_s} s", port=self.port, command="?")
 
-    def _wait_idle(self, timeout_s: float) -> None:
+    def _move_time_s(self, target_mm: tuple[float, float, float], angle_deg: float | None) -> float:
+        """Expected time of a move to target_mm from where the last move ended (or the reported
+        position); from anywhere in the workspace when neither is known."""
+        start = self._target_mm
+        if start is None and self._pose is not None:
+            start = (self._pose.x_mm, self._pose.y_mm, self._pose.z_mm)
+        if start is None:  # the farthest corner of the workspace
+            ws = self.cfg.workspace
+            x, y, z = target_mm
+            start = (
+                ws.x_min_mm if x - ws.x_min_mm >= ws.x_max_mm - x else ws.x_max_mm,
+                ws.y_min_mm if y - ws.y_min_mm >= ws.y_max_mm - y else ws.y_max_mm,
+                ws.z_min_mm if z - ws.z_min_mm >= ws.z_max_mm - z else ws.z_max_mm,
+            )
+        turn_s = 0.0
+        if angle_deg is not None:
+            turn_s = abs(angle_deg - self._angle_deg) / (self.cfg.rotation_rate_deg_min / 60.0)
+        return turn_s + expected_move_s(self.cfg, start, target_mm)
+
+    def _wait_motion(self, at_least_s: float | None = None) -> None:
+        """Wait for the motion queued: its expected time with the margins (at least at_least_s)."""
+        timeout_s = max(motion_timeout_s(self.cfg, self._queued_s), at_least_s or 0.0)
+        why = (
+            f"expected {self._queued_s:.1f} s for the moves sent, times arm.serial.motion_margin_factor "
+            f"{self.cfg.motion_margin_factor:g} plus motion_margin_s {self.cfg.motion_margin_s:g} s, "
+            f"at least motion_timeout_s {self.cfg.motion_timeout_s:g} s"
+        )
+        self._wait_idle(timeout_s, why)
+        self._queued_s = 0.0
+
+    def _wait_idle(self, timeout_s: float, why: str) -> None:
         """Wait for the end of all motion: the wait command's `ok` (G4 P0 is a barrier),
-        then '?' until Idle; '?' polled meanwhile so an alarm or hold is seen at once."""
+        then '?' until Idle; '?' polled meanwhile so an alarm or hold is seen at once.
+        why: how timeout_s was chosen, for the error."""
+        self.last_motion_timeout_s = timeout_s
+        hint = (
+            "the arm stalled, was held (feed hold, door) or runs slower than arm.serial says: check it; "
+            "set arm.serial.max_rate_mm_min and acceleration_mm_s2 to the firmware's $110-$112 and $120-$122, "
+            "or raise motion_margin_factor"
+        )
         deadline = time.monotonic() + timeout_s
         wait_cmd = self.cfg.commands.wait
         if wait_cmd:
@@ -460,10 +532,11 @@ class SerialGcodeArm(Arm):
                         )
                 if time.monotonic() >= deadline:
                     raise NoResponse(
-                        f"motion not finished within {timeout_s} s",
+                        f"motion not finished within {timeout_s:.1f} s ({why})",
                         port=self.port,
                         command=wait_cmd,
-                        hint="raise arm.serial.motion_timeout_s if the move is long",
+                        reply=None if self._state == "moving" else self._state,
+                        hint=hint,
                     )
                 if self.cfg.status_query and time.monotonic() >= next_poll:
                     self.line.write(STATUS_QUERY, "?")
@@ -479,11 +552,11 @@ class SerialGcodeArm(Arm):
                 raise AlarmResponse("arm went into alarm while moving", port=self.port, command="?", reply=state)
             if time.monotonic() >= deadline:
                 raise NoResponse(
-                    f"arm not idle within {timeout_s} s (state {state})",
+                    f"arm not idle within {timeout_s:.1f} s ({why}; state {state})",
                     port=self.port,
                     command="?",
                     reply=state,
-                    hint="raise arm.serial.motion_timeout_s if the move is long",
+                    hint=hint,
                 )
             time.sleep(self.cfg.poll_interval_s)
 

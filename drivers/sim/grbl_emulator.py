@@ -81,7 +81,7 @@ class _Segment:
 class GrblEmulator(EmulatedDevice):
     """Emulated GRBL firmware; serve it with drivers.sim.pty_port.serve_pty."""
 
-    FAULTS = ("no_answer", "garbage", "error", "alarm", "unplug", "restart")
+    FAULTS = ("no_answer", "garbage", "error", "alarm", "hold", "unplug", "restart")
     # Set by _power_up (every start-up), read by the pty server's calls before it in the source.
     _state: str
     _rx_line: bytearray
@@ -137,6 +137,8 @@ class GrblEmulator(EmulatedDevice):
         garbage: the next reply is replaced by noise bytes.
         error (code=N): the next G-code line is refused with error:N.
         alarm (code=N, after_s=T): ALARM:N during the next motion, T seconds into it.
+        hold (after_s=T): the feed-hold input trips T seconds into the next motion: the machine
+            stops (Hold:0) and stays stopped, answering as ever, until `~` or a reset.
         unplug (after_s=T): the cable is pulled T seconds into the next motion; the controller
             runs on (replug(power_cycled=True) restarts it as well).
         restart: the controller reboots at once (power dip): banner, MPos back to start_mm where
@@ -261,6 +263,11 @@ class GrblEmulator(EmulatedDevice):
             if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
                 del self._faults["unplug"]
                 self.unplug_requested = True  # GRBL does not know: it runs on
+            params = self._faults.get("hold")
+            if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
+                del self._faults["hold"]
+                self._state = "Hold:0"
+                return out
             params = self._faults.get("alarm")
             if params is not None and seg.elapsed_s >= params.get("after_s", 0.0) * self.speed_scale:
                 del self._faults["alarm"]
