@@ -78,9 +78,11 @@ def test_rows_say_type_bounds_default_unit_and_description() -> None:
     assert _row(text, "arm.serial", "motion_timeout_s") == [
         "`motion_timeout_s`",
         "float (> 0, ≤ 600)",
-        "`30.0`",
+        "`10.0`",
         "s",
-        "longest wait for a move to finish",
+        "shortest wait for motion to finish: the floor of each move's own timeout (its expected time from length, "
+        "feed, max_rate_mm_min and acceleration_mm_s2, times motion_margin_factor, plus motion_margin_s), and the "
+        "wait when nothing is queued",
     ]
     # a sub-table's defaults are its parent's (the Dynamixel workspace is not the serial arm's box)
     assert _row(text, "arm.dynamixel.workspace", "x_min_mm")[2] == "`-400.0`"

@@ -56,6 +56,15 @@ async def call(cell, ns: int, method: str) -> str:
         return f"connection closed ({type(e).__name__})"
 
 
+async def wait_state(cell, ns: int, want: str, timeout_s: float = 60.0) -> None:
+    """Until the cell's VisionState reads `want` (the safe stop of a Halt runs on the service's worker)."""
+    node = await cell.get_child(f"{ns}:VisionState")
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while (state := await node.read_value()) != want:
+        assert asyncio.get_running_loop().time() < deadline, f"VisionState still {state}, not {want}"
+        await asyncio.sleep(0.05)
+
+
 async def session_across_a_change(serve, credentials, user: str, after: str, change) -> list[str]:
     """Log in as `user`, Halt and Reset (what an operator may do), make the change, call `after`, then Halt."""
     client = await secure_client(
@@ -65,7 +74,10 @@ async def session_across_a_change(serve, credentials, user: str, after: str, cha
     try:
         ns = await client.get_namespace_index("urn:pick-cell")
         cell = await client.nodes.objects.get_child(f"{ns}:Cell")
-        outcomes = [await call(cell, ns, "Halt"), await call(cell, ns, "Reset")]
+        outcomes = [await call(cell, ns, "Halt")]
+        await wait_state(cell, ns, "Halted")  # a Halt between jobs makes the parked arm safe first
+        outcomes.append(await call(cell, ns, "Reset"))
+        await wait_state(cell, ns, "Ready")
         await asyncio.to_thread(change)
         outcomes.append(await call(cell, ns, after))
         outcomes.append(await call(cell, ns, "Halt"))  # anything at all, once the session ended
