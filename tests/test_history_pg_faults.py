@@ -22,6 +22,7 @@ from cell.history.db import open_postgresql
 from cell.history.query import open_reader
 from cell.history.store import backoff_s
 from tests import test_history_pg
+from tests.blackhole_proxy import BlackHoleProxy
 from tests.history_helpers import JOB, history_config, verify
 from tests.pg_server import why_no_postgresql
 from tests.test_history import Hooks, fill
@@ -36,64 +37,6 @@ pytestmark = [
 pg = test_history_pg.pg  # the fixtures: the session's one server, a clean database for each test
 pg_url = test_history_pg.pg_url
 WRITER = "hist_writer"  # a role that is not a superuser (privileges bind it)
-
-
-class BlackHoleProxy:
-    """A TCP proxy on loopback to `port`: it forwards both ways until `silence()`, then keeps
-    every connection open, reads what comes and forwards nothing (a half-open path: TCP stays
-    up, keepalives are answered by this host, no answer ever comes)."""
-
-    def __init__(self, port: int):
-        self.upstream = ("127.0.0.1", port)
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.port = self.listener.getsockname()[1]
-        self.silent = threading.Event()
-        self.sockets: list[socket.socket] = []
-        self._lock = threading.Lock()
-        threading.Thread(target=self._accept, name="proxy-accept", daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self.listener.accept()
-                upstream = socket.create_connection(self.upstream)
-            except OSError:
-                return
-            with self._lock:
-                self.sockets += [client, upstream]
-            for src, dst in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(src, dst), name="proxy-pump", daemon=True).start()
-
-    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
-        while True:
-            try:
-                data = src.recv(65536)
-            except OSError:
-                return
-            if self.silent.is_set():
-                if not data:
-                    return  # no FIN passed on either
-                continue
-            try:
-                if not data:
-                    dst.shutdown(socket.SHUT_WR)
-                    return
-                dst.sendall(data)
-            except OSError:
-                return
-
-    def url(self, user: str = "cell") -> str:
-        return f"postgresql://{user}@127.0.0.1:{self.port}/postgres"
-
-    def silence(self) -> None:
-        self.silent.set()
-
-    def close(self) -> None:
-        self.listener.close()
-        with self._lock:
-            for s in self.sockets:
-                with contextlib.suppress(OSError):
-                    s.close()
 
 
 @pytest.fixture
