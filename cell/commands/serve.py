@@ -167,7 +167,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as resources:
         service = open_service(config, args.dry_run, resources, progress=say)
         service.start()
-        return asyncio.run(_serve(config, service))
+        # the service's config: a dry run's reads its own history store (rehearsal_config), as OPC UA's
+        # results and the screen's history must
+        return asyncio.run(_serve(service.config, service))
 
 
 def _check_port_free(host: str, port: int, option: str) -> None:
