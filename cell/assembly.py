@@ -237,15 +237,27 @@ class Consumers:
     telemetry: SparkplugPublisher | None = None
 
 
-def attach_consumers(config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks) -> Consumers:
+def rehearsal_config(config: CellConfig) -> CellConfig:
+    """The config a rehearsal (`--dry-run`, `make demo`) runs: the same, but its history goes to a
+    store of its own (cell.history.config.rehearsal_history), apart from production's. The one place a
+    rehearsal's store is chosen, for `run-cell --dry-run` and `run-cell serve --dry-run` alike."""
+    from cell.history.config import rehearsal_history
+
+    return config.model_copy(update={"history": rehearsal_history(config.history, config.run.log_dir)})
+
+
+def attach_consumers(
+    config: CellConfig, bus: EventBus, resources: contextlib.ExitStack, hooks: CellHooks, *, rehearsal: bool = False
+) -> Consumers:
     """The event stream's consumers a config asks for (the history store, plant telemetry), each a
     subscriber of `bus` on its own thread, closed with `resources`. The one place they are built,
-    for `run-cell` and `run-cell serve` alike."""
+    for `run-cell` and `run-cell serve` alike. `rehearsal`: a dry run, whose config is
+    rehearsal_config's; its store reads back only the audit lines marked as a rehearsal's."""
     consumers = Consumers()
     if config.history.enabled:
         from cell.history.store import EVENT_TYPES, HistoryStore
 
-        store = HistoryStore(config.history, config.run.log_dir, hooks)
+        store = HistoryStore(config.history, config.run.log_dir, hooks, rehearsal=rehearsal)
         resources.callback(store.close)
         # a large queue: the subscriber only turns events into rows (fast); it must lose none
         sub = bus.subscribe(

@@ -2,7 +2,10 @@
 
 A run killed at any moment leaves a valid file (at worst a last line cut short, which
 `read_events` drops) whose last complete line says the state it was in. Each event has
-`seq`, `t_utc`, `t_run_s`, `kind` and `state`; the rest depends on the kind.
+`seq`, `t_utc`, `t_run_s`, `kind` and `state`; the rest depends on the kind. Every line of a
+rehearsal's log (`--dry-run`, `make demo`) also carries `"rehearsal": true`: what reads audit
+files back to count a shift (the counters after a restart, the history store's read-back)
+counts a rehearsal's lines only for a rehearsal, and production's only for production.
 
 The file is created exclusively (never another run's). A write that fails (a full disk)
 raises AuditWriteFailed, so the run faults and stops safely, and so does every later one
@@ -42,8 +45,9 @@ class AuditLog:
     stand in for a whole bus (`emit`) where nothing else listens (tests, benches).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, rehearsal: bool = False):
         self.path = Path(path)
+        self.rehearsal = rehearsal  # every line marked "rehearsal": true (a dry run's)
         self._file = RecordFile(self.path, exclusive=True, what="audit log")
         self._seq = 0
         self._t0 = time.monotonic()
@@ -85,6 +89,7 @@ class AuditLog:
             "t_run_s": round(time.monotonic() - self._t0, 4),
             "kind": kind,
             "state": self.state,
+            **({"rehearsal": True} if self.rehearsal else {}),
             **to_json(fields),
         }
         if not self._file.write_line(json.dumps(record, separators=(",", ":"), allow_nan=False)):
@@ -105,6 +110,11 @@ class AuditLog:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def is_rehearsal(line: dict[str, Any]) -> bool:
+    """An audit line written by a rehearsal (a dry run, the demo): never counted as production's."""
+    return line.get("rehearsal") is True
 
 
 def read_events(path: str | Path) -> list[dict[str, Any]]:

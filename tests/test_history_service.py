@@ -4,6 +4,7 @@ restart with every verified pick there once."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -16,13 +17,24 @@ import httpx
 import pytest
 
 from cell.cli import main
+from cell.commands.serve import open_service
 from cell.core.commands import Command, VisionState
 from cell.service.shiftlog import read_shift
 from tests.serve_process import ServeProcess
-from tests.test_service import picked, running, small_config, wait_for
+from tests.test_service import picked, small_config, wait_for
 
 V = VisionState
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+
+@contextlib.contextmanager
+def production(cfg):
+    """The line service as `run-cell serve --config` runs it (no --dry-run, so its history is
+    production's, data/history.sqlite): the simulated world's camera and arm stand in for the line's."""
+    with contextlib.ExitStack() as stack:
+        service = open_service(cfg, False, stack)
+        service.start()
+        yield service
 
 
 def no_feeder(tmp_path, **history):
@@ -36,12 +48,12 @@ def no_feeder(tmp_path, **history):
 
 def test_counters_and_last_picks_come_back_from_the_store_after_a_restart(tmp_path):
     cfg = no_feeder(tmp_path)
-    with running(cfg) as service:
+    with production(cfg) as service:
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.READY, 120, "the job's end")
         before = service.snapshot()
         assert picked(service) == 17
-    with running(cfg) as service:
+    with production(cfg) as service:
         after = service.snapshot()
         assert after.counters == before.counters and after.shift == before.shift
         assert [p.pick_id for p in after.last_picks] == [p.pick_id for p in before.last_picks]
@@ -81,7 +93,7 @@ def fill_disk(where) -> None:
 
 def test_a_full_disk_stops_the_cell_safely_when_the_history_is_required(tmp_path, tiny_disk):
     cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False)
-    with running(cfg) as service:
+    with production(cfg) as service:
         fill_disk(tiny_disk)
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.ERROR, 120, "Error")
@@ -101,7 +113,7 @@ def test_after_a_full_disk_fault_with_history_required_start_is_refused_while_th
     from cell.core.commands import InvalidState
 
     cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False, retry_s=0.2)
-    with running(cfg) as service:
+    with production(cfg) as service:
         fill_disk(tiny_disk)
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.ERROR, 120, "Error")
@@ -123,7 +135,7 @@ def test_after_a_full_disk_fault_with_history_required_start_is_refused_while_th
 
 def test_a_full_disk_with_the_history_not_required_keeps_picking_with_a_warning(tmp_path, tiny_disk):
     cfg = no_feeder(tmp_path, data_dir=tiny_disk, images=False, required=False)
-    with running(cfg) as service:
+    with production(cfg) as service:
         fill_disk(tiny_disk)
         service.command(Command.START_SINGLE)
         wait_for(lambda: service.snapshot().vision_state == V.READY, 120, "the job's end")
@@ -190,7 +202,7 @@ def test_kill_9_mid_shift_then_a_restart_keeps_every_verified_pick_once(tmp_path
         state = httpx.get(again.url + "api/state").json()
     finally:
         assert again.stop() == 0
-    db = sqlite3.connect(workdir / "data" / "history.sqlite")
+    db = sqlite3.connect(workdir / "data" / "rehearsal" / "history.sqlite")  # serve --dry-run: a rehearsal's store
     assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
     ids = [r[0] for r in db.execute("SELECT id FROM picks")]
     assert len(ids) == len(set(ids))

@@ -22,6 +22,12 @@ CSV_COLUMNS = tuple(c for c in PICK_COLUMNS if c != "cell")  # the store's, but 
 def add_store_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", dest="store_config", type=Path, help="cell config (TOML): [history], [shifts]")
     p.add_argument("--url", help="the store to read instead of history.url (sqlite:///PATH or postgresql://...)")
+    p.add_argument(
+        "--simulated",
+        action="store_true",
+        help="the rehearsals' store instead (the picks of dry runs and the demo, kept apart from production's: "
+        "data/rehearsal/history.sqlite)",
+    )
 
 
 def part_class(text: str) -> str:
@@ -59,6 +65,16 @@ def register(sub) -> None:
 
 def store_config(args: argparse.Namespace) -> CellConfig:
     config = load_config(args.store_config)
+    if args.simulated:
+        from cell.history.config import rehearsal_history
+
+        if args.url:
+            raise InputError(
+                "--simulated reads the rehearsals' own store: --url does not apply",
+                hint="leave out --url (the rehearsals' store is data/rehearsal/history.sqlite beside the history's)",
+            )
+        config.history = rehearsal_history(config.history, config.run.log_dir)
+        return config
     if args.url:
         try:
             config.history = config.history.model_validate({**config.history.model_dump(), "url": args.url})
@@ -127,6 +143,7 @@ def _dead_letter(args: argparse.Namespace, config: CellConfig) -> int:
 
     given = [o for o, v in (("--since", args.since), ("--until", args.until), ("--shift", args.shift)) if v]
     given += [o for o, v in (("--job", args.job), ("--class", args.cls), ("--outcome", args.outcome)) if v]
+    given += ["--simulated"] if args.simulated else []
     if given or args.csv:
         raise InputError(
             f"--dead-letter lists every refused row: {', '.join(given or ['--csv'])} does not apply",

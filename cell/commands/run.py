@@ -10,7 +10,16 @@ import os
 from pathlib import Path
 from typing import get_args
 
-from cell.assembly import Overrides, RunHooks, arm_only, assemble, attach_consumers, cell_config, config_path
+from cell.assembly import (
+    Overrides,
+    RunHooks,
+    arm_only,
+    assemble,
+    attach_consumers,
+    cell_config,
+    config_path,
+    rehearsal_config,
+)
 from cell.audit import AuditLog
 from cell.commands.argtypes import finite_float
 from cell.config import CellConfig, load_config
@@ -162,12 +171,14 @@ def run_cell(args: argparse.Namespace) -> int:
     controls = getattr(args, "controls", None) or Controls()
     try:
         config = cell_config(args.run_config, args.dry_run, overrides_from(args))
+        if args.dry_run:  # a rehearsal: its own history store, its audit lines marked (never production's)
+            config = rehearsal_config(config)
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
         with controls.shielded():
             _log_early_fault(args.log_dir or RunConfig().log_dir, args, e)
         raise
     stem = unique_stem(config.run.log_dir, "run", (".jsonl", ".log"))
-    audit = _open_audit(Path(f"{stem}.jsonl"))
+    audit = _open_audit(Path(f"{stem}.jsonl"), rehearsal=args.dry_run)
     try:
         if not args.verbose:  # the operator's file gets INFO; the terminal keeps to warnings
             for h in logging.getLogger().handlers:
@@ -202,7 +213,7 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
             bus = EventBus()
             resources.callback(bus.close)  # subscribers deliver what they hold before the command ends
             bus.add_record(audit.record, owner=audit)
-            attach_consumers(config, bus, resources, RunHooks(controls))
+            attach_consumers(config, bus, resources, RunHooks(controls), rehearsal=args.dry_run)
             for note in cell.notes:
                 say(note)
             say(
@@ -274,9 +285,9 @@ def say(line: str) -> None:
         pass
 
 
-def _open_audit(path: Path) -> AuditLog:
+def _open_audit(path: Path, rehearsal: bool = False) -> AuditLog:
     try:
-        return AuditLog(path)
+        return AuditLog(path, rehearsal=rehearsal)
     except OSError as e:
         raise ConfigError(
             f"run.log_dir {path.parent}: cannot create the audit log {path.name}: {e.strerror or e}",

@@ -18,7 +18,7 @@ from typing import Protocol, get_args
 
 from cell.access.security import check_exposure, hash_password
 from cell.access.throttle import Lockout, LoginThrottle
-from cell.assembly import Overrides, assemble, attach_consumers, cell_config
+from cell.assembly import Overrides, assemble, attach_consumers, cell_config, rehearsal_config
 from cell.config import CellConfig
 from cell.core.commands import Command, CommandRefused
 from cell.core.eventbus import EventBus
@@ -104,16 +104,22 @@ def open_service(
 ) -> LineService:
     """The cell assembled for a shift (the simulated cell gets its feeder), the event bus with the
     shift's audit log as its record, and the service over them; everything to close goes on
-    `resources` (the service first, then the record, the bus and its subscribers last)."""
+    `resources` (the service first, then the record, the bus and its subscribers last). A dry run
+    is a rehearsal: its history goes to a store of its own and its audit lines are marked, so
+    production's counters, reports and OPC UA never count its picks (rehearsal_config)."""
+    if dry_run:
+        config = rehearsal_config(config)
     bus = EventBus()
     resources.callback(bus.close)
     cell = assemble(config, dry_run, resources, shift=True, progress=progress)
-    record = resources.enter_context(contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes)))
+    record = resources.enter_context(
+        contextlib.closing(ShiftLog(config.run.log_dir, config.service.audit_max_bytes, rehearsal=dry_run))
+    )
     consumers = contextlib.ExitStack()
     resources.callback(consumers.close)  # after the service has closed: they record its last events
     service = LineService(cell, bus, record)
     resources.callback(service.close)
-    attached = attach_consumers(config, bus, consumers, service)
+    attached = attach_consumers(config, bus, consumers, service, rehearsal=dry_run)
     service.history = attached.history
     if attached.history is not None:
         restore_ledger(service, config)
@@ -161,7 +167,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as resources:
         service = open_service(config, args.dry_run, resources, progress=say)
         service.start()
-        return asyncio.run(_serve(config, service))
+        # the service's config: a dry run's reads its own history store (rehearsal_config), as OPC UA's
+        # results and the screen's history must
+        return asyncio.run(_serve(service.config, service))
 
 
 def _check_port_free(host: str, port: int, option: str) -> None:

@@ -12,6 +12,7 @@ from drivers.config import Strict
 
 DB_FILE = "history.sqlite"
 OUTBOX_FILE = "history-outbox.sqlite"
+REHEARSAL_DIR = "rehearsal"  # a dry run's (and the demo's) own store: data/rehearsal/history.sqlite
 
 
 class HistoryConfig(Strict):
@@ -123,3 +124,11 @@ def data_dir(history: HistoryConfig, log_dir: Path) -> Path:
 
 def database_url(history: HistoryConfig, log_dir: Path) -> str:
     return history.url or f"sqlite:///{data_dir(history, log_dir) / DB_FILE}"
+
+
+def rehearsal_history(history: HistoryConfig, log_dir: Path) -> HistoryConfig:
+    """The store of a rehearsal (`--dry-run`, `make demo`): a SQLite database of its own in
+    data_dir/rehearsal/ (with its own images), never the production store nor the plant's
+    PostgreSQL, so production's counters, reports and OPC UA never count a simulated pick.
+    `run-cell history --simulated` reads it."""
+    return history.model_copy(update={"url": "", "data_dir": data_dir(history, log_dir) / REHEARSAL_DIR})

@@ -51,6 +51,7 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
+from cell.audit import is_rehearsal
 from cell.core.events import BY_KIND, Event, FaultRaised, FrameRef, PartFailed, PickVerified, RunEnded
 from cell.core.worker import QueueWorker
 from cell.history.config import OUTBOX_FILE, HistoryConfig, data_dir, database_url
@@ -227,8 +228,9 @@ def image_kind(event: Event) -> str:
 class HistoryStore:
     """Open with `HistoryStore.open(config, log_dir, hooks)`; `handle` is the bus subscriber."""
 
-    def __init__(self, config: HistoryConfig, log_dir: Path, hooks: Any = None):
+    def __init__(self, config: HistoryConfig, log_dir: Path, hooks: Any = None, rehearsal: bool = False):
         self.config, self.log_dir = config, Path(log_dir)
+        self.rehearsal = rehearsal  # a dry run's store: reads back only audit lines marked "rehearsal"
         self.hooks = hooks or Hooks()
         self.cell = cell_name(config)
         self.folder = data_dir(config, log_dir)
@@ -635,7 +637,7 @@ class HistoryStore:
                 if path.stat().st_mtime < since.timestamp() - 60:
                     continue
                 with open(path, encoding="utf-8") as f:
-                    read, skipped = _reconcile_file(f, since, maker, path)
+                    read, skipped = _reconcile_file(f, since, maker, path, self.rehearsal)
                 ops.extend(read)
                 self.reconcile_skipped += skipped
             except OSError as e:
@@ -797,10 +799,15 @@ def _apply(db: Database, ops: Iterable[Op]) -> None:
 
 
 def _reconcile_file(
-    lines: Iterable[str], since: datetime, maker: RowMaker, where: Path | str = "an audit file"
+    lines: Iterable[str],
+    since: datetime,
+    maker: RowMaker,
+    where: Path | str = "an audit file",
+    rehearsal: bool = False,
 ) -> tuple[list[Op], int]:
     """The keyed rows of one audit file's lines since `since`, and how many lines were skipped as
-    malformed (a field missing or of the wrong type: logged, never a reason not to start)."""
+    malformed (a field missing or of the wrong type: logged, never a reason not to start). Only the
+    lines of the store's kind: a rehearsal's (marked "rehearsal": true) or production's (unmarked)."""
     ops: list[Op] = []
     skipped = 0
     for n, line in enumerate(lines, 1):
@@ -814,6 +821,8 @@ def _reconcile_file(
         try:
             if not isinstance(e, dict):
                 raise TypeError(f"a {type(e).__name__}, not an object")
+            if is_rehearsal(e) != rehearsal:
+                continue  # the other store's
             t = parse_time(e.get("t_utc"))
             if t is None or t < since:
                 continue

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from cell.assembly import Cell
-from cell.audit import AuditWriteFailed
+from cell.audit import AuditWriteFailed, is_rehearsal
 from cell.calibration.store import Calibration
 from cell.config import CellConfig
 from cell.core.commands import (
@@ -188,8 +188,11 @@ class LineService:
         self._ledger_sub = bus.subscribe("ledger", self.ledger.handle, maxsize=100_000)
 
     def prime_ledger_from_audit(self) -> None:
-        """The running shift's counters from the service's audit files (no history store, or it cannot be read)."""
-        self.ledger.prime(iter_since(self.config.run.log_dir, self.ledger.current_shift.start_utc))
+        """The running shift's counters from the service's audit files (no history store, or it cannot be read):
+        a rehearsal's lines for a rehearsal (a dry run), production's for production, never the other's."""
+        rehearsal = bool(getattr(self.record, "rehearsal", False))
+        events = iter_since(self.config.run.log_dir, self.ledger.current_shift.start_utc)
+        self.ledger.prime(e for e in events if is_rehearsal(e) == rehearsal)
 
     # ---- life -----------------------------------------------------------------------
     def start(self) -> None:

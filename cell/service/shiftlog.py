@@ -74,8 +74,9 @@ def read_shift(log_dir: Path, day: str | None = None) -> list[dict[str, Any]]:
 class ShiftLog:
     """The service's record over rolling files; thread-safe. `record(event)` is the bus's record."""
 
-    def __init__(self, log_dir: Path, max_bytes: int, day: Callable[[], str] = _today):
+    def __init__(self, log_dir: Path, max_bytes: int, day: Callable[[], str] = _today, rehearsal: bool = False):
         self.log_dir, self.max_bytes, self._day = Path(log_dir), max_bytes, day
+        self.rehearsal = rehearsal  # a dry run's: every line marked "rehearsal": true (cell.audit)
         self.state = "idle"
         self.best_effort = False  # set by the bus while a job makes safe: a failed write is not raised
         self._lock = threading.Lock()
@@ -108,7 +109,7 @@ class ShiftLog:
         files = shift_files(self.log_dir, day)  # audit logs are created, never reopened: a restart takes the next
         n = _file_number(files[-1]) + 1 if files else 0
         try:
-            self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl")
+            self._log = AuditLog(self.log_dir / f"cell-{day}-{n:03d}.jsonl", rehearsal=self.rehearsal)
         except OSError as e:
             raise AuditWriteFailed(
                 f"audit log in {self.log_dir}: cannot create cell-{day}-{n:03d}.jsonl: {e.strerror or e}",
