@@ -5,7 +5,7 @@ cell, its camera `--camera` pixels, the feeder at 6 parts per simulated minute w
 running 60x: 360 parts a minute, more than the cell picks, so it never idles), calls
 StartContinuous, and samples the server process (RSS, threads, open fds, child processes)
 from /proc while the counters rise. At the end: Stop, SIGTERM, and the audit log and the history
-store (data/history.sqlite: picked rows, unique ids, PRAGMA integrity_check) checked against
+store (a dry run's own, data/rehearsal/history.sqlite: picked rows, unique ids, PRAGMA integrity_check) checked against
 the counters.
 
 At 1920 x 1080 (the built-in camera) the cell runs as shipped: the drift watch on, over the
@@ -42,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from cell.audit import read_events  # noqa: E402
+from cell.history.config import REHEARSAL_DIR  # noqa: E402
 
 SHIFT_TOML = """\
 [camera]
@@ -260,7 +261,7 @@ def main() -> int:
             rc = proc.wait(60)
         events = [e for f in sorted((tmp / "logs").glob("cell-*.jsonl")) for e in read_events(f)]
         files = len(list((tmp / "logs").glob("cell-*.jsonl")))
-        store = history_figures(tmp / "data" / "history.sqlite")
+        store = history_figures(tmp / "data" / REHEARSAL_DIR / "history.sqlite")  # a dry run's own store
         if args.count_objects:
             print_object_growth(counts)
     c = r["counters"]

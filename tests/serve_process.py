@@ -24,15 +24,24 @@ def free_port() -> int:
 
 
 class ServeProcess:
-    def __init__(self, workdir: Path, *extra: str, timeout_s: float = 60.0, nofile: int | None = None):
-        """`nofile`: the process's RLIMIT_NOFILE, soft and hard (`ulimit -n`)."""
+    def __init__(
+        self,
+        workdir: Path,
+        *extra: str,
+        timeout_s: float = 60.0,
+        nofile: int | None = None,
+        dry_run: bool = True,
+    ):
+        """`nofile`: the process's RLIMIT_NOFILE, soft and hard (`ulimit -n`). `dry_run=False`: a production
+        serve (its history is production's: data/history.sqlite or history.url) over the config's devices,
+        the simulated world's camera and arm unless the config names others."""
         self.workdir = workdir
         cmd = [
             sys.executable,
             "-m",
             "cell.cli",
             "serve",
-            "--dry-run",
+            *(["--dry-run"] if dry_run else []),
             "--opcua-port",
             str(free_port()),
             "--http-port",

@@ -15,7 +15,7 @@ from cell.history.report import build_report
 from tests.history_helpers import JOB, T0, history_config, verify
 from tests.pg_server import PostgresServer, why_no_postgresql
 from tests.test_history import Hooks, fill
-from tests.test_service import picked, running, small_config, wait_for
+from tests.test_service import picked, production, small_config, wait_for
 
 pytestmark = [
     pytest.mark.skipif(why_no_postgresql() is not None, reason=str(why_no_postgresql())),
@@ -94,12 +94,13 @@ def test_an_outage_queues_rows_locally_and_sends_them_once_when_the_server_is_ba
 
 
 def test_a_shift_goes_on_through_a_server_outage(tmp_path, pg, pg_url):
+    """A production shift (a rehearsal keeps its own local store, never the plant's database)."""
     cfg = small_config(tmp_path)
     cfg.history.url, cfg.history.retry_s, cfg.history.min_free_mb = pg_url, 0.2, 1
     cfg.history.retry_initial_s, cfg.history.retry_max_s = 0.2, 1
     cfg.history.connect_timeout_s = 2
     cfg.sim.feeder = cfg.sim.feeder.model_copy(update={"parts_per_minute": 0})
-    with running(cfg) as service:
+    with production(cfg) as service:
         service.command(Command.START_CONTINUOUS)
         wait_for(lambda: picked(service) >= 3, 120, "3 picks")
         pg.stop()
@@ -135,7 +136,7 @@ def test_counters_after_an_outage_and_a_restart_count_the_rows_still_in_the_outb
     cfg.history.url, cfg.history.retry_s, cfg.history.min_free_mb = pg_url.replace("cell@", "cellw@"), 0.2, 1
     cfg.history.connect_timeout_s = 2
     cfg.sim.feeder = cfg.sim.feeder.model_copy(update={"parts_per_minute": 0})
-    with running(cfg) as service:
+    with production(cfg) as service:
         service.command(Command.START_CONTINUOUS)
         wait_for(lambda: picked(service) >= 3, 120, "3 picks")
         assert service.history.wait_sent(60)
@@ -152,7 +153,7 @@ def test_counters_after_an_outage_and_a_restart_count_the_rows_still_in_the_outb
         on_server = conn.execute("SELECT count(*) FROM picks WHERE outcome = 'picked'").fetchone()[0]
     try:
         assert on_server < 17  # the server lacks the picks of the outage
-        with running(cfg) as service:
+        with production(cfg) as service:
             after = service.snapshot()
             assert service.history.stats().outbox > 0  # still unsent while the counters were restored
             assert after.counters == before.counters and picked(service) == 17

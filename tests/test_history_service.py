@@ -4,7 +4,6 @@ restart with every verified pick there once."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -17,24 +16,13 @@ import httpx
 import pytest
 
 from cell.cli import main
-from cell.commands.serve import open_service
 from cell.core.commands import Command, VisionState
 from cell.service.shiftlog import read_shift
 from tests.serve_process import ServeProcess
-from tests.test_service import picked, small_config, wait_for
+from tests.test_service import picked, production, small_config, wait_for
 
 V = VisionState
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
-
-
-@contextlib.contextmanager
-def production(cfg):
-    """The line service as `run-cell serve --config` runs it (no --dry-run, so its history is
-    production's, data/history.sqlite): the simulated world's camera and arm stand in for the line's."""
-    with contextlib.ExitStack() as stack:
-        service = open_service(cfg, False, stack)
-        service.start()
-        yield service
 
 
 def no_feeder(tmp_path, **history):

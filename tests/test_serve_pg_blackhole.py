@@ -78,7 +78,7 @@ def test_sigterm_behind_a_black_holing_proxy_ends_the_service_with_the_arm_safe_
     workdir = tmp_path / "cell"
     workdir.mkdir()
     proxy = BlackHoleProxy(pg.port)
-    serve = ServeProcess(workdir, "--config", str(write_config(workdir, proxy.url())))
+    serve = ServeProcess(workdir, "--config", str(write_config(workdir, proxy.url())), dry_run=False)
     try:
         with_cell(f"opc.tcp://127.0.0.1:{serve.opcua_port}/cell", lambda cell: cell.call("StartContinuous"))
         wait_for(lambda: len(on_server(pg_url)) >= 3, 120, "3 picks on the server through the proxy")
@@ -119,7 +119,7 @@ def test_sigterm_behind_a_black_holing_proxy_ends_the_service_with_the_arm_safe_
     # the same folder starts again (nothing held by the old process), on a sound path this time,
     # and the next start sends what waited
     write_config(workdir, pg_url)
-    again = ServeProcess(workdir, "--config", str(workdir / "cell.toml"))
+    again = ServeProcess(workdir, "--config", str(workdir / "cell.toml"), dry_run=False)
     try:
         wait_for(lambda: set(outbox) <= on_server(pg_url), 60, "the kept rows on the server after the restart")
     finally:

@@ -51,6 +51,16 @@ def small_config(tmp_path, **sim) -> CellConfig:
 
 
 @contextlib.contextmanager
+def production(cfg: CellConfig):
+    """The line service as `run-cell serve --config` runs it (no --dry-run, so its history is
+    production's, data/history.sqlite): the simulated world's camera and arm stand in for the line's."""
+    with contextlib.ExitStack() as stack:
+        service = open_service(cfg, False, stack)
+        service.start()
+        yield service
+
+
+@contextlib.contextmanager
 def running(cfg: CellConfig):
     with contextlib.ExitStack() as stack:
         service = open_service(cfg, True, stack)
