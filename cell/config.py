@@ -14,6 +14,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from cell.errors import ConfigError
 from cell.history.config import HistoryConfig
+from cell.logretention import LogsConfig
 from cell.run_config import PlanningConfig, RunConfig, SimConfig
 from cell.service.config import ServiceConfig
 from cell.shifts import ShiftsConfig
@@ -180,6 +181,7 @@ class CellConfig(Strict):
     arm: ArmConfig = ArmConfig()
     planning: PlanningConfig = PlanningConfig()
     run: RunConfig = RunConfig()
+    logs: LogsConfig = LogsConfig()
     sim: SimConfig = SimConfig()
     parts: PartsConfig = PartsConfig()
     service: ServiceConfig = ServiceConfig()

@@ -24,10 +24,12 @@ from cell.core.commands import Command, CommandRefused
 from cell.core.eventbus import EventBus
 from cell.core.events import SIGNAL_ORIGIN
 from cell.errors import REPORTED_ERRORS, ConfigError
+from cell.logretention import LogPruner
 from cell.oplog import log_to_file
 from cell.service.fdlimit import check_open_files
 from cell.service.service import LineService
 from cell.service.shiftlog import ShiftLog
+from cell.shifts import ShiftCalendar
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
 
@@ -123,6 +125,16 @@ def open_service(
     service.history = attached.history
     if attached.history is not None:
         restore_ledger(service, config)
+    # after the audit files were read back (crash recovery, the shift's counters): the oldest logs
+    # beyond [logs] go now and at each roll of the audit file, never the running shift's
+    pruner = LogPruner(
+        config.logs,
+        config.run.log_dir,
+        live=lambda: (record.path,),
+        shift_start=lambda: min(service.ledger.current_shift.start_utc, ShiftCalendar(config.shifts).now().start_utc),
+    )
+    pruner.prune()
+    record.on_roll = pruner.prune
     return service
 
 

@@ -82,6 +82,7 @@ class ShiftLog:
         self._lock = threading.Lock()
         self._log: AuditLog | None = None
         self._open_day = ""
+        self.on_roll: Callable[[], object] | None = None  # after a new file is opened (log retention)
 
     @property
     def path(self) -> Path | None:
@@ -117,6 +118,11 @@ class ShiftLog:
             ) from None
         self._open_day = day
         log.info("audit log: %s", self._log.path)
+        if self.on_roll is not None:
+            try:
+                self.on_roll()
+            except Exception as e:  # the record comes first
+                log.warning("after the audit log's roll: %s", e)
         return self._log
 
     def record(self, event: Event, best_effort: bool = False) -> dict[str, Any] | None:
