@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from datetime import UTC, date, datetime, time, timedelta
+from datetime import UTC, date, datetime, time, timedelta, tzinfo
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from pydantic import Field, field_validator, model_validator
@@ -142,3 +142,19 @@ class ShiftCalendar:
             out.append(shift)
             shift = self.at(shift.end_utc)
         return out
+
+
+def utc_offset(zone: tzinfo, at: datetime) -> str:
+    """`UTC+05:30`: the zone's offset at a moment."""
+    offset = at.astimezone(zone).utcoffset() or timedelta()
+    sign = "-" if offset < timedelta() else "+"
+    minutes = abs(int(offset.total_seconds())) // 60
+    return f"UTC{sign}{minutes // 60:02d}:{minutes % 60:02d}"
+
+
+def zone_line(zone: tzinfo, start: datetime, end: datetime | None = None) -> str:
+    """`times in Asia/Kolkata (UTC+05:30)`: the zone times are printed in, with its offset over a span
+    (both offsets when the clocks change inside it)."""
+    first = utc_offset(zone, start)
+    last = first if end is None else utc_offset(zone, end)
+    return f"times in {zone} ({first if first == last else f'{first}, then {last}'})"

@@ -9,6 +9,7 @@ import io
 import json
 import sqlite3
 from datetime import UTC, date, datetime, timedelta
+from pathlib import Path
 
 import pytest
 
@@ -391,6 +392,47 @@ def test_run_cell_report_and_its_chart(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["report", "--config", conf, "--day", "2026-12-01", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["picked"] == 3
+
+
+def _kolkata(tmp_path, cfg) -> str:
+    """A plant at UTC+05:30 all year: its hours split UTC's, and no daylight saving blurs the offset."""
+    path = tmp_path / "kolkata.toml"
+    path.write_text(Path(_config_file(tmp_path, cfg)).read_text() + '[shifts]\ntime_zone = "Asia/Kolkata"\n')
+    return str(path)
+
+
+def test_run_cell_report_speaks_the_shifts_zone_and_says_which(tmp_path, capsys):
+    """Issue 33: the report printed UTC (and counted UTC hours) while `history` spoke the plant's zone."""
+    cfg = history_config(tmp_path)
+    later = verify(7, time_utc=T0 + timedelta(minutes=31))  # 06:46 UTC: the same UTC hour, the next local one
+    fill(cfg, [*shift_events(), later]).close()
+    conf = _kolkata(tmp_path, cfg)
+    assert main(["report", "--config", conf, "--shift", "2026-12-01/early"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    # the early shift starts at 06:00 on the plant's clock: 00:30 UTC
+    assert lines[0] == "report shift 2026-12-01/early: 2026-12-01 06:00 - 2026-12-01 14:00"
+    assert lines[1] == "times in Asia/Kolkata (UTC+05:30)"
+    assert "  2026-12-01 11:46:00  arm stalled (reset by anna via screen)" in lines  # raised 06:16:00 UTC
+    hours = lines[lines.index("picks per hour (Asia/Kolkata): ") + 1 :]
+    assert hours == ["  2026-12-01 11:00      3 picked     2 missed", "  2026-12-01 12:00      1 picked     0 missed"]
+    assert main(["report", "--config", conf, "--shift", "2026-12-01/early", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["time_zone"] == "Asia/Kolkata" and report["start"] == "2026-12-01T06:00:00+05:30"
+    assert report["start_utc"] == "2026-12-01T00:30:00+00:00"
+    assert report["per_hour"] == [
+        {"hour": "2026-12-01T11:00+05:30", "picked": 3, "missed": 2},
+        {"hour": "2026-12-01T12:00+05:30", "picked": 1, "missed": 0},
+    ]
+
+
+def test_run_cell_history_says_the_zone_its_times_are_in(tmp_path, capsys):
+    cfg = history_config(tmp_path)
+    fill(cfg).close()
+    assert main(["history", "--config", _kolkata(tmp_path, cfg), "--shift", "2026-12-01/early"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "times in Asia/Kolkata (UTC+05:30)"
+    (row,) = [line for line in lines if f"{JOB}/2 " in line]
+    assert row.startswith(f"2026-12-01 11:45:02.000    {JOB}/2 ")  # picked 06:15:02 UTC
 
 
 @pytest.mark.parametrize(

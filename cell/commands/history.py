@@ -15,6 +15,7 @@ from cell.config import CellConfig, load_config
 from cell.core.parts import NAME_PATTERN
 from cell.errors import InputError
 from cell.history.query import OUTCOMES, PICK_COLUMNS
+from cell.shifts import zone_line
 
 CSV_COLUMNS = tuple(c for c in PICK_COLUMNS if c != "cell")  # the store's, but the cell (one per CLI)
 
@@ -163,10 +164,13 @@ def _dead_letter(args: argparse.Namespace, config: CellConfig) -> int:
 
 
 def _table(picks: list[dict], zone: ZoneInfo) -> list[str]:
+    """The picks on the plant's clock, the zone (and its offset) said first."""
     if not picks:
         return ["no picks"]
+    first, last = (datetime.fromisoformat(picks[i]["time_utc"]) for i in (0, -1))
     out = [
-        f"{'time (' + str(zone) + ')':26} {'pick':28} {'class':5} {'table x, y mm':>15} {'robot x, y, z mm':>22}  outcome"
+        zone_line(zone, first, last),
+        f"{'time (' + str(zone) + ')':26} {'pick':28} {'class':5} {'table x, y mm':>15} {'robot x, y, z mm':>22}  outcome",
     ]
     for p in picks:
         t = datetime.fromisoformat(p["time_utc"]).astimezone(zone)

@@ -42,7 +42,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise InputError(f"--png {args.png}: give a file name ending in .png")
     reader = open_reader(config)
     try:
-        report = build_report(reader, title, start, end)
+        report = build_report(reader, title, start, end, calendar.zone)
     finally:
         reader.close()
     if args.json:

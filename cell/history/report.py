@@ -8,11 +8,13 @@ million picks takes a second, not a minute of Python.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, tzinfo
 from pathlib import Path
+from zoneinfo import ZoneInfo
 
 from cell.history.db import required_time
 from cell.history.query import HistoryReader
+from cell.shifts import zone_line
 
 UP_STATES = frozenset({"Ready", "SingleExecution", "ContinuousExecution"})
 RUNNING_STATES = frozenset({"SingleExecution", "ContinuousExecution"})
@@ -29,13 +31,22 @@ class Report:
     failed: int = 0
     rehearsed: int = 0
     by_class: dict[str, int] = field(default_factory=dict)
-    per_hour: list[tuple[str, int, int]] = field(default_factory=list)  # (hour UTC, picked, missed)
-    faults: list[dict] = field(default_factory=list)  # time, reason, source, cleared_by
+    # (the hour's start on the plant's clock, ISO with its offset: 2026-12-01T11:00+05:30, picked, missed)
+    per_hour: list[tuple[str, int, int]] = field(default_factory=list)
+    faults: list[dict] = field(default_factory=list)  # time_utc, reason, source, cleared_by
     top_alarms: list[tuple[str, int]] = field(default_factory=list)
     running_s: float = 0.0
     down_s: float = 0.0
     state_s: dict[str, float] = field(default_factory=dict)
     mean_cycle_ms: float | None = None
+    time_zone: str = "UTC"  # the plant's ([shifts].time_zone): the text, per_hour and the chart speak it
+
+    @property
+    def zone(self) -> tzinfo:
+        return UTC if self.time_zone == "UTC" else ZoneInfo(self.time_zone)
+
+    def local(self, t: datetime) -> datetime:
+        return t.astimezone(self.zone)
 
     @property
     def miss_rate(self) -> float:
@@ -55,10 +66,12 @@ class Report:
         d.update(
             start_utc=self.start_utc.isoformat(),
             end_utc=self.end_utc.isoformat(),
+            start=self.local(self.start_utc).isoformat(),
+            end=self.local(self.end_utc).isoformat(),
             miss_rate=round(self.miss_rate, 4),
             failure_rate=round(self.failure_rate, 4),
             mtbf_s=None if self.mtbf_s is None else round(self.mtbf_s, 1),
-            per_hour=[{"hour_utc": h, "picked": p, "missed": m} for h, p, m in self.per_hour],
+            per_hour=[{"hour": h, "picked": p, "missed": m} for h, p, m in self.per_hour],
             top_alarms=[{"reason": r, "count": n} for r, n in self.top_alarms],
             running_s=round(self.running_s, 1),
             down_s=round(self.down_s, 1),
@@ -67,8 +80,10 @@ class Report:
         return d
 
     def lines(self) -> list[str]:
+        start, end = self.local(self.start_utc), self.local(self.end_utc)
         out = [
-            f"report {self.title}: {self.start_utc:%Y-%m-%d %H:%M} - {self.end_utc:%Y-%m-%d %H:%M} UTC",
+            f"report {self.title}: {start:%Y-%m-%d %H:%M} - {end:%Y-%m-%d %H:%M}",
+            zone_line(self.zone, self.start_utc, self.end_utc),
             f"picks: {self.picked} picked ({', '.join(f'{n} {c}' for c, n in sorted(self.by_class.items())) or '-'}) "
             f"in {self.attempts} attempts; {self.misses} misses ({100 * self.miss_rate:.1f} %), "
             f"{self.failed} parts failed ({100 * self.failure_rate:.1f} %)"
@@ -80,12 +95,13 @@ class Report:
         ]
         for f in self.faults:
             cleared = f" (reset by {f['cleared_by']})" if f.get("cleared_by") else ""
-            out.append(f"  {f['time_utc']}  {f['reason']}{cleared}")
+            when = f"{self.local(datetime.fromisoformat(f['time_utc'])):%Y-%m-%d %H:%M:%S}" if f["time_utc"] else "-"
+            out.append(f"  {when}  {f['reason']}{cleared}")
         if self.top_alarms:
             out.append("top alarm reasons:")
             out += [f"  {n:5d}  {reason}" for reason, n in self.top_alarms]
-        out.append("picks per hour (UTC): " + ("none" if not self.per_hour else ""))
-        out += [f"  {h}:00  {p:5d} picked  {m:4d} missed" for h, p, m in self.per_hour]
+        out.append(f"picks per hour ({self.time_zone}): " + ("none" if not self.per_hour else ""))
+        out += [f"  {h[:10]} {h[11:16]}  {p:5d} picked  {m:4d} missed" for h, p, m in self.per_hour]
         return out
 
 
@@ -94,28 +110,38 @@ def _hms(s: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
-def _hour_expr(dialect: str) -> str:
+def _minute_expr(dialect: str) -> str:
+    """The pick's UTC minute: counted per minute by the database, summed into the plant's hours here (every
+    zone's offset is whole minutes: Asia/Kolkata's +05:30 splits a UTC hour between two local ones)."""
     if dialect == "postgresql":
-        return "to_char(time_utc AT TIME ZONE 'UTC', 'YYYY-MM-DD\"T\"HH24')"
-    return "substr(time_utc, 1, 13)"
+        return "to_char(time_utc AT TIME ZONE 'UTC', 'YYYY-MM-DD\"T\"HH24:MI')"
+    return "substr(time_utc, 1, 16)"
 
 
-def build_report(reader: HistoryReader, title: str, start: datetime, end: datetime) -> Report:
-    r = Report(title, start, end)
+def _local_hour(minute_utc: str, zone: tzinfo) -> datetime:
+    """The start of the plant's hour a UTC minute (`2026-12-01T06:15`) falls in, as a UTC instant (two
+    hours that read alike on the night the clocks go back stay apart)."""
+    local = datetime.fromisoformat(minute_utc).replace(tzinfo=UTC).astimezone(zone)
+    return local.replace(minute=0, second=0, microsecond=0).astimezone(UTC)
+
+
+def build_report(reader: HistoryReader, title: str, start: datetime, end: datetime, zone: tzinfo = UTC) -> Report:
+    """`zone`: the plant's ([shifts].time_zone): the hours counted and the times printed are its."""
+    r = Report(title, start, end, time_zone=str(zone))
     cell = " AND cell = ?" if reader.cell else ""
     base = [start, end] + ([reader.cell] if reader.cell else [])
     db = reader.db
     rows = db.execute(
-        f"SELECT {_hour_expr(db.dialect)} AS h, outcome, class, count(*), sum(cycle_ms) FROM picks "
+        f"SELECT {_minute_expr(db.dialect)} AS h, outcome, class, count(*), sum(cycle_ms) FROM picks "
         f"WHERE time_utc >= ? AND time_utc < ?{cell} GROUP BY h, outcome, class ORDER BY h",
         base,
     )
-    hours: dict[str, list[int]] = {}
+    hours: dict[datetime, list[int]] = {}
     cycle_sum, cycle_n = 0.0, 0
-    for hour, outcome, cls, n, cycles in rows:
+    for minute, outcome, cls, n, cycles in rows:
         n = int(n)
         r.attempts += n
-        slot = hours.setdefault(str(hour), [0, 0])
+        slot = hours.setdefault(_local_hour(str(minute), zone), [0, 0])
         if outcome == "picked":
             r.picked += n
             r.by_class[cls] = r.by_class.get(cls, 0) + n
@@ -127,7 +153,7 @@ def build_report(reader: HistoryReader, title: str, start: datetime, end: dateti
             slot[1] += n
         elif outcome == "rehearsed":
             r.rehearsed += n
-    r.per_hour = [(h, p, m) for h, (p, m) in sorted(hours.items())]
+    r.per_hour = [(r.local(h).isoformat(timespec="minutes"), p, m) for h, (p, m) in sorted(hours.items())]
     r.mean_cycle_ms = cycle_sum / cycle_n if cycle_n else None
     faults = db.execute(
         "SELECT raised_utc, reason, source, cleared_user, cleared_interface FROM alarms "
@@ -206,13 +232,15 @@ def chart(report: Report, path: Path) -> Path:
 
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), gridspec_kw={"height_ratios": [4, 1]})
     try:
-        labels = [h[-2:] + ":00" for h, _, _ in report.per_hour]
+        labels = [h[11:16] for h, _, _ in report.per_hour]
+        if len(set(labels)) < len(labels):  # the night the clocks go back: an hour twice, told by its offset
+            labels = [h[11:] for h, _, _ in report.per_hour]
         picked = [p for _, p, _ in report.per_hour]
         missed = [m for _, _, m in report.per_hour]
         ax.bar(labels, picked, color="#2e7d32", label="picked")
         ax.bar(labels, missed, bottom=picked, color="#c62828", label="missed")
         ax.set_ylabel("picks per hour")
-        ax.set_xlabel("hour (UTC)")
+        ax.set_xlabel(f"hour ({report.time_zone})")
         ax.set_title(
             f"{report.title}: {report.picked} picked, miss rate {100 * report.miss_rate:.1f} %, "
             f"{len(report.faults)} faults, downtime {_hms(report.down_s)}"

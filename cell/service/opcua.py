@@ -24,6 +24,7 @@ from typing import Any
 from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
+from cell.access.network import reachable_urls
 from cell.access.security import credentials_configured
 from cell.access.throttle import LoginThrottle
 from cell.access.users import Authenticator
@@ -200,7 +201,8 @@ class OpcUaServer:
 
     @property
     def ready_text(self) -> str:
-        return f"OPC UA {self.endpoint}"
+        # a wildcard bind (0.0.0.0, ::) as the machine's addresses, which a PLC's engineer can type
+        return f"OPC UA {reachable_urls('opc.tcp', self.cfg.host, self.cfg.opcua_port, f'/{self.cfg.opcua_path}')}"
 
     @property
     def starting_text(self) -> str:

@@ -15,6 +15,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+from cell.access.network import reachable_urls
 from cell.access.throttle import LoginThrottle
 from cell.config import CellConfig
 from cell.core.api import LineServiceAPI
@@ -68,7 +69,10 @@ class ScreenInterface:
 
     @property
     def ready_text(self) -> str:
-        return "screen (not started)" if self.server is None else f"screen {self.server.url}"
+        if self.server is None:
+            return "screen (not started)"
+        # a wildcard bind (0.0.0.0, ::) as the machine's addresses, which someone can type into a browser
+        return f"screen {reachable_urls('https' if self.server.https else 'http', self.server.host, self.server.port)}"
 
     @property
     def starting_text(self) -> str:
