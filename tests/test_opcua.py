@@ -336,7 +336,9 @@ def test_beyond_loopback_with_a_user_is_encrypted_and_checks_the_password(tmp_pa
         tmp_path, "--dry-run", "--config", str(tmp_path / "exposed.toml"), env={"CELL_TEST_PW": "correct horse"}
     )
     try:
-        assert serve.wait_ready().startswith(f"ready: OPC UA opc.tcp://0.0.0.0:{serve.port}/cell")
+        ready = serve.wait_ready()  # bound to every address: the line names ones a client can type (issue 33)
+        assert ready.startswith("ready: OPC UA opc.tcp://") and "0.0.0.0" not in ready
+        assert f"opc.tcp://127.0.0.1:{serve.port}/cell" in ready
         assert (certs / "server-cert.der").is_file() and (certs / "server-key.pem").stat().st_mode & 0o077 == 0
 
         async def attempt(password: str | None, secure: bool = True):
