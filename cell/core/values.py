@@ -11,10 +11,12 @@ Snapshot's fields itself. The counters of the part classes come from the registr
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
+from types import MappingProxyType
 from typing import Any
 
 from cell.core.parts import PartRegistry
@@ -101,10 +103,17 @@ def class_counter(part_key: str, plural_words: str) -> Value:
     return Value(part_key, Kind.COUNT, "parts", f"{plural_words} picked this shift")
 
 
+@functools.lru_cache(maxsize=16)  # a registry never changes: its table is made once, not at every publish
 def snapshot_table(parts: PartRegistry) -> tuple[Value, ...]:
     """Every value a snapshot gives, in a fixed order: the picked counter of each class after `picked`."""
     per_class = tuple(class_counter(p.counter_key, " ".join(p.words)) for p in parts)
     return _fixed_values() + per_class + _after_picked() + PICK_VALUES
+
+
+@functools.lru_cache(maxsize=16)
+def kinds(parts: PartRegistry) -> Mapping[str, Kind]:
+    """Each value's kind by key (read-only: made once per registry)."""
+    return MappingProxyType({v.key: v.kind for v in snapshot_table(parts)})
 
 
 def _finite(x: float) -> float | None:

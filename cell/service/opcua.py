@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import logging
 import math
 import threading
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from datetime import UTC, datetime
+from types import MappingProxyType
 from typing import Any
 
 from asyncua import ua
@@ -36,7 +38,7 @@ from cell.core.eventbus import Subscription
 from cell.core.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
 from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import PickRecord, PickRecords, Snapshot
-from cell.core.values import Kind, snapshot_table, snapshot_values
+from cell.core.values import Kind, kinds, snapshot_values
 from cell.errors import ConfigError
 from cell.service.machinevision import MachineVisionServer
 from cell.service.mv_addressspace import cache_dir_for, init_server_with_models
@@ -99,29 +101,29 @@ _NONE: dict[Kind, Any] = {Kind.TEXT: "", Kind.NUMBER: 0.0, Kind.TIME: _EPOCH, Ki
 _NONE_BY_KEY = {"last_pick_table_mm": [0.0, 0.0], "last_pick_robot_mm": [0.0, 0.0, 0.0]}
 
 
-def browse_names(parts: PartRegistry) -> dict[str, str]:
+@functools.lru_cache(maxsize=16)  # made once per registry, not at every publish
+def browse_names(parts: PartRegistry) -> Mapping[str, str]:
     """BrowseName -> value key, in the Cell object's order."""
-    return {**_BEFORE_CLASSES, **{p.opcua_name: p.counter_key for p in parts}, **_AFTER_CLASSES}
+    return MappingProxyType({**_BEFORE_CLASSES, **{p.opcua_name: p.counter_key for p in parts}, **_AFTER_CLASSES})
 
 
 def variables(parts: PartRegistry) -> dict[str, tuple[ua.VariantType, bool]]:
     """BrowseName -> (type, array?) of every Cell variable."""
-    kinds = {v.key: v.kind for v in snapshot_table(parts)}
-    return {name: _UA_TYPE[kinds[key]] for name, key in browse_names(parts).items()}
+    kind = kinds(parts)
+    return {name: _UA_TYPE[kind[key]] for name, key in browse_names(parts).items()}
 
 
 VARIABLES = variables(BUILT_IN_PARTS)  # the variables with the built-in part classes (documented in docs/opcua.md)
 
 
 def _values(s: Snapshot, parts: PartRegistry) -> dict[str, Any]:
-    values = snapshot_values(s, parts)
-    kinds = {v.key: v.kind for v in snapshot_table(parts)}
+    values, kind = snapshot_values(s, parts), kinds(parts)
     out: dict[str, Any] = {}
     for name, key in browse_names(parts).items():
         value = values[key]
         if value is None or (key in _NONE_BY_KEY and not value):
-            value = _NONE_BY_KEY.get(key, _NONE.get(kinds[key]))
-        elif kinds[key] is Kind.NUMBER:
+            value = _NONE_BY_KEY.get(key, _NONE.get(kind[key]))
+        elif kind[key] is Kind.NUMBER:
             value = _finite(value)
         out[name] = value
     return out

@@ -4,7 +4,10 @@ service's snapshot and from each finished pick."""
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 from cell.core.commands import Command
@@ -159,8 +162,13 @@ def device_specs(commands: bool, parts: PartRegistry = BUILT_IN_PARTS) -> tuple[
 def snapshot_values(s: Snapshot, parts: PartRegistry = BUILT_IN_PARTS) -> dict[str, Any]:
     """Every device metric the snapshot decides (all but Last Pick and Command)."""
     values = core_values(s, parts)
-    names = {**_KEYS, **{p.sparkplug_name: p.counter_key for p in parts}}
-    return {name: values[key] for name, key in names.items()}
+    return {name: values[key] for name, key in _names(parts).items()}
+
+
+@functools.lru_cache(maxsize=16)  # made once per registry, not at every update
+def _names(parts: PartRegistry) -> Mapping[str, str]:
+    """Metric name -> the value's key, the part classes' counters among them."""
+    return MappingProxyType({**_KEYS, **{p.sparkplug_name: p.counter_key for p in parts}})
 
 
 def pick_values(p: PickRecord, cycle_ms: float | None) -> dict[str, Any]:
