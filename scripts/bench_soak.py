@@ -179,6 +179,19 @@ def print_object_growth(path: Path) -> None:
         print(f"object counts: {len(lines)} taken, too few to compare (a longer run takes more)")
         return
     print("object counts (RSS MB / live objects): " + ", ".join(f"{x['rss_mb']:.0f}/{x['objects']}" for x in lines))
+    if lines[-1].get("malloc"):
+        print(
+            "C allocator at each count (MB in use / free but held / mapped big blocks): "
+            + ", ".join(
+                f"{m['in_use_mb']:.0f}/{m['free_held_mb']:.0f}/{m['mmapped_mb']:.0f}"
+                for m in (x["malloc"] for x in lines)
+            )
+        )
+    if "traced_mb" in lines[-1]:
+        print("traced by Python at each count (MB): " + ", ".join(f"{x['traced_mb']:.1f}" for x in lines))
+        print("source lines whose traced memory grew most, first count to last:")
+        for row in lines[-1]["traced_growth_since_first"]:
+            print(f"  {row}")
     first, last = lines[1]["types"], lines[-1]["types"]
     grew = sorted(((last.get(k, 0) - first.get(k, 0), k) for k in set(first) | set(last)), reverse=True)[:8]
     print("types that grew most from the second count to the last: " + ", ".join(f"{k} +{n}" for n, k in grew if n > 0))
@@ -194,6 +207,11 @@ def main() -> int:
         help="the simulated camera's size, WIDTHxHEIGHT (default 960x540; 1920x1080 is the shipped cell, drift watch on)",
     )
     ap.add_argument("--timeout-s", type=float, default=3600.0)
+    ap.add_argument(
+        "--trace",
+        action="store_true",
+        help="with --count-objects: also trace the Python allocations (tracemalloc; slower) and print what grew",
+    )
     ap.add_argument(
         "--count-objects",
         type=float,
@@ -217,6 +235,7 @@ def main() -> int:
                 str(counts),
                 "--every-s",
                 str(args.count_objects),
+                *(["--trace"] if args.trace else []),
                 "--",
             ]
             if args.count_objects

@@ -52,7 +52,7 @@ def test_mock_records_commands_with_their_wire_form_and_moves_nothing():
         with pytest.raises(OutOfReach):
             arm.move_to(500.0, 0.0, 0.0)
         assert arm.status().pose.x_mm == 100.0 and arm.status().gripper_closed
-    assert arm.commands == [
+    assert list(arm.commands) == [
         MockCommand("connect"),
         MockCommand("move_to", (100.0, 50.0, 20.0, None), ("G1 X100.000 Y50.000 Z20.000 F3000",)),
         MockCommand("close_gripper"),
@@ -90,3 +90,23 @@ def test_factory_builds_each_kind_and_applies_overrides():
     arm = make_arm(with_overrides(cfg, kind="dynamixel", port="/dev/ttyUSB7"))
     assert isinstance(arm, DynamixelArm) and arm.port == "/dev/ttyUSB7"
     assert with_overrides(cfg) is cfg
+
+
+def test_stand_in_arms_remember_only_their_last_commands():
+    """A dry run or a rehearsal may run for days: the command record is bounded, newest last."""
+    from cell.sim.sim_arm import SimArm
+    from drivers.arm.config import Workspace
+    from drivers.arm.mock import COMMANDS_KEPT
+    from tests.test_simcell import NUT, world
+
+    mock = MockArm(ArmConfig(kind="mock", mock_of="serial"))
+    sim = SimArm(
+        world(NUT), Workspace(x_min_mm=-300, x_max_mm=300, y_min_mm=-300, y_max_mm=300, z_min_mm=-10, z_max_mm=200)
+    )
+    for arm in (mock, sim):
+        with arm:
+            for i in range(COMMANDS_KEPT + 50):
+                arm.move_to(100.0 + i % 7, 50.0, 20.0)
+        assert len(arm.commands) == COMMANDS_KEPT
+    assert mock.commands[-1] == MockCommand("disconnect")
+    assert sim.commands[-1] == ("move_to", 106.0, 50.0, 20.0, None)  # the last of 1050 moves: i = 1049

@@ -7,6 +7,7 @@ distance at a constant tool speed, plus the gripper's open/close time) is added 
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import time
@@ -16,6 +17,7 @@ from drivers.arm.base import Arm, ArmStatus
 from drivers.arm.config import Workspace
 from drivers.arm.errors import HardwareFault, NotConnected, OutOfReach
 from drivers.arm.kinematics import Pose
+from drivers.arm.mock import COMMANDS_KEPT
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +40,8 @@ class SimArm(Arm):
         self.gripper_s = gripper_s
         self.realtime = realtime
         self.motion_time_s = 0.0
-        self.commands: list[tuple] = []  # every command accepted, in order
+        # the last commands accepted, in order (bounded: a rehearsal may run for days)
+        self.commands: collections.deque[tuple] = collections.deque(maxlen=COMMANDS_KEPT)
         self.last_grip = ""
         self._connected = False
         self._torque = False

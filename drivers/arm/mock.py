@@ -3,6 +3,7 @@ in for would (same planning code), records it, and tracks where the arm would be
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 from dataclasses import dataclass
@@ -12,6 +13,8 @@ from drivers.arm.base import Arm, ArmState, ArmStatus
 from drivers.arm.config import ArmConfig
 from drivers.arm.errors import NotConnected
 from drivers.arm.kinematics import FourAxisKinematics, Pose
+
+COMMANDS_KEPT = 1000  # the commands a stand-in arm remembers, newest last
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +34,8 @@ class MockArm(Arm):
     def __init__(self, cfg: ArmConfig):
         self.cfg = cfg
         self.port = cfg.port or "mock"
-        self.commands: list[MockCommand] = []
+        # the last commands accepted, in order (bounded: a dry run may run for days)
+        self.commands: collections.deque[MockCommand] = collections.deque(maxlen=COMMANDS_KEPT)
         self._connected = False
         self._gripper_closed: bool | None = None
         self._kin: FourAxisKinematics | None = None
