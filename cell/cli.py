@@ -15,6 +15,7 @@ import sys
 
 from cell.commands import run
 from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
+from cell.memory import keep_big_blocks_mapped
 from cell.oplog import quiet_terminal
 from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
@@ -134,6 +135,7 @@ def main(argv: list[str] | None = None, controls: Controls | None = None) -> int
                 return 2
             args.func, args.command = run.run_cell, None
         name = "run-cell" if args.command is None else f"run-cell {args.command}"
+        keep_big_blocks_mapped()  # before any thread starts: frame-sized blocks never pile up in the heap
         with guarded_stdout() as stdout:
             code, last = _dispatch(args, name)
         if stdout.lost is not None and not last and code == 0:  # a failure's own line says what happened
