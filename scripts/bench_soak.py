@@ -236,7 +236,7 @@ def main() -> int:
     load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="soak-") as tmp_name:
         tmp = Path(tmp_name)
-        (tmp / "shift.toml").write_text(shift_toml(*args.camera, args.speed_factor))
+        (tmp / "shift.toml").write_text(shift_toml(args.camera[0], args.camera[1], args.speed_factor))
         print(f"camera {args.camera[0]} x {args.camera[1]}; drift watch {'on' if args.camera == FULL_HD else 'off'}")
         port = free_port()
         counts = tmp / "object-counts.jsonl"
