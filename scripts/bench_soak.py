@@ -87,7 +87,9 @@ def proc_figures(pid: int) -> dict:
     children = sum(
         len(Path(f"/proc/{pid}/task/{t}/children").read_text().split()) for t in os.listdir(f"/proc/{pid}/task")
     )
-    return {"rss_mb": rss_kb / 1024, "threads": threads, "fds": fds, "children": children}
+    stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    cpu_s = (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+    return {"rss_mb": rss_kb / 1024, "threads": threads, "fds": fds, "children": children, "cpu_s": cpu_s}
 
 
 def memory_kinds(pid: int) -> str:
@@ -304,6 +306,9 @@ def main() -> int:
         f"picks {picks} ({c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
         f"({60 * picks / r['wall_s']:.0f} per minute); misses {c['Misses']}, retries {c['Retries']}, "
         f"failed {c['Failed']}, unreachable {c['Unreachable']}, unknown left {c['UnknownLeft']}"
+    )
+    print(
+        f"server CPU {e['cpu_s'] - s['cpu_s']:.0f} s for {picks} picks: {1000 * (e['cpu_s'] - s['cpu_s']) / max(picks, 1):.0f} ms a pick"
     )
     print(f"faults {faults}; vision states seen: {', '.join(sorted(r['states']))}; alarm: {r['alarm'] or 'none'}")
     print(
