@@ -29,10 +29,12 @@ import subprocess
 import sys
 import threading
 import time
+from importlib import metadata
 from pathlib import Path
 
 import httpx
 import pytest
+from packaging.requirements import Requirement
 
 from tests.serve_process import free_port
 from tests.unit_sandbox import environment, parse_unit, words
@@ -124,6 +126,55 @@ def line_config(path: Path) -> None:
         f'[service]\nopcua_port = {free_port()}\nhttp_port = {free_port()}\ncapture_interval_s = 0.5\nusers_file = "users.json"\n'
         "[history]\nrequired = true\nimages = true\n"
     )
+
+
+def _closure(requirements: list[Requirement]) -> set[str]:
+    """The installed distributions these requirements pull in, each with its own requirements."""
+    seen: set[str] = set()
+    todo = list(requirements)
+    while todo:
+        req = todo.pop()
+        name = re.sub(r"[-_.]+", "-", req.name).lower()
+        if name in seen:
+            continue
+        try:
+            dist = metadata.distribution(req.name)
+        except metadata.PackageNotFoundError:
+            continue
+        seen.add(name)
+        for line in dist.requires or []:
+            sub = Requirement(line)
+            if sub.marker is None or any(sub.marker.evaluate({"extra": e}) for e in (req.extras or {""})):
+                todo.append(sub)
+    return seen
+
+
+def tools_of_the_tests() -> list[Path]:
+    """What the [test] extra installs that the cell's own dependencies do not (pytest, Playwright, mypy,
+    ruff, httpx ... and theirs): the top-level modules and packages, to be hidden from the service."""
+    requires = [Requirement(line) for line in metadata.distribution("pick-cell").requires or []]
+    runtime = [r for r in requires if r.marker is None or r.marker.evaluate({"extra": ""})]
+    tests = [r for r in requires if r not in runtime and r.marker is not None and r.marker.evaluate({"extra": "test"})]
+    hidden = []
+    for name in sorted(_closure(tests) - _closure(runtime)):
+        dist = metadata.distribution(name)
+        tops = {f.parts[0] for f in dist.files or [] if f.parts[0] not in ("..", "__pycache__")}
+        for top in sorted(tops):
+            path = Path(str(dist.locate_file(top)))
+            if not top.endswith((".dist-info", ".pth")) and (path.is_dir() or path.suffix == ".py"):
+                hidden.append(path)
+    return hidden
+
+
+def poisoned(modules: list[Path], folder: Path) -> list[tuple[str, str]]:
+    """(a stand-in, the module it hides): importing it raises ImportError, as in an install without the extra."""
+    folder.mkdir()
+    package, module = folder / "package", folder / "module.py"
+    package.mkdir()
+    text = 'raise ImportError(f"{__name__}: a test tool, not in a runtime install (pyproject.toml [test] extra)")\n'
+    (package / "__init__.py").write_text(text)
+    module.write_text(text)
+    return [(str(package if path.is_dir() else module), str(path)) for path in modules]
 
 
 def run_cell(*args: str, cwd: Path, stdin: str = "") -> subprocess.CompletedProcess[str]:
@@ -232,8 +283,11 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
             for h in ("/home", "/root", "/run/user")
             if Path(h).is_dir() and not any(n.is_relative_to(h) for n in needed)
         ]
+    hidden = tools_of_the_tests()  # a runtime-only install: the service must not need the test tools
+    assert any(p.name == "pytest" for p in hidden) and any(p.name == "playwright" for p in hidden), hidden
     plan = {
         "probe": str(tmp_path),
+        "hide_modules": poisoned(hidden, tmp_path / "poison"),
         "software": {"at": str(software), "entries": entries},
         "writable": [(str(s), str(t)) for s, t in writable],
         "private_tmp": yes(service, "PrivateTmp"),

@@ -8,7 +8,9 @@ writable folders (StateDirectory=, CacheDirectory=, RuntimeDirectory=, ReadWrite
 folder of the test, mounts an empty /tmp and /var/tmp (`PrivateTmp=yes`), hides /home, /root and
 /run/user (`ProtectHome=yes`), enters WorkingDirectory= and then becomes the unit's user with
 setpriv (NoNewPrivileges=) and execs ExecStart with the unit's environment. Nothing outside the
-namespace changes (the test makes and removes the mount points).
+namespace changes (the test makes and removes the mount points). The test tools (pyproject.toml's
+[test] extra, and what only they pull in) are hidden behind stand-ins that raise ImportError: the
+service runs as on a line PC's runtime-only install.
 """
 
 from __future__ import annotations
@@ -89,6 +91,8 @@ def main() -> None:
         pass
     else:
         raise SystemExit(f"unit_sandbox: {plan['probe']} is still writable after remounting every mount read-only")
+    for stand_in, module in plan["hide_modules"]:  # a runtime-only install: the test tools are not there
+        mount("--bind", stand_in, module)
     # the software, read-only where ExecStart expects it: each entry of the checkout, and the venv as .venv
     software = plan["software"]
     mount("-t", "tmpfs", "-o", "mode=0755", "tmpfs", software["at"])
