@@ -274,3 +274,16 @@ def test_owner_must_be_a_user_here(config, capsys):
         run_user("user", "add", "anna", "--role", "viewer", "--config", str(config), "--owner", "no-such-user-x") == 2
     )
     assert "--owner no-such-user-x: no such user" in capsys.readouterr().err
+
+
+@root_only
+@pytest.mark.parametrize("argv", [["--dry-run"], ["serve", "--dry-run"], ["recalibrate", "--config", "cell.toml"]])
+def test_root_in_the_services_folder_is_refused_before_writing(tmp_path, monkeypatch, capsys, argv):
+    """Calibration, logs, history and keys made by root in the service user's folder could not be
+    replaced or read by the service: refused with the fix, nothing written."""
+    os.chown(tmp_path, pwd.getpwnam("nobody").pw_uid, pwd.getpwnam("nobody").pw_gid)
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"runs as root in {tmp_path}, which belongs to nobody" in err and "sudo -u nobody run-cell" in err, err
+    assert list(tmp_path.iterdir()) == []

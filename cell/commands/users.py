@@ -34,6 +34,7 @@ from cell.config import load_config
 from cell.core.events import Role
 from cell.errors import ConfigError
 from cell.locks import holding
+from cell.ownership import user_name
 
 LOCK_WAIT_S = 5.0
 
@@ -109,13 +110,6 @@ def read_password(prompt: str = "password") -> str:
     return check_new_password(first)
 
 
-def _user_name(uid: int) -> str:
-    try:
-        return pwd.getpwuid(uid).pw_name
-    except KeyError:
-        return f"uid {uid}"
-
-
 def file_owner(path: Path, owner: str | None) -> tuple[int, int] | None:
     """Who the rewritten file must belong to (uid, gid; None: whoever runs this). Refused when that is
     another user than this process's and no --owner says so: the service could no longer read it."""
@@ -129,17 +123,17 @@ def file_owner(path: Path, owner: str | None) -> tuple[int, int] | None:
             ) from None
         if me not in (0, account.pw_uid):
             raise UsersError(
-                f"--owner {owner}: only root can give a file to another user (this runs as {_user_name(me)})",
+                f"--owner {owner}: only root can give a file to another user (this runs as {user_name(me)})",
                 hint=f"run it as root, or as {owner} without --owner",
             )
         return account.pw_uid, account.pw_gid
     existing = path if path.exists() else next((p for p in path.absolute().parents if p.exists()), None)
     if existing is None or existing.stat().st_uid == me:
         return None
-    holder = _user_name(existing.stat().st_uid)
+    holder = user_name(existing.stat().st_uid)
     what = f"{path} belongs to {holder}" if existing == path else f"{path}'s folder {existing} belongs to {holder}"
     raise UsersError(
-        f"{what} and this runs as {_user_name(me)}: the file written now would be {_user_name(me)}'s, readable by "
+        f"{what} and this runs as {user_name(me)}: the file written now would be {user_name(me)}'s, readable by "
         f"its owner alone (mode 0600), and a service running as {holder} could not read it; nothing changed",
         hint=f"run it as {holder} (sudo -u {holder} run-cell user ...), or add --owner {holder}",
     )
