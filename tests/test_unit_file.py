@@ -42,7 +42,7 @@ from tests.unit_sandbox import environment, parse_unit, words
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "configs" / "pick-cell.service"
 READY = re.compile(r"^ready: .*screen (https?://\S+?/)")
-PASSWORD = "line-operator-1"
+PASSWORD = "line-engineer-1"
 PICKS = 3
 # what systemd gives a service besides its own settings (systemd.exec(5), "Environment variables")
 SYSTEMD_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
@@ -263,12 +263,12 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
 
     # the users file as the commissioning steps make it: as root, it must be given to the service user
     refused = run_cell(
-        "user", "add", "op1", "--role", "operator", "--config", str(config_here), cwd=state, stdin=PASSWORD + "\n"
+        "user", "add", "eng1", "--role", "engineer", "--config", str(config_here), cwd=state, stdin=PASSWORD + "\n"
     )
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert f"--owner {user.pw_name}" in refused.stderr and not (state / "users.json").exists(), refused.stderr
     added = run_cell(
-        "user", "add", "op1", "--role", "operator", "--owner", user.pw_name, "--config", str(config_here),
+        "user", "add", "eng1", "--role", "engineer", "--owner", user.pw_name, "--config", str(config_here),
         cwd=state, stdin=PASSWORD + "\n",
     )  # fmt: skip
     assert added.returncode == 0, added.stdout + added.stderr
@@ -317,15 +317,30 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
             assert proc.poll() is None, "run-cell serve ended before its ready line:\n" + "\n".join(lines[-30:])
             url = next(m.group(1) for x in lines if (m := READY.match(x)))
             assert url.startswith("https://"), url  # users: HTTPS, its certificate made in the cell's folder
-            with httpx.Client(base_url=url, verify=False, timeout=30) as screen:
-                login = screen.post("/api/login", json={"user": "op1", "password": PASSWORD})
-                assert login.status_code == 200, login.text
-                start = screen.post("/api/command/StartContinuous", headers={"x-csrf-token": login.json()["csrf"]})
-                assert start.status_code == 200, start.text
             database = state / "data" / "history.sqlite"
-            wait_for(
-                lambda: picks(database) >= PICKS or proc.poll() is not None, 60, f"{PICKS} picks in the history", lines
-            )
+            with httpx.Client(base_url=url, verify=False, timeout=60) as screen:
+                login = screen.post("/api/login", json={"user": "eng1", "password": PASSWORD})
+                assert login.status_code == 200, login.text
+                csrf = {"x-csrf-token": login.json()["csrf"]}
+
+                def command(name: str) -> None:
+                    reply = screen.post(f"/api/command/{name}", headers=csrf)
+                    assert reply.status_code == 200, reply.text
+
+                command("StartContinuous")
+                wait_for(lambda: picks(database) >= PICKS or proc.poll() is not None, 60, f"{PICKS} picks", lines)
+                assert proc.poll() is None, "run-cell serve ended mid-shift:\n" + "\n".join(lines[-30:])
+                # an engineer recalibrates from the screen at the safe point: the calibration is written
+                # in the cell's folder, its deviation picture drawn (matplotlib) by the service
+                command("Pause")
+                wait_for(lambda: screen.get("/api/state").json()["paused"], 60, "the job paused", lines)
+                report = screen.post("/api/recalibration/capture", headers=csrf)
+                assert report.status_code == 200 and report.json()["passes"], report.text
+                picture = screen.get(f"/api/recalibration/{report.json()['id']}/deviation.png")
+                assert picture.content[:4] == b"\x89PNG", picture.text
+                accept = screen.post(f"/api/recalibration/{report.json()['id']}/accept", headers=csrf)
+                assert accept.status_code == 200 and accept.json()["accepted"], accept.text
+                command("Resume")
             assert proc.poll() is None, "run-cell serve ended mid-shift:\n" + "\n".join(lines[-30:])
             proc.send_signal(signal.SIGTERM)
             rc = proc.wait(60)
@@ -338,6 +353,7 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
     assert rc == 0, output[-3000:]
     assert "stopped: cell halted safely" in output, output[-3000:]
     assert picks(database) >= PICKS
+    assert (state / "calibration" / "active.json").is_file()
     # everything it wrote is in the cell's folder or the cache, the service user's, and said nothing was refused
     serve_logs = sorted((state / "logs").glob("serve-*.log"))
     assert serve_logs, sorted(p.name for p in state.rglob("*"))
