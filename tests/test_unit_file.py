@@ -7,8 +7,11 @@ of its own (tests/unit_sandbox.py) every mount is read-only but the unit's writa
 the checkout lies read-only where ExecStart expects it, and `serve` runs as the unit's user
 (or `nobody` where that user does not exist: home /nonexistent, nothing of its own). The
 users file is made as the commissioning steps make it (`run-cell user add --owner`). A
-production shift with history required then records picks, and SIGTERM ends it cleanly.
-Anything the service writes outside the unit's folders shows here as a failure.
+production shift with history required then records picks, an engineer recalibrates from the
+screen while it is paused (the calibration written, its picture drawn), and SIGTERM ends it
+cleanly. The test tools (pyproject.toml's [test] extra) are hidden from the service: a
+runtime-only install. Anything the service writes outside the unit's folders, or any module
+of the test tools it imports, shows here as a failure.
 
 Needs root (a mount namespace, a user switch); skips, saying why, without it.
 """
@@ -68,10 +71,8 @@ def why_no_sandbox() -> str | None:
     return None
 
 
-pytestmark = [
-    pytest.mark.skipif(why_no_sandbox() is not None, reason=str(why_no_sandbox())),
-    pytest.mark.timeout(120),
-]
+pytestmark = pytest.mark.timeout(120)
+needs_root = pytest.mark.skipif(why_no_sandbox() is not None, reason=str(why_no_sandbox()))
 
 
 def one(service: dict[str, list[str]], key: str, default: str | None = None) -> str:
@@ -201,6 +202,28 @@ def wait_for(cond, timeout_s: float, what: str, output: list[str]) -> None:
         time.sleep(0.1)
 
 
+def test_the_units_config_and_working_folder_lie_in_the_folder_systemd_makes_for_it():
+    """Without root too: the config ExecStart names and WorkingDirectory= (where line.toml's relative paths
+    lead: calibration, logs, data, recipes, users) are in StateDirectory=; the cache has a folder of its own."""
+    service = parse_unit(UNIT.read_text())["Service"]
+    state = [Path("/var/lib", name) for name in words(service["StateDirectory"])]
+    argv = shlex.split(one(service, "ExecStart"))
+    for path in (Path(argv[argv.index("--config") + 1]), Path(one(service, "WorkingDirectory"))):
+        assert any(path.is_relative_to(s) for s in state), (path, state)
+    assert words(service["CacheDirectory"]) and one(service, "User") != "root"
+
+
+def test_the_cache_is_systemds_cache_directory_under_the_unit(monkeypatch, tmp_path):
+    from cell.cachedir import user_cache_dir
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.delenv("CACHE_DIRECTORY", raising=False)
+    assert user_cache_dir("opcua") == tmp_path / "xdg" / "pick-cell" / "opcua"
+    monkeypatch.setenv("CACHE_DIRECTORY", f"{tmp_path / 'systemd'}:{tmp_path / 'other'}")
+    assert user_cache_dir("opcua") == tmp_path / "systemd" / "opcua"
+
+
+@needs_root
 def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(tmp_path):
     unit = parse_unit(UNIT.read_text())
     service = unit["Service"]
@@ -362,5 +385,6 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
     assert not refusals, "\n".join(refusals)
     made = [p for s, _ in writable for p in s.rglob("*")]
     assert not [p for p in made if p.stat().st_uid != uid and p != config_here], "files not the service user's"
-    cache = [p.name for s, t in writable if str(t).startswith("/var/cache") for p in s.rglob("*")]
+    cache = [p.name for s, t in writable if t.is_relative_to("/var/cache") for p in s.rglob("*")]
     assert any(name.startswith("aspace-") for name in cache), cache  # the OPC UA address space kept for the next start
+    assert any(name.startswith("plate-") for name in cache) and "fontlist" in " ".join(cache), cache
