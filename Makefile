@@ -5,6 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+TEST_STAMP := $(VENV)/.installed-test
 
 .PHONY: demo test check lint bench venv clean
 
@@ -19,6 +20,8 @@ endef
 export LIST_DEPENDENCIES
 
 # The first run sets up .venv (about a minute): a line per step before it starts, pip's own output quiet.
+# The cell alone (what a line PC runs, and `make demo`): its dependencies, no test tools. `make test`,
+# `check`, `lint` and `bench` add the [test] extra (pytest, Playwright, mypy, ruff ...) on top.
 $(STAMP): pyproject.toml
 	@echo "setting up $(VENV), once: a Python environment with the cell and its dependencies (pyproject.toml)"
 	@echo "[1/3] creating $(VENV) with $(PYTHON)"
@@ -26,10 +29,16 @@ $(STAMP): pyproject.toml
 	@echo "[2/3] updating pip in $(VENV)"
 	@$(PY) -m pip install --quiet --progress-bar off --upgrade pip
 	@echo "[3/3] installing the cell and what it needs (a minute or so; longer without pip's cache):"
-	@$(PYTHON) -c "$$LIST_DEPENDENCIES"
-	@$(PY) -m pip install --quiet --progress-bar off -e '.[test]'
+	@$(PYTHON) -c "$$LIST_DEPENDENCIES" | head -1
+	@$(PY) -m pip install --quiet --progress-bar off -e .
 	@touch $(STAMP)
 	@echo "$(VENV) is ready"
+
+$(TEST_STAMP): $(STAMP)
+	@echo "adding the test tools to $(VENV), once (pyproject.toml's [test] extra):"
+	@$(PYTHON) -c "$$LIST_DEPENDENCIES" | tail -1
+	@$(PY) -m pip install --quiet --progress-bar off -e '.[test]'
+	@touch $(TEST_STAMP)
 
 venv: $(STAMP)
 
@@ -37,19 +46,19 @@ demo: $(STAMP)
 	@echo "make demo: run-cell --dry-run (the simulated cell clears a table; see README)"
 	@$(VENV)/bin/run-cell --dry-run
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	@echo "make test: the whole suite on both cores (pytest -n 2)"
 	@$(PY) -m pytest -n 2
 
-check: $(STAMP)
+check: $(TEST_STAMP)
 	$(PY) -m pytest -n 2 -m "not slow"
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(PY) scripts/bench_detection.py
 	$(PY) scripts/bench_calibration.py
 	$(PY) scripts/bench_parts.py

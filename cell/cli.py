@@ -17,6 +17,7 @@ from cell.commands import run
 from cell.errors import REPORTED_ERRORS, describe_os_error, exit_code
 from cell.memory import keep_big_blocks_mapped
 from cell.oplog import quiet_terminal
+from cell.ownership import refuse_root_in_anothers_folder
 from cell.recordfile import tell_stderr
 from cell.signals import EXIT_STOPPED, Controls, StopRequested, handling_signals
 from cell.terminal import guarded_stdout
@@ -37,6 +38,10 @@ COMMAND_MODULES = [
 ]
 
 log = logging.getLogger(__name__)
+
+# The commands that write into the cell's folder (the config's relative paths: calibration, logs,
+# history, certificates): refused as root in a folder of another user (cell.ownership).
+WRITES_CELL_FOLDER = {None, "serve", "recalibrate", "teach"}
 
 # What a bare `run-cell` prints (on stderr, exit 2): the usual ways to start, not every option.
 SHORT_USAGE = """\
@@ -151,6 +156,8 @@ def main(argv: list[str] | None = None, controls: Controls | None = None) -> int
 def _dispatch(args: argparse.Namespace, name: str) -> tuple[int, str]:
     """Run the command: its exit code and, when it failed, the last line for stderr naming what and where."""
     try:
+        if args.command in WRITES_CELL_FOLDER:
+            refuse_root_in_anothers_folder(name)
         return int(args.func(args) or 0), ""
     except REPORTED_ERRORS as e:
         return exit_code(e), f"{name}: error: {e}"

@@ -132,7 +132,7 @@ class SimConfig(Strict):
     )
     plate_cache: bool = Field(
         True,
-        description="keep the rendered plate's fitted calibration in $XDG_CACHE_HOME/pick-cell/sim, keyed by the "
+        description="keep the rendered plate's fitted calibration in $XDG_CACHE_HOME/pick-cell/sim ($CACHE_DIRECTORY/sim under systemd), keyed by the "
         "camera, the plate, the settings and the code that fit it: later dry runs start without fitting it again",
     )
     camera_bumped_mm: tuple[float, float] = Field(

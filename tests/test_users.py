@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import pwd
 import stat
 
 import pytest
@@ -234,3 +236,54 @@ def test_removing_a_user_or_changing_their_role_or_password_ends_their_screen_se
         assert service.commands == []
     finally:
         service.close()
+
+
+root_only = pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
+
+
+@root_only
+def test_a_file_of_the_services_user_is_not_taken_from_it(config, tmp_path, capsys):
+    """The cell's folder belongs to the service's user: root writing the users file there would make it
+    root's, mode 0600, which that service cannot read. Refused with the fix; --owner gives it to that user."""
+    nobody = pwd.getpwnam("nobody")
+    os.chown(tmp_path, nobody.pw_uid, nobody.pw_gid)
+    capsys.readouterr()
+    assert run_user("user", "add", "anna", "--role", "operator", "--config", str(config), stdin="anna-pass-1\n") == 2
+    err = capsys.readouterr().err
+    assert f"folder {tmp_path} belongs to nobody" in err and "--owner nobody" in err and "sudo -u nobody" in err, err
+    assert not (tmp_path / "users.json").exists()
+    argv = ("--config", str(config), "--owner", "nobody")
+    assert run_user("user", "add", "anna", "--role", "operator", *argv, stdin="anna-pass-1\n") == 0
+    path = tmp_path / "users.json"
+    assert (path.stat().st_uid, path.stat().st_gid, stat.S_IMODE(path.stat().st_mode)) == (
+        nobody.pw_uid,
+        nobody.pw_gid,
+        0o600,
+    )
+    assert "owned by nobody" in capsys.readouterr().out
+    # the file now is nobody's: a change without --owner is refused and leaves it as it was
+    before = path.read_bytes()
+    assert run_user("user", "passwd", "anna", "--config", str(config), stdin="anna-pass-2\n") == 2
+    assert "users.json belongs to nobody" in capsys.readouterr().err and path.read_bytes() == before
+    assert run_user("user", "remove", "anna", *argv) == 0 and path.stat().st_uid == nobody.pw_uid
+    assert run_user("user", "list", "--config", str(config)) == 0  # reading needs nothing of the kind
+
+
+def test_owner_must_be_a_user_here(config, capsys):
+    assert (
+        run_user("user", "add", "anna", "--role", "viewer", "--config", str(config), "--owner", "no-such-user-x") == 2
+    )
+    assert "--owner no-such-user-x: no such user" in capsys.readouterr().err
+
+
+@root_only
+@pytest.mark.parametrize("argv", [["--dry-run"], ["serve", "--dry-run"], ["recalibrate", "--config", "cell.toml"]])
+def test_root_in_the_services_folder_is_refused_before_writing(tmp_path, monkeypatch, capsys, argv):
+    """Calibration, logs, history and keys made by root in the service user's folder could not be
+    replaced or read by the service: refused with the fix, nothing written."""
+    os.chown(tmp_path, pwd.getpwnam("nobody").pw_uid, pwd.getpwnam("nobody").pw_gid)
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"runs as root in {tmp_path}, which belongs to nobody" in err and "sudo -u nobody run-cell" in err, err
+    assert list(tmp_path.iterdir()) == []

@@ -153,13 +153,16 @@ def _entry(item: object, where: str) -> UserEntry:
     return UserEntry(name, Role(role), stored, str(item.get("changed_utc", "")))
 
 
-def write_users(path: Path, users: Iterable[UserEntry]) -> None:
-    """The whole file, atomically, readable by its owner only (0600)."""
+def write_users(path: Path, users: Iterable[UserEntry], owner: tuple[int, int] | None = None) -> None:
+    """The whole file, atomically, readable by its owner only (0600); `owner` (uid, gid): given to that
+    user before it takes the file's name (root only)."""
     body = {"format": FORMAT, "users": [u.as_json() for u in sorted(users, key=lambda u: u.name)]}
     data = (json.dumps(body, indent=2) + "\n").encode()
 
     def write(f: BinaryIO) -> None:
         os.fchmod(f.fileno(), 0o600)
+        if owner is not None:
+            os.fchown(f.fileno(), *owner)
         f.write(data)
 
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -4,12 +4,18 @@ A password is read from stdin when stdin is not a terminal (one line; for script
 provisioning), else asked twice without echo. Every change rewrites the whole file
 atomically (mode 0600) under its lock; nothing is half-written. A running service reads
 the file again at the next login.
+
+The file is readable by its owner alone, and a rewrite belongs to whoever runs the command:
+so a change is refused when the file (or, for a new file, its folder) belongs to another
+user, the service's, unless `--owner USER` gives the new file to that user (root only).
 """
 
 from __future__ import annotations
 
 import argparse
 import getpass
+import os
+import pwd
 import sys
 from pathlib import Path
 
@@ -28,6 +34,7 @@ from cell.config import load_config
 from cell.core.events import Role
 from cell.errors import ConfigError
 from cell.locks import holding
+from cell.ownership import user_name
 
 LOCK_WAIT_S = 5.0
 
@@ -68,6 +75,13 @@ def register(sub) -> None:
     for v in (add, remove, passwd, verbs.choices["list"]):
         v.add_argument("--config", dest="run_config", type=Path, default=argparse.SUPPRESS, help="cell config (TOML)")
         v.set_defaults(func=cmd_user)
+    for v in (add, remove, passwd):
+        v.add_argument(
+            "--owner",
+            metavar="USER",
+            help="give the rewritten file to USER (the service's user, e.g. cell; needs root): the file is "
+            "readable by its owner alone",
+        )
 
 
 def users_path(args: argparse.Namespace) -> tuple[Path, str | None]:
@@ -78,7 +92,7 @@ def users_path(args: argparse.Namespace) -> tuple[Path, str | None]:
     if service.users_file is None:
         raise ConfigError(
             f"{args.run_config}: service.users_file is not set",
-            hint='add users_file = "/etc/pick-cell/users.json" (any path) under [service]',
+            hint='add users_file = "users.json" (in the cell\'s folder, docs/commissioning.md; any path) under [service]',
         )
     return service.users_file, service.user
 
@@ -96,11 +110,41 @@ def read_password(prompt: str = "password") -> str:
     return check_new_password(first)
 
 
+def file_owner(path: Path, owner: str | None) -> tuple[int, int] | None:
+    """Who the rewritten file must belong to (uid, gid; None: whoever runs this). Refused when that is
+    another user than this process's and no --owner says so: the service could no longer read it."""
+    me = os.geteuid()
+    if owner is not None:
+        try:
+            account = pwd.getpwnam(owner)
+        except KeyError:
+            raise UsersError(
+                f"--owner {owner}: no such user on this computer", hint="give the service's user, e.g. cell"
+            ) from None
+        if me not in (0, account.pw_uid):
+            raise UsersError(
+                f"--owner {owner}: only root can give a file to another user (this runs as {user_name(me)})",
+                hint=f"run it as root, or as {owner} without --owner",
+            )
+        return account.pw_uid, account.pw_gid
+    existing = path if path.exists() else next((p for p in path.absolute().parents if p.exists()), None)
+    if existing is None or existing.stat().st_uid == me:
+        return None
+    holder = user_name(existing.stat().st_uid)
+    what = f"{path} belongs to {holder}" if existing == path else f"{path}'s folder {existing} belongs to {holder}"
+    raise UsersError(
+        f"{what} and this runs as {user_name(me)}: the file written now would be {user_name(me)}'s, readable by "
+        f"its owner alone (mode 0600), and a service running as {holder} could not read it; nothing changed",
+        hint=f"run it as {holder} (sudo -u {holder} run-cell user ...), or add --owner {holder}",
+    )
+
+
 def cmd_user(args: argparse.Namespace) -> int:
     path, legacy = users_path(args)
     if args.verb == "list":
         return _list(path, legacy)
     name = check_name(args.name)
+    owner = file_owner(path, args.owner)
     with holding(path, "users file", wait_s=LOCK_WAIT_S):
         users = read_users(path)
         if args.verb == "add":
@@ -119,8 +163,8 @@ def cmd_user(args: argparse.Namespace) -> int:
             role = Role(args.role) if args.role else users[name].role
             users[name] = UserEntry(name, role, hash_password(read_password(f"new password for {name}")), now_utc())
             done = f"new password for {name} ({role.value}) in {path}"
-        write_users(path, users.values())
-    print(done)
+        write_users(path, users.values(), owner)
+    print(done if owner is None else f"{done}, owned by {args.owner}")
     return 0
 
 

@@ -64,5 +64,7 @@ class MachineVisionConfig(Strict):
     )
     model_cache: bool = Field(True, description="cache the address space built from the NodeSets (faster starts)")
     model_cache_dir: Path | None = Field(
-        None, description="where that cache goes; default $XDG_CACHE_HOME/pick-cell/opcua (~/.cache/...)"
+        None,
+        description="where that cache goes; default $XDG_CACHE_HOME/pick-cell/opcua (~/.cache/...), under systemd "
+        "$CACHE_DIRECTORY/opcua (configs/pick-cell.service: /var/cache/pick-cell/opcua)",
     )
