@@ -14,6 +14,7 @@ from cell.access.users import Authenticator, UserEntry, UsersError, hash_passwor
 from cell.cli import main
 from cell.commands import users as users_cli
 from cell.core.events import Role
+from cell.ownership import ALLOW_ENV, refuse_root_in_anothers_folder
 from cell.service.config import ServiceConfig
 
 pytestmark = pytest.mark.timeout(60)
@@ -242,9 +243,10 @@ root_only = pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to anoth
 
 
 @root_only
-def test_a_file_of_the_services_user_is_not_taken_from_it(config, tmp_path, capsys):
+def test_a_file_of_the_services_user_is_not_taken_from_it(config, tmp_path, capsys, monkeypatch):
     """The cell's folder belongs to the service's user: root writing the users file there would make it
     root's, mode 0600, which that service cannot read. Refused with the fix; --owner gives it to that user."""
+    monkeypatch.delenv(ALLOW_ENV, raising=False)
     nobody = pwd.getpwnam("nobody")
     os.chown(tmp_path, nobody.pw_uid, nobody.pw_gid)
     capsys.readouterr()
@@ -281,9 +283,21 @@ def test_owner_must_be_a_user_here(config, capsys):
 def test_root_in_the_services_folder_is_refused_before_writing(tmp_path, monkeypatch, capsys, argv):
     """Calibration, logs, history and keys made by root in the service user's folder could not be
     replaced or read by the service: refused with the fix, nothing written."""
+    monkeypatch.delenv(ALLOW_ENV, raising=False)
     os.chown(tmp_path, pwd.getpwnam("nobody").pw_uid, pwd.getpwnam("nobody").pw_gid)
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"runs as root in {tmp_path}, which belongs to nobody" in err and "sudo -u nobody run-cell" in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+@root_only
+def test_root_may_work_in_a_developers_checkout_when_told(tmp_path, monkeypatch):
+    os.chown(tmp_path, pwd.getpwnam("nobody").pw_uid, pwd.getpwnam("nobody").pw_gid)
+    monkeypatch.delenv(ALLOW_ENV, raising=False)
+    with pytest.raises(Exception, match="belongs to nobody") as refused:
+        refuse_root_in_anothers_folder("run-cell serve", tmp_path)
+    assert f"{ALLOW_ENV}=1" in refused.value.hint
+    monkeypatch.setenv(ALLOW_ENV, "1")
+    refuse_root_in_anothers_folder("run-cell serve", tmp_path)  # no refusal
