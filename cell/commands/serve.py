@@ -14,7 +14,7 @@ import socket
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Protocol, get_args
+from typing import Any, Protocol, get_args
 
 from cell.access.security import check_exposure, hash_password
 from cell.access.throttle import Lockout, LoginThrottle
@@ -22,7 +22,7 @@ from cell.assembly import Overrides, assemble, attach_consumers, cell_config, re
 from cell.config import CellConfig
 from cell.core.commands import RUNNING, Command, CommandRefused, VisionState
 from cell.core.eventbus import EventBus
-from cell.core.events import SIGNAL_ORIGIN
+from cell.core.events import SIGNAL_ORIGIN, RobotReported
 from cell.errors import REPORTED_ERRORS, ConfigError
 from cell.logretention import LogPruner
 from cell.oplog import log_to_file
@@ -180,7 +180,11 @@ def bind_robot_server(arm: RobotServerArm, service: LineService) -> None:
         timer.start()
         timers[:] = [timer]
 
+    def record(report: dict[str, Any]) -> None:  # a report while no job runs: recorded by the service
+        service.bus.emit(RobotReported(**report))
+
     arm.board.status = status
+    arm.board.record_between_jobs = record
     arm.server.on_refused = refused
 
 

@@ -154,6 +154,9 @@ class PickBoard:
         # called under the lock with (report, pick) once accepted: the simulated world applies it
         self.observers: list[Callable[[str, Pick], None]] = []
         self.counts: collections.Counter[str] = collections.Counter()
+        # where a report made while no job runs goes (the line service records it); None: kept for the next job
+        self.record_between_jobs: Callable[[dict[str, Any]], None] | None = None
+        self.where = f"tcp://{cfg.host}:{cfg.port}"  # the address listened on, for messages
 
     # ---- the cell's side ---------------------------------------------------------------------
     def offer(self, plan: PickPlan) -> Pick:
@@ -247,9 +250,9 @@ class PickBoard:
             code = self._refusal(kind, pick)
             if code is not None or pick is None:
                 self.counts["bad_reports"] += 1
-                self._records.append(
+                self._keep(
                     {"report": kind.lower(), "pick_no": no, "pick_id": "", "peer": peer, "accepted": False,
-                     "code": int(code or Bad.UNKNOWN_PICK)}
+                     "code": int(code or Bad.UNKNOWN_PICK), "detail": ""}
                 )  # fmt: skip
                 log.warning("robot %s: %s %d refused (code %d)", peer, kind, no, int(code or Bad.UNKNOWN_PICK))
                 return (-2, int(code or Bad.UNKNOWN_PICK))
@@ -297,14 +300,24 @@ class PickBoard:
             self._record("withdrawn", pick, accepted=True)
         self._current = None
 
+    def _keep(self, record: dict[str, Any]) -> None:
+        """For the record: taken by the job's runner (Arm.take_reports), or handed over at once between jobs."""
+        if not self.job_open and self.record_between_jobs is not None:
+            try:
+                self.record_between_jobs(record)
+            except Exception:  # the record's own failure is the record's to report; the robot gets its answer
+                log.exception("recording a robot's report between jobs")
+            return
+        self._records.append(record)
+
     def _record(self, report: str, pick: Pick, *, accepted: bool, peer: str = "", detail: str = "") -> None:
-        self._records.append(
+        self._keep(
             {"report": report, "pick_no": pick.no, "pick_id": pick.plan.pick_id, "peer": peer or pick.peer,
              "accepted": accepted, "code": 0, "detail": detail}
         )  # fmt: skip
 
     def _port(self) -> str:
-        return f"tcp://{self.cfg.host}:{self.cfg.port}"
+        return self.where
 
 
 def format_answer(answer: Answer) -> bytes:
@@ -511,6 +524,12 @@ class RobotServer:
         with contextlib.suppress(OSError):
             conn.settimeout(1.0)
             conn.sendall(format_answer((-2, Bad.TOO_LONG)))
+            conn.shutdown(socket.SHUT_WR)
+            # what the robot still sends is read and dropped (for at most 2 s): closed with unread data,
+            # the connection would be reset and the robot might never read its answer
+            end = time.monotonic() + 2.0
+            while time.monotonic() < end and conn.recv(65536):
+                pass
 
 
 class RobotServerArm(Arm):
@@ -533,7 +552,7 @@ class RobotServerArm(Arm):
         """Listen until the block ends (the modbus register map too when modbus_port is set)."""
         self.server.start()
         host, port = self.server.address
-        self.port = f"tcp://{host}:{port}"
+        self.port = self.board.where = f"tcp://{host}:{port}"
         try:
             yield self.server
         finally:
