@@ -299,3 +299,18 @@ def test_run_cell_dry_run_with_the_simulated_robot_clears_the_table_over_the_soc
     reports = [e["report"] for e in events if e["kind"] == "robot"]
     assert reports.count("given") == reports.count("picked") == reports.count("placed") == 17
     assert next(e for e in events if e["kind"] == "run_start")["arm"] == "RobotServerArm"
+
+
+def test_docs_robots_md_lists_every_answer_code_and_state_number():
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "robots.md").read_text()
+
+    def codes(heading: str) -> set[int]:
+        section = text.split(heading, 1)[1].split("\n#", 1)[0]
+        return {int(m) for m in re.findall(r"^\| (\d+) \|", section, re.M)}
+
+    assert codes("### `(-1,code)`") == {int(c) for c in NotNow}
+    assert codes("### `(-2,code)`") == {int(c) for c in Bad}
+    assert codes("### STATE numbers") == {int(s) for s in StateNo}
