@@ -10,6 +10,7 @@ import json
 import socket
 import sqlite3
 import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -314,3 +315,86 @@ def test_docs_robots_md_lists_every_answer_code_and_state_number():
     assert codes("### `(-1,code)`") == {int(c) for c in NotNow}
     assert codes("### `(-2,code)`") == {int(c) for c in Bad}
     assert codes("### STATE numbers") == {int(s) for s in StateNo}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Plc:
+    """What the structured-text PLC program in docs/robots.md does, over pymodbus: write the
+    request, then a new sequence number; wait for ANSWER_SEQ = it and READY; read the answer."""
+
+    def __init__(self, port: int):
+        from pymodbus.client import ModbusTcpClient
+
+        self.client = ModbusTcpClient("127.0.0.1", port=port, timeout=10)
+        assert self.client.connect()
+        self.seq = 0
+
+    def ask(self, request: int, pick_no: int = 0) -> list[int]:
+        from drivers.arm.robot_modbus import Reg
+
+        self.seq = self.seq % 65535 + 1
+        self.client.write_registers(Reg.REQUEST, [request, pick_no >> 16, pick_no & 0xFFFF])
+        self.client.write_registers(Reg.REQUEST_SEQ, [self.seq])
+        while True:  # the PLC's scan: read until the answer to this request is in place
+            regs = self.client.read_holding_registers(Reg.ANSWER_SEQ, count=Reg.END - Reg.ANSWER_SEQ).registers
+            if regs[0] == self.seq and regs[Reg.READY - Reg.ANSWER_SEQ] == 1:
+                return regs
+            time.sleep(0.005)  # the PLC's scan time
+
+    def close(self) -> None:
+        self.client.close()
+
+
+def test_a_pymodbus_client_clears_the_dry_run_table_over_modbus_tcp(tmp_path):
+    from drivers.arm.robot_modbus import Reg, Request, words_float
+
+    def at(regs: list[int], reg: Reg) -> int:
+        return regs[reg - Reg.ANSWER_SEQ]
+
+    def signed(v: int) -> int:
+        return v - 65536 if v >= 32768 else v
+
+    cfg = robot_config(tmp_path, modbus_port=free_port())
+    with serving(cfg) as (service, _):
+        plc = Plc(cfg.robot_server.modbus_port)
+        regs = plc.ask(Request.NEXT)
+        assert (signed(at(regs, Reg.RESULT)), at(regs, Reg.CODE)) == (-1, NotNow.NOT_RUNNING)
+        assert at(regs, Reg.STATE) == StateNo.READY
+        refused = plc.client.write_registers(Reg.RESULT, [1])  # the cell's registers are read-only
+        assert refused.isError()
+        service.command(Command.START_SINGLE)
+        placed = []
+        while True:
+            regs = plc.ask(Request.NEXT)
+            result = signed(at(regs, Reg.RESULT))
+            if result == 0:
+                continue
+            if result == -1:
+                assert at(regs, Reg.CODE) == NotNow.NOT_RUNNING  # the table is clear: the job ended
+                break
+            assert result == 1
+            no = (at(regs, Reg.PICK_NO) << 16) | at(regs, Reg.PICK_NO + 1)
+            x, bin_z = (
+                words_float(regs[r - Reg.ANSWER_SEQ : r - Reg.ANSWER_SEQ + 2]) for r in (Reg.X_MM, Reg.BIN_Z_MM)
+            )
+            assert at(regs, Reg.CLASS_NO) in (1, 2) and bin_z > 0 and x == x
+            assert signed(at(plc.ask(Request.PICKED, no), Reg.RESULT)) == 1
+            assert signed(at(plc.ask(Request.PLACED, no), Reg.RESULT)) == 1
+            again = plc.ask(Request.PLACED, no)
+            assert (signed(at(again, Reg.RESULT)), at(again, Reg.CODE)) == (-2, Bad.ALREADY_REPORTED)
+            placed.append(no)
+        plc.close()
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready after the job")
+        counters = service.snapshot().counters
+    assert len(placed) == len(set(placed)) == counters.picked_total == 17
+    (db_path,) = tmp_path.rglob("history.sqlite")
+    with contextlib.closing(sqlite3.connect(db_path)) as db:
+        assert db.execute("SELECT outcome, count(*) FROM picks GROUP BY outcome").fetchall() == [("picked", 17)]
+    reports = robot_events(tmp_path / "logs")
+    assert sorted(e["pick_no"] for e in reports if e["report"] == "placed" and e["accepted"]) == sorted(placed)
+    assert all(e["peer"].startswith("modbus ") for e in reports if e["report"] == "given")

@@ -286,6 +286,14 @@ class PickBoard:
                 return int({"offered": StateNo.OFFERED, "taken": StateNo.TAKEN, "picked": StateNo.PICKED}[pick.state])
         return int(_STATE.get(self.status(), StateNo.NOT_READY))
 
+    def not_now_code(self) -> int:
+        """The (-1,code) a NEXT would get now; 0 when it could be given a pick."""
+        with self._cond:
+            pick = self._current
+            if pick is not None and pick.state in ("taken", "picked"):
+                return int(NotNow.PICK_OUTSTANDING)
+        return int(_NOT_NOW.get(self.status(), 0))
+
     def holding_pick(self) -> Pick | None:
         """The pick the robot has and has not ended, if any."""
         with self._cond:
@@ -447,7 +455,8 @@ class RobotServer:
                     log.exception("robot server: admitting a connection")
                     conn.close()
 
-    def _allowed_address(self, peer: str) -> bool:
+    def allowed(self, peer: str) -> bool:
+        """Whether `peer` (an IP address) is in robot_server.allow."""
         try:
             ip = ipaddress.ip_address(peer.split("%")[0])
         except ValueError:
@@ -457,7 +466,7 @@ class RobotServer:
         return any(ip.version == n.version and ip in n for n in self._allowed)
 
     def _admit(self, conn: socket.socket, peer: str) -> None:
-        if not self._allowed_address(peer):
+        if not self.allowed(peer):
             self.counts["refused_address"] += 1
             conn.close()
             why = f"a connection from {peer}, not in robot_server.allow, was refused"
@@ -546,17 +555,33 @@ class RobotServerArm(Arm):
         self._connected = False
         self._pick: Pick | None = None
         self._cancelled: Callable[[], bool] = lambda: False
+        self.modbus: Any = None  # drivers.arm.robot_modbus.RobotModbus while serving with modbus_port set
 
     @contextlib.contextmanager
     def serving(self) -> Iterator[RobotServer]:
-        """Listen until the block ends (the modbus register map too when modbus_port is set)."""
+        """Listen until the block ends (Modbus TCP too when modbus_port is set)."""
         self.server.start()
         host, port = self.server.address
         self.port = self.board.where = f"tcp://{host}:{port}"
+        modbus = None
         try:
+            if self.cfg.modbus_port:
+                from drivers.arm.robot_modbus import RobotModbus  # pymodbus only when configured
+
+                modbus = RobotModbus(
+                    self.cfg.host,
+                    self.cfg.modbus_port,
+                    self.board,
+                    self.server.allowed,
+                    lambda why: self.server.on_refused(why),
+                )
+                modbus.start()
+                self.modbus = modbus
             yield self.server
         finally:
             self.board.withdraw()
+            if modbus is not None:
+                modbus.close()
             self.server.close()
 
     @property
