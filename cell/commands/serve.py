@@ -124,6 +124,8 @@ def open_service(
     resources.callback(service.close)
     if isinstance(cell.arm, RobotServerArm):
         bind_robot_server(cell.arm, service)
+        modbus = f", Modbus TCP on port {config.robot_server.modbus_port}" if config.robot_server.modbus_port else ""
+        progress(f"robot server on {cell.arm.port.removeprefix('tcp://')}{modbus} (protocol: docs/robots.md)")
     attached = attach_consumers(config, bus, consumers, service, rehearsal=dry_run)
     service.history = attached.history
     if attached.history is not None:

@@ -590,12 +590,15 @@ class RobotServerArm(Arm):
 
     def connect(self) -> None:
         self._connected = True
+        self._pick = None
         self.board.job_open = True
 
     def disconnect(self) -> None:
+        """The job's end (after its safe stop): an offer not taken is withdrawn, the pick forgotten."""
         self.board.withdraw()
         self.board.job_open = False
         self._connected = False
+        self._pick = None
 
     def _require(self, command: str) -> None:
         if not self._connected:
