@@ -398,3 +398,23 @@ def test_a_pymodbus_client_clears_the_dry_run_table_over_modbus_tcp(tmp_path):
     reports = robot_events(tmp_path / "logs")
     assert sorted(e["pick_no"] for e in reports if e["report"] == "placed" and e["accepted"]) == sorted(placed)
     assert all(e["peer"].startswith("modbus ") for e in reports if e["report"] == "given")
+
+
+def test_a_halt_or_a_stop_withdraws_a_pick_no_robot_took_and_nothing_is_verified(tmp_path):
+    with serving(robot_config(tmp_path)) as (service, address):
+        robot = UrClient(address)
+        for command, after in ((Command.HALT, V.HALTED), (Command.STOP, V.READY)):
+            service.command(Command.START_SINGLE)
+            wait_for(lambda: robot.ask("STATE") == [StateNo.OFFERED], what="a pick offered")
+            service.command(command)  # no robot ever asked: the cell must not wait for one
+            wait_for(lambda after=after: service.snapshot().vision_state == after, what=f"{after.value}")
+            if after == V.HALTED:
+                assert robot.ask("NEXT") == [-1, NotNow.HALTED]
+                service.command(Command.RESET)
+            else:
+                assert robot.ask("NEXT") == [-1, NotNow.NOT_RUNNING]
+        robot.close()
+    events = read_shift(tmp_path / "logs")
+    assert [e["report"] for e in events if e["kind"] == "robot"] == ["withdrawn", "withdrawn"]
+    assert not [e for e in events if e["kind"] == "verify"]
+    assert [e["outcome"] for e in events if e["kind"] == "job_end"] == ["halted", "stopped"]
