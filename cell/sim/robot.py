@@ -52,7 +52,7 @@ class SimulatedRobot:
         while not self._stop.is_set():
             try:
                 with socket.create_connection(self.address, timeout=5.0) as s:
-                    s.settimeout(1.0)
+                    s.settimeout(90.0)  # every answer comes within next_wait_s (at most 60 s)
                     self._program(s.makefile("rw", encoding="ascii", newline="\n"))
             except OSError as e:  # the server closing, or not yet listening: try again
                 log.debug("simulated robot: %s", e)
@@ -61,13 +61,7 @@ class SimulatedRobot:
     def _ask(self, f, request: str) -> list[float]:  # noqa: ANN001 - a socket's text file
         f.write(request + "\n")
         f.flush()
-        while True:
-            try:
-                line = f.readline()
-                break
-            except TimeoutError:
-                if self._stop.is_set():
-                    raise OSError("stopping") from None
+        line = f.readline()
         if not line:
             raise OSError("the cell closed the connection")
         return parse_answer(line)
