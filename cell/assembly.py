@@ -32,6 +32,7 @@ from cell.vision.types import LocateResult
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig, DeviceKind
 from drivers.arm.factory import make_arm, with_overrides
+from drivers.arm.robot_server import RobotServerArm
 from drivers.cameras.base import Camera
 from drivers.cameras.factory import make_camera
 
@@ -138,8 +139,13 @@ def assemble(
         arm_cfg = arm_cfg.model_copy(update={"kind": "mock", "mock_of": arm_cfg.kind})
     resources.enter_context(device_locks(arm_cfg, config.camera.source))  # this process's alone until it ends
     camera = make_camera(config.camera)
-    cell = Cell(config, camera, make_arm(arm_cfg), calibration, not dry_run)
+    arm = make_arm(arm_cfg, config.robot_server)
+    if isinstance(arm, RobotServerArm):  # listens for the cell's life, across jobs
+        resources.enter_context(arm.serving())
+    cell = Cell(config, camera, arm, calibration, not dry_run)
     cell.plate_image = lambda: _capture(camera)
+    if isinstance(arm, RobotServerArm):
+        cell.notes.append(f"robot server on {arm.port.removeprefix('tcp://')} (protocol: docs/robots.md)")
     doubt = calibration.height_doubt()
     if doubt is not None:
         cell.notes.append(f"warning: {doubt[0]} (hint: {doubt[1]})")
@@ -168,6 +174,10 @@ def _simulated(
     cell = Cell(config, camera, sim.arm, sim.calibration, True, sim)
     cell.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
     cell.notes.append(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")
+    if sim.world_arm is not None:
+        host, port = sim.arm.port.removeprefix("tcp://").rsplit(":", 1)
+        robot = "a simulated robot asks over it" if config.robot_server.simulated_robot else "waiting for a robot"
+        cell.notes.append(f"robot server on {host}:{port} ({robot}; protocol: docs/robots.md)")
     if sim.emulated is not None:
         emu = sim.emulated
         cell.notes.append(
@@ -287,5 +297,10 @@ def arm_only(config: CellConfig, kind: str | None = None, port: str | None = Non
     """The configured arm (with the command line's kind and port), its port locked for this process,
     not yet connected (`with arm:` connects); for teach, jog and home."""
     arm_cfg: ArmConfig = with_overrides(config.arm, kind, port)
+    if arm_cfg.kind == "robot-server":
+        raise ConfigError(
+            "arm.kind 'robot-server': the robot runs its own program; the cell does not jog, home or teach it",
+            hint="jog and home the robot from its pendant; teach with --point and positions read there",
+        )
     with device_locks(arm_cfg):
         yield make_arm(arm_cfg)

@@ -20,7 +20,7 @@ from cell.service.config import ServiceConfig
 from cell.shifts import ShiftsConfig
 from cell.telemetry.config import TelemetryConfig
 from cell.vision.config import PartsConfig, Preset
-from drivers.arm.config import ArmConfig
+from drivers.arm.config import ArmConfig, RobotServerConfig
 from drivers.cameras.config import CameraConfig
 from drivers.config import Strict
 
@@ -179,6 +179,7 @@ class CellConfig(Strict):
     drift: DriftConfig = DriftConfig()
     camera: CameraConfig = CameraConfig()
     arm: ArmConfig = ArmConfig()
+    robot_server: RobotServerConfig = RobotServerConfig()
     planning: PlanningConfig = PlanningConfig()
     run: RunConfig = RunConfig()
     logs: LogsConfig = LogsConfig()

@@ -40,6 +40,7 @@ from cell.core.events import (
     PartUnreachable,
     PickOrderChosen,
     PickVerified,
+    RobotReported,
     RunEnded,
     RunStarted,
     RunSummarized,
@@ -59,8 +60,8 @@ from cell.summary import Summary
 from cell.tracking import PartStatus, Track, Tracker
 from cell.vision.types import LocatedPart, LocateResult
 from cell.wording import plural
-from drivers.arm.base import Arm
-from drivers.arm.errors import OutOfReach
+from drivers.arm.base import Arm, PickPlan
+from drivers.arm.errors import OutOfReach, PickWithdrawn
 from drivers.cameras.base import Camera
 
 log = logging.getLogger(__name__)
@@ -180,6 +181,9 @@ class Runner:
                 self._step()
         except StopRequested as e:
             self._finish(S.STOPPED, e.reason)
+        except PickWithdrawn:  # a robot running its own program never took the pick: a stop came first
+            c = self.controls
+            self._finish(S.STOPPED, c.stop_reason if c.stop.is_set() else "stop requested: job ended at a safe point")
         except KeyboardInterrupt:
             self._finish(S.STOPPED, "Ctrl-C")
         except (*REPORTED_ERRORS, OSError) as e:
@@ -312,6 +316,7 @@ class Runner:
             return f"internal error: {type(e).__name__}: {e}"
         finally:
             self.summary.arm_s += time.perf_counter() - t0
+            self._record_reports()
 
     # ---- devices, timed -------------------------------------------------------------
     def _arm(self, method: str, *args: float | None) -> None:
@@ -321,6 +326,12 @@ class Runner:
             getattr(self.arm, method)(*args)
         finally:
             self.summary.arm_s += time.perf_counter() - t0
+            self._record_reports()
+
+    def _record_reports(self) -> None:
+        """What the arm's own controller reported meanwhile (a robot's PICKED, PLACED, MISSED), recorded."""
+        for report in self.arm.take_reports():
+            self._emit(RobotReported, **report)
 
     def _release(self) -> None:
         self._arm("open_gripper")
@@ -557,6 +568,9 @@ class Runner:
     def _pick(self) -> Step:
         t, track = self._attempt()
         x, y, z = t.robot_mm
+        plan = PickPlan(pick_id(self.job_id, self.summary.attempts), t.cls, t.robot_mm, t.approach_z_mm,
+                        t.jaw_angle_deg, t.bin_robot_mm)  # fmt: skip
+        self.arm.announce(plan, lambda: self.controls.stop.is_set() or self.controls.finish.is_set())
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
         self._arm("move_to", x, y, z, t.jaw_angle_deg)
         self._arm("close_gripper")

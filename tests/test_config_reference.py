@@ -87,7 +87,7 @@ def test_rows_say_type_bounds_default_unit_and_description() -> None:
     # a sub-table's defaults are its parent's (the Dynamixel workspace is not the serial arm's box)
     assert _row(text, "arm.dynamixel.workspace", "x_min_mm")[2] == "`-400.0`"
     assert _row(text, "arm.serial.workspace", "x_min_mm")[2] == "`0.0`"
-    assert _row(text, "arm", "kind")[1] == 'one of "serial" \\| "dynamixel" \\| "mock" \\| "sim"'
+    assert _row(text, "arm", "kind")[1] == 'one of "serial" \\| "dynamixel" \\| "mock" \\| "sim" \\| "robot-server"'
     assert _row(text, "calibration", "camera_height_mm")[1:3] == ["float, or unset (> 0)", "unset"]
     assert _row(text, "drift", "marks_mm")[1:4] == ["list of [float, float]", "`[]`", "mm"]
     assert _row(text, "arm.serial", "speed_mm_s")[3] == "mm/s"

@@ -14,15 +14,15 @@ import socket
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Protocol, get_args
+from typing import Any, Protocol, get_args
 
 from cell.access.security import check_exposure, hash_password
 from cell.access.throttle import Lockout, LoginThrottle
 from cell.assembly import Overrides, assemble, attach_consumers, cell_config, rehearsal_config
 from cell.config import CellConfig
-from cell.core.commands import Command, CommandRefused
+from cell.core.commands import RUNNING, Command, CommandRefused, VisionState
 from cell.core.eventbus import EventBus
-from cell.core.events import SIGNAL_ORIGIN
+from cell.core.events import SIGNAL_ORIGIN, RobotReported
 from cell.errors import REPORTED_ERRORS, ConfigError
 from cell.logretention import LogPruner
 from cell.oplog import log_to_file
@@ -32,6 +32,7 @@ from cell.service.shiftlog import ShiftLog
 from cell.shifts import ShiftCalendar
 from cell.signals import STOP_SIGNALS
 from drivers.arm.config import ArmKind
+from drivers.arm.robot_server import CellStatus, RobotServerArm
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +122,10 @@ def open_service(
     resources.callback(consumers.close)  # after the service has closed: they record its last events
     service = LineService(cell, bus, record)
     resources.callback(service.close)
+    if isinstance(cell.arm, RobotServerArm):
+        bind_robot_server(cell.arm, service)
+        modbus = f", Modbus TCP on port {config.robot_server.modbus_port}" if config.robot_server.modbus_port else ""
+        progress(f"robot server on {cell.arm.port.removeprefix('tcp://')}{modbus} (protocol: docs/robots.md)")
     attached = attach_consumers(config, bus, consumers, service, rehearsal=dry_run)
     service.history = attached.history
     if attached.history is not None:
@@ -136,6 +141,53 @@ def open_service(
     pruner.prune()
     record.on_roll = pruner.prune
     return service
+
+
+ROBOT_REFUSED = "robot-server-refused"  # the warning alarm's key after a connection from an address not allowed
+_ROBOT_ALARM_S = 60.0  # how long that warning shows after the last such connection
+
+
+def bind_robot_server(arm: RobotServerArm, service: LineService) -> None:
+    """The robot server answers STATE and NEXT with the service's state, and a connection from an
+    address not in robot_server.allow raises a warning alarm (cleared a minute after the last)."""
+
+    def status() -> CellStatus:
+        snap = service.snapshot()
+        v = snap.vision_state
+        if v in RUNNING:
+            return "paused" if snap.paused else "waiting" if snap.waiting_for_parts else "running"
+        if snap.hold:
+            return "hold"
+        at_rest: dict[VisionState, CellStatus] = {
+            VisionState.PREOPERATIONAL: "starting",
+            VisionState.HALTED: "halted",
+            VisionState.ERROR: "error",
+        }
+        return at_rest.get(v, "ready")
+
+    timers: list[threading.Timer] = []
+
+    def refused(why: str) -> None:
+        service.raise_warning(
+            ROBOT_REFUSED,
+            why,
+            "only the robots in robot_server.allow may connect: if this was a robot, add its address; "
+            "if not, tell the plant's IT",
+            "robot server",
+        )
+        for t in timers:
+            t.cancel()
+        timer = threading.Timer(_ROBOT_ALARM_S, service.clear_warning, (ROBOT_REFUSED,))
+        timer.daemon = True
+        timer.start()
+        timers[:] = [timer]
+
+    def record(report: dict[str, Any]) -> None:  # a report while no job runs: recorded by the service
+        service.bus.emit(RobotReported(**report))
+
+    arm.board.status = status
+    arm.board.record_between_jobs = record
+    arm.server.on_refused = refused
 
 
 def restore_ledger(service: LineService, config: CellConfig) -> None:

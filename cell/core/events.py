@@ -179,6 +179,22 @@ class ArmCommanded(Event):
 
 
 @dataclass(frozen=True, kw_only=True)
+class RobotReported(Event):
+    """A robot running its own program (arm.kind robot-server) took a pick (`given`), reported it
+    (`picked`, `placed`, `missed`), went silent (`unknown`), or the cell withdrew an offer it had not
+    taken (`withdrawn`). A refused report (accepted false) carries its (-2,code) (docs/robots.md)."""
+
+    kind: ClassVar[str] = "robot"
+    report: str
+    pick_no: int
+    pick_id: str = ""
+    peer: str = ""
+    accepted: bool = True
+    code: int = 0
+    detail: str = ""
+
+
+@dataclass(frozen=True, kw_only=True)
 class FrameLocated(Event):
     """A frame was captured and the vision ran on it."""
 
@@ -415,6 +431,7 @@ EVENT_TYPES: tuple[type[Event], ...] = (
     RunStarted,
     StateChanged,
     ArmCommanded,
+    RobotReported,
     FrameLocated,
     PickOrderChosen,
     TargetChosen,

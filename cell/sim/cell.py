@@ -72,11 +72,14 @@ class SimCell:
     calibration_note: str
     emulated: EmulatedArm | None  # None: the arm is the geometric SimArm
     marks_mm: list[tuple[float, float]]  # reference marks printed on the simulated table
+    world_arm: SimArm | None = None  # arm.kind robot-server: the simulated robot's arm (self.arm is the server)
 
     def motion_time_s(self) -> float:
         """Motion time so far: the emulator's motion model, or SimArm's distance / speed estimate."""
         if self.emulated is not None:
             return self.emulated.motion_time_s()
+        if self.world_arm is not None:
+            return self.world_arm.motion_time_s
         return self.arm.motion_time_s if isinstance(self.arm, SimArm) else 0.0
 
 
@@ -260,6 +263,9 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         world, model, seed=sim.seed, marks_mm=np.array(marks), mark_diameter_mm=config.drift.mark_diameter_mm, bump=bump
     )
     log.info("simulated cell: %d parts on the table, calibration %s", len(parts), note)
+    if config.arm.kind == "robot-server":
+        yield from _robot_server_cell(config, world, camera, calibration, note, marks)
+        return
     if sim_arm_kind(config.arm) != "sim":
         with emulated_arm(
             config.arm, world, sim.emulator_speed_scale, sim.arm_fault_after_grips, sim.arm_fault
@@ -274,6 +280,27 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         realtime=sim.realtime,
     )
     yield SimCell(world, camera, arm, calibration, note, None, marks)
+
+
+def _robot_server_cell(
+    config: CellConfig, world: World, camera: SimCamera, calibration: Calibration, note: str, marks: list
+) -> Iterator[SimCell]:
+    """arm.kind robot-server in the simulated cell: the cell's arm is the robot server, listening on its
+    real socket; the simulated arm is the robot's, moved by a simulated robot program over that socket
+    (robot_server.simulated_robot) or by an outside client's reports (cell.sim.robot)."""
+    from cell.sim.robot import robot_for
+    from drivers.arm.factory import make_arm
+    from drivers.arm.robot_server import RobotServerArm
+
+    sim = config.sim
+    world_arm = SimArm(
+        world, config.planning.workspace, speed_mm_s=sim.speed_mm_s, gripper_s=sim.gripper_s, realtime=sim.realtime
+    )
+    arm = make_arm(config.arm, config.robot_server)
+    assert isinstance(arm, RobotServerArm)
+    with arm.serving() as server:
+        with robot_for(world_arm, server.address, config.robot_server.simulated_robot, arm.board.observers):
+            yield SimCell(world, camera, arm, calibration, note, None, marks, world_arm)
 
 
 def sim_plate_camera(config: CellConfig) -> SimCamera:

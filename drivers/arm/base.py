@@ -5,10 +5,10 @@ from __future__ import annotations
 import abc
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Literal
+from typing import Any, Literal
 
 from drivers.arm.errors import ArmError, ConnectionLost, NotConnected, OutOfReach, PositionLost
 from drivers.arm.kinematics import Pose
@@ -27,6 +27,19 @@ class ArmStatus:
     pose: Pose | None
     gripper_closed: bool | None
     detail: str = ""
+
+
+@dataclass(frozen=True)
+class PickPlan:
+    """A whole pick as the cell planned it, robot base frame (mm, deg): told to an arm before its
+    motions, for an arm that moves by its own program (a robot asking the cell, docs/robots.md)."""
+
+    pick_id: str
+    cls: str
+    pick_mm: tuple[float, float, float]
+    approach_z_mm: float
+    angle_deg: float | None
+    bin_mm: tuple[float, float, float]
 
 
 class Arm(Device):
@@ -81,6 +94,16 @@ class Arm(Device):
         """Let motion resume after a controller restart without homing, moving nothing. Only for
         an operator who has checked the arm is where its controller now says it is: what that
         means, and what is sent, is each driver's (see its unlock). The cell never calls it."""
+
+    def announce(self, plan: PickPlan, cancelled: Callable[[], bool]) -> None:  # noqa: B027 - optional hook
+        """The pick the next motions carry out, before the first of them. An arm the cell moves
+        ignores it; a robot running its own program is offered it (drivers.arm.robot_server), and
+        `cancelled()` true before the robot took it withdraws it (PickWithdrawn: nothing moved)."""
+
+    def take_reports(self) -> list[dict[str, Any]]:
+        """What the arm's own controller reported since the last call (a robot's PICKED, PLACED,
+        MISSED), oldest first, for the record; an arm the cell moves reports nothing."""
+        return []
 
     @property
     def position_lost(self) -> bool:

@@ -6,6 +6,7 @@ units (ticks), named so. Every model forbids unknown keys so a typo names itself
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import string
 from typing import Literal
@@ -229,15 +230,71 @@ class DynamixelArmConfig(Strict):
 
 
 DeviceKind = Literal["serial", "dynamixel"]  # the arms with a driver
-# mock: records and checks every command, moves nothing; sim: the simulated cell's arm (cell.sim).
-ArmKind = Literal["serial", "dynamixel", "mock", "sim"]
+# mock: records and checks every command, moves nothing; sim: the simulated cell's arm (cell.sim);
+# robot-server: an industrial robot runs its own program and asks the cell for each pick (docs/robots.md).
+ArmKind = Literal["serial", "dynamixel", "mock", "sim", "robot-server"]
+
+
+class RobotServerConfig(Strict):
+    """arm.kind 'robot-server': the cell as the vision server a robot's program asks over TCP
+    (and Modbus TCP); the robot does the motion. Protocol and register map: docs/robots.md."""
+
+    host: str = Field("127.0.0.1", description="address to listen on (loopback unless the robot is elsewhere)")
+    port: int = Field(
+        50002, ge=0, le=65535, description="TCP port of the text protocol; 0: a free port the system picks (tests)"
+    )
+    allow: list[str] = Field(
+        ["127.0.0.1", "::1"],
+        description="robot addresses (an address or a network such as '192.168.0.0/24') allowed to connect; "
+        "any other is refused, counted and alarmed (a robot program cannot log in)",
+    )
+    pick_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="a robot that took a pick and reports nothing (PICKED, MISSED, PLACED) within this: "
+        "the pick is recorded as unknown and the cell faults safely",
+    )
+    next_wait_s: float = Field(
+        1.0,
+        ge=0,
+        le=60,
+        description="how long a NEXT waits for the cell's next pick before it is answered (0) (nothing to pick now)",
+    )
+    modbus_port: int = Field(0, ge=0, le=65535, description="Modbus TCP server port for a PLC; 0 = off")
+    simulated_robot: bool = Field(
+        True,
+        description="with the simulated camera: a simulated robot asks over the real socket and moves the "
+        "simulated arm; false: an outside client plays the robot and the simulated world takes its reports",
+    )
+    max_line_bytes: int = Field(
+        256, ge=32, le=65536, description="a request line longer than this closes the connection"
+    )
+    class_numbers: dict[str, int] = Field(
+        {"bolt": 1, "nut": 2},
+        description="the class_no the robot is told for each part class; a class not listed is 0",
+    )
+
+    @field_validator("allow")
+    @classmethod
+    def _addresses(cls, v: list[str]) -> list[str]:
+        for a in v:
+            try:
+                ipaddress.ip_network(a, strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"{a!r} is not an IP address or network (e.g. 192.168.0.10 or 192.168.0.0/24)"
+                ) from None
+        return v
 
 
 class ArmConfig(Strict):
     """Which arm the cell drives and where it is plugged in."""
 
     kind: ArmKind = Field(
-        "mock", description="'mock' records and validates commands and moves nothing; 'sim': the simulated cell's arm"
+        "mock",
+        description="'mock' records and validates commands and moves nothing; 'sim': the simulated cell's arm; "
+        "'robot-server': a robot's own program asks the cell for each pick ([robot_server], docs/robots.md)",
     )
     mock_of: DeviceKind = Field("serial", description="whose limits the mock arm checks")
     port: str = Field("", description="device path or pyserial URL (socket://, spy://); see `run-cell ports`")

@@ -72,3 +72,26 @@ class PositionLost(ArmError):
 
     def __init__(self, message: str = MESSAGE, **kw: str | None) -> None:
         super().__init__(message, **kw)
+
+
+class PickWithdrawn(ArmError):
+    """A pick offered to a robot was withdrawn before the robot took it (a stop came first):
+    nothing moved."""
+
+    default_hint = "nothing to do: the robot never took the pick"
+
+
+class RobotSilent(NoResponse):
+    """A robot took a pick and reported nothing (PICKED, MISSED, PLACED) within its timeout: where
+    the part went is unknown, and the cell faults."""
+
+    default_hint = (
+        "check the robot (its program, its gripper) and the table, take away a part it may hold, then Reset; "
+        "robot_server.pick_timeout_s sets the wait"
+    )
+
+
+class PickUnknown(ArmError):
+    """A command about a pick whose outcome is unknown (its robot went silent): refused."""
+
+    default_hint = "check the robot and the table; where the part went is unknown"

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from drivers.arm.base import Arm
-from drivers.arm.config import ArmConfig
+from drivers.arm.config import ArmConfig, RobotServerConfig
 from drivers.arm.dynamixel import DynamixelArm, ExclusivePortHandler
 from drivers.arm.mock import MockArm
+from drivers.arm.robot_server import RobotServerArm
 from drivers.arm.serial_gcode import SerialGcodeArm
 from drivers.arm.serial_line import SerialLine
 from drivers.errors import ConfigError
@@ -17,10 +18,13 @@ def with_overrides(cfg: ArmConfig, kind: str | None = None, port: str | None = N
     return cfg.model_validate({**cfg.model_dump(), **update}) if update else cfg
 
 
-def make_arm(cfg: ArmConfig) -> Arm:
-    """An unconnected arm for the config; use it as `with make_arm(cfg) as arm:`."""
+def make_arm(cfg: ArmConfig, robot_server: RobotServerConfig | None = None) -> Arm:
+    """An unconnected arm for the config; use it as `with make_arm(cfg) as arm:`. A robot server
+    (kind 'robot-server', set up by `robot_server`) must also be listening: `with arm.serving():`."""
     if cfg.kind == "mock":
         return MockArm(cfg)
+    if cfg.kind == "robot-server":
+        return RobotServerArm(robot_server or RobotServerConfig())
     if cfg.kind == "sim":
         raise ConfigError(
             "arm.kind 'sim' is the simulated cell's arm: it needs camera.source 'sim'",
