@@ -31,11 +31,22 @@ ModelName = Literal["auto", "quadratic", "homography", "polynomial", "camera"]
 class PlateConfig(Strict):
     """The printed calibration plate; the paper's plate by default."""
 
-    columns: int = Field(13, ge=3, le=200)
-    rows: int = Field(12, ge=3, le=200)
-    pitch_x_mm: float = Field(22.0, gt=0, le=1000)
-    pitch_y_mm: float = Field(16.0, gt=0, le=1000)
-    diameter_mm: float = Field(10.0, gt=0, le=500)
+    columns: int = Field(
+        13, ge=3, le=200, description="circles in each row, along table X; point numbers run row by row from point 1"
+    )
+    rows: int = Field(12, ge=3, le=200, description="rows of circles, along table Y")
+    pitch_x_mm: float = Field(
+        22.0, gt=0, le=1000, description="centre-to-centre distance of neighbouring circles along table X (in a row)"
+    )
+    pitch_y_mm: float = Field(
+        16.0, gt=0, le=1000, description="centre-to-centre distance of neighbouring circles along table Y (in a column)"
+    )
+    diameter_mm: float = Field(
+        10.0,
+        gt=0,
+        le=500,
+        description="printed circles' diameter (below both pitches); each found circle's size is checked against it",
+    )
     first_point: Corner = Field("top-left", description="image corner where point 1 lies, for a plate seen unrotated")
 
     @model_validator(mode="after")
@@ -55,10 +66,20 @@ class PlateConfig(Strict):
 class PaperDetectionConfig(Strict):
     """The paper's thresholds, exactly as published (section III-D)."""
 
-    hsv_lower: tuple[int, int, int] = (10, 0, 100)
-    hsv_upper: tuple[int, int, int] = (250, 250, 250)
-    min_area_px: float = Field(500, ge=0)
-    max_area_px: float = Field(2000, gt=0)
+    hsv_lower: tuple[int, int, int] = Field(
+        (10, 0, 100),
+        description="preset paper: lowest H, S, V (OpenCV scales) of the plate's paper; pixels outside the range are circles",
+    )
+    hsv_upper: tuple[int, int, int] = Field(
+        (250, 250, 250),
+        description="preset paper: highest H, S, V (OpenCV scales) of the plate's paper; pixels outside the range are circles",
+    )
+    min_area_px: float = Field(
+        500, ge=0, description="preset paper: a circle's contour must enclose more than this area, image px"
+    )
+    max_area_px: float = Field(
+        2000, gt=0, description="preset paper: a circle's contour must enclose less than this area, image px"
+    )
 
     @model_validator(mode="after")
     def _area_order(self) -> PaperDetectionConfig:
@@ -72,12 +93,18 @@ class PaperDetectionConfig(Strict):
 class DetectionConfig(Strict):
     """How circle centres are found on the plate image."""
 
-    preset: Preset = "default"
+    preset: Preset = Field(
+        "default",
+        description="default: dark blobs on an image pyramid, numbered by lattice growth, centres refined to "
+        "sub-pixel; paper: the published threshold and areas ([detection.paper]), whole-pixel centres, none missing",
+    )
     paper: PaperDetectionConfig = PaperDetectionConfig()
     min_diameter_ratio: float = Field(
         0.6, gt=0, lt=1, description="smallest blob accepted, as a fraction of the lattice's circle diameter"
     )
-    max_diameter_ratio: float = Field(1.5, gt=1, le=3)
+    max_diameter_ratio: float = Field(
+        1.5, gt=1, le=3, description="largest blob accepted, as a multiple of the lattice's circle diameter"
+    )
     max_roundness_error: float = Field(
         0.25, gt=0, le=1, description="1 - (4 pi area / perimeter^2) allowed for a circle blob"
     )
@@ -90,7 +117,11 @@ class DetectionConfig(Strict):
 class CalibrationConfig(Strict):
     """Which model maps pixels to table mm, and when a new fit is refused."""
 
-    model: ModelName = "auto"
+    model: ModelName = Field(
+        "auto",
+        description="pixel -> table mm map to fit: auto fits every one and keeps the lowest cross-validated RMS; "
+        "quadratic (the paper's Eq. 3), homography, polynomial (degree 3 or 4), camera (lens model, ray onto the table)",
+    )
     max_cv_rms_mm: float = Field(
         0.25, gt=0, description="recalibration is refused above this cross-validated RMS error"
     )
@@ -99,7 +130,10 @@ class CalibrationConfig(Strict):
     )
     cv_folds: int = Field(5, ge=2, le=1000, description="k of k-fold cross-validation")
     active_path: Path = Field(Path("calibration/active.json"), description="the calibration run-cell uses")
-    backup_dir: Path = Field(Path("calibration/backups"))
+    backup_dir: Path = Field(
+        Path("calibration/backups"),
+        description="where a recalibration copies the active_path file it replaces (name + date and time)",
+    )
     max_pitch_ratio_error_pct: float = Field(
         2.5,
         gt=0,

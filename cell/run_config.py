@@ -29,12 +29,24 @@ class RobotWorkspace(Workspace):
     """Where the planner lets the tool go, robot frame: the arm's workspace box (ordered
     there) plus a reach ring about the base axis; checked before anything moves."""
 
-    x_min_mm: float = -300.0
-    x_max_mm: float = 300.0
-    y_min_mm: float = -300.0
-    y_max_mm: float = 300.0
-    z_min_mm: float = -5.0
-    z_max_mm: float = 200.0
+    x_min_mm: float = Field(
+        -300.0, description="smallest X of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
+    x_max_mm: float = Field(
+        300.0, description="largest X of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
+    y_min_mm: float = Field(
+        -300.0, description="smallest Y of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
+    y_max_mm: float = Field(
+        300.0, description="largest Y of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
+    z_min_mm: float = Field(
+        -5.0, description="lowest Z of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
+    z_max_mm: float = Field(
+        200.0, description="highest Z of a pick, approach or bin point, robot mm (the arm's base frame)"
+    )
     reach_min_mm: float = Field(60.0, ge=0, description="closest the tool may come to the base axis (XY)")
     reach_max_mm: float = Field(380.0, gt=0, description="farthest the tool may reach from the base axis (XY)")
 
@@ -90,7 +102,7 @@ class FeederConfig(Strict):
     bolt_share: float = Field(0.45, ge=0, le=1, description="fraction of arrivals that are bolts")
     nut_share: float = Field(0.45, ge=0, le=1, description="fraction that are nuts")
     washer_share: float = Field(0.10, ge=0, le=1, description="fraction that are washers (the cell must leave them)")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, description="random seed of the arrivals: each part's kind, size, place and turn")
     area_mm: tuple[float, float, float, float] = Field(
         (15.0, 25.0, 255.0, 170.0),
         description="table rectangle parts land in: x_min, y_min, x_max, y_max (table mm); "
@@ -126,7 +138,11 @@ class SimConfig(Strict):
         description="paper: Table IV's 9 bolts and 8 nuts plus a washer; paper-square-to-base: the same with "
         "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip)",
     )
-    seed: int = Field(0, ge=0)
+    seed: int = Field(
+        0,
+        ge=0,
+        description="random seed of the simulated cell: part turns (layout random: the whole scene), the camera's sensor noise",
+    )
     perfect_calibration: bool = Field(
         False, description="use the camera model itself instead of calibrating the rendered plate"
     )
@@ -159,7 +175,9 @@ class SimConfig(Strict):
     bolt_end_margin_mm: float = Field(
         2.0, ge=0, le=50, description="the jaws must close on a bolt's body at least this far from either end"
     )
-    bolt_angle_tolerance_deg: float = Field(5.0, gt=0, le=90)
+    bolt_angle_tolerance_deg: float = Field(
+        5.0, gt=0, le=90, description="a bolt is gripped only with the jaws within this of square to its axis"
+    )
     bin_half_size_mm: float = Field(40.0, gt=0, le=500, description="a part released within this of a bin lands in it")
     speed_mm_s: float = Field(150.0, gt=0, description="arm.kind sim (the simulated arm): tool speed")
     gripper_s: float = Field(0.4, ge=0, description="arm.kind sim: time to open or close the gripper")

@@ -9,13 +9,14 @@ import warnings
 from pathlib import Path
 
 import pytest
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from cell.access.security import check_exposure
 from cell.cli import main
 from cell.commands.config import REGENERATE, reference, undescribed_keys, unit_of
 from cell.config import CellConfig, load_config
 from cell.telemetry.publisher import password_from_env
+from drivers.config import Strict
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "config.md"
@@ -73,6 +74,19 @@ def _row(text: str, table: str, key: str) -> list[str]:
     return [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
 
 
+def test_a_key_without_description_is_listed_and_says_so() -> None:
+    class Inner(Strict):
+        told: int = Field(1, description="a key that says what it is")
+        untold_mm: float = 2.0
+
+    class Outer(Strict):
+        inner: Inner = Inner()
+
+    assert _row(reference(Outer), "inner", "untold_mm")[3:] == ["mm", "(no description)"]
+    assert _row(reference(Outer), "inner", "told")[4] == "a key that says what it is"
+    assert undescribed_keys(Outer) == ["inner.untold_mm"]
+
+
 def test_rows_say_type_bounds_default_unit_and_description() -> None:
     text = reference()
     assert _row(text, "arm.serial", "motion_timeout_s") == [
@@ -92,7 +106,7 @@ def test_rows_say_type_bounds_default_unit_and_description() -> None:
     assert _row(text, "drift", "marks_mm")[1:4] == ["list of [float, float]", "`[]`", "mm"]
     assert _row(text, "arm.serial", "speed_mm_s")[3] == "mm/s"
     assert _row(text, "arm", "serial")[1:] == ["table", "see below", "none", "see [`[arm.serial]`](#armserial)"]
-    assert _row(text, "plate", "columns")[3:] == ["none", "(no description)"]
+    assert _row(text, "plate", "columns")[3] == "none"
     # a default the machine computes is described: the page must not depend on the PC that wrote it
     import socket
 

@@ -61,7 +61,12 @@ class OpcUaLimits(Strict):
 
 class ServiceConfig(Strict):
     host: str = Field("127.0.0.1", description="address both interfaces listen on; beyond loopback needs security")
-    opcua_port: int = Field(4840, ge=1, le=65535)
+    opcua_port: int = Field(
+        4840,
+        ge=1,
+        le=65535,
+        description="TCP port the OPC UA server listens on (4840 is OPC UA's own); `serve --opcua-port` overrides it",
+    )
     opcua_path: str = Field(
         "cell", pattern=r"^[A-Za-z0-9_-]{1,32}$", description="endpoint path: opc.tcp://HOST:PORT/PATH"
     )

@@ -22,7 +22,9 @@ class WebConfig(Strict):
     frame_max_width_px: int = Field(
         1280, ge=160, le=8000, description="frames are scaled down to this width for the screen"
     )
-    jpeg_quality: int = Field(80, ge=20, le=100)
+    jpeg_quality: int = Field(
+        80, ge=20, le=100, description="JPEG quality of the frames sent to the screens (100: best, largest)"
+    )
     live_interval_s: float = Field(
         2.0,
         ge=0,

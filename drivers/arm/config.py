@@ -22,12 +22,12 @@ TEMPLATE_FIELDS = {"x_mm": 1.0, "y_mm": 2.0, "z_mm": 3.0, "angle_deg": 4.0, "fee
 class Workspace(Strict):
     """Box, in the robot base frame, that targets must lie in; checked before anything is sent."""
 
-    x_min_mm: float = 0.0
-    x_max_mm: float = 200.0
-    y_min_mm: float = 0.0
-    y_max_mm: float = 200.0
-    z_min_mm: float = 0.0
-    z_max_mm: float = 200.0
+    x_min_mm: float = Field(0.0, description="smallest X of a move target, robot mm (the arm's base frame)")
+    x_max_mm: float = Field(200.0, description="largest X of a move target, robot mm (the arm's base frame)")
+    y_min_mm: float = Field(0.0, description="smallest Y of a move target, robot mm (the arm's base frame)")
+    y_max_mm: float = Field(200.0, description="largest Y of a move target, robot mm (the arm's base frame)")
+    z_min_mm: float = Field(0.0, description="lowest Z of a move target, robot mm (the arm's base frame)")
+    z_max_mm: float = Field(200.0, description="highest Z of a move target, robot mm (the arm's base frame)")
 
     @model_validator(mode="after")
     def _ordered(self) -> Workspace:
@@ -54,11 +54,18 @@ class SerialCommands(Strict):
     """
 
     setup: list[str] = Field(["G21", "G90"], description="sent after connect: mm units, absolute mode")
-    rapid: str = "G0 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f}"
-    feed: str = "G1 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f} F{feed_mm_min:.0f}"
+    rapid: str = Field(
+        "G0 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f}", description="a move at the firmware's top speed (rapid_moves true)"
+    )
+    feed: str = Field(
+        "G1 X{x_mm:.3f} Y{y_mm:.3f} Z{z_mm:.3f} F{feed_mm_min:.0f}",
+        description="a move at speed_mm_s (rapid_moves false, the default); {feed_mm_min} is speed_mm_s x 60",
+    )
     rotate: str = Field("", description="turns the tool to angle_deg, e.g. 'G0 A{angle_deg:.2f}'")
-    gripper_open: str = "M5"
-    gripper_close: str = "M3 S1000"
+    gripper_open: str = Field(
+        "M5", description="opens the gripper (default: GRBL's spindle off, for a gripper on the spindle output)"
+    )
+    gripper_close: str = Field("M3 S1000", description="closes the gripper (default: GRBL's spindle on at S1000)")
     wait: str = Field("G4 P0", description="answered only once all motion is done ('M400' on Marlin)")
     home: str = Field("$H", description="homing cycle; empty: move to home_position_mm instead")
     stop: str = Field(
@@ -101,7 +108,9 @@ def _check_template(template: str) -> None:
 class SerialArmConfig(Strict):
     """A G-code arm on a serial line; GRBL 1.1 at its defaults unless told otherwise."""
 
-    baud: int = Field(115200, ge=300, le=4_000_000)
+    baud: int = Field(
+        115200, ge=300, le=4_000_000, description="serial line speed in bit/s, as the controller's firmware expects it"
+    )
     command_timeout_s: float = Field(2.0, gt=0, le=60, description="longest wait for 'ok' to a command")
     motion_timeout_s: float = Field(
         10.0,
@@ -176,17 +185,38 @@ class Geometry(Strict):
 class DynamixelArmConfig(Strict):
     """Dynamixel Protocol 2.0 servos on one bus; defaults as on an OpenManipulator-X."""
 
-    baud: int = Field(1_000_000, ge=9600, le=4_500_000)
+    baud: int = Field(
+        1_000_000,
+        ge=9600,
+        le=4_500_000,
+        description="bus speed in bit/s, as set in every servo and the adapter supports",
+    )
     joint_ids: tuple[int, int, int, int] = Field((11, 12, 13, 14), description="base yaw to wrist pitch")
-    gripper_id: int = Field(15, ge=0, le=252)
+    gripper_id: int = Field(15, ge=0, le=252, description="servo id of the gripper (distinct from joint_ids)")
     geometry: Geometry = Geometry()
-    joint_min_deg: tuple[float, float, float, float] = (-162.0, -102.6, -54.0, -102.6)
-    joint_max_deg: tuple[float, float, float, float] = (162.0, 90.0, 79.2, 117.0)
+    joint_min_deg: tuple[float, float, float, float] = Field(
+        (-162.0, -102.6, -54.0, -102.6),
+        description="lowest angle per joint (base yaw to wrist pitch) from zero_ticks; a move needing less is refused",
+    )
+    joint_max_deg: tuple[float, float, float, float] = Field(
+        (162.0, 90.0, 79.2, 117.0),
+        description="highest angle per joint (base yaw to wrist pitch) from zero_ticks; a move needing more is refused",
+    )
     joint_directions: tuple[int, int, int, int] = Field((1, 1, 1, 1), description="+1 or -1 per joint")
     zero_ticks: int = Field(2048, ge=0, le=4095, description="servo position of joint angle 0 rad")
-    home_joints_deg: tuple[float, float, float, float] = (0.0, -60.0, 20.0, 40.0)
-    gripper_open_ticks: int = Field(1800, ge=0, le=4095)
-    gripper_closed_ticks: int = Field(2400, ge=0, le=4095)
+    home_joints_deg: tuple[float, float, float, float] = Field(
+        (0.0, -60.0, 20.0, 40.0),
+        description="joint angles (base yaw to wrist pitch) `home` moves to; within the limits",
+    )
+    gripper_open_ticks: int = Field(
+        1800, ge=0, le=4095, description="gripper servo's goal position to open (4096 ticks/rev)"
+    )
+    gripper_closed_ticks: int = Field(
+        2400,
+        ge=0,
+        le=4095,
+        description="gripper servo's goal position to close (4096 ticks/rev); a part held stops it short",
+    )
     profile_velocity: int = Field(100, ge=0, le=32767, description="servo units of 0.229 rev/min; 0 = top speed")
     profile_acceleration: int = Field(20, ge=0, le=32767, description="servo units of 214.577 rev/min^2")
     tolerance_ticks: int = Field(10, ge=1, le=400, description="arrival tolerance per servo (4096 ticks/rev)")
@@ -194,7 +224,9 @@ class DynamixelArmConfig(Strict):
         1.0, gt=0, le=90, description="a 4-axis arm turns its gripper with the base: a requested angle must match"
     )
     move_timeout_s: float = Field(10.0, gt=0, le=600, description="longest wait for the servos to arrive")
-    poll_interval_s: float = Field(0.02, gt=0, le=5)
+    poll_interval_s: float = Field(
+        0.02, gt=0, le=5, description="period of the servos' state reads while waiting for a move or the gripper"
+    )
     reconnect_timeout_s: float = Field(10.0, ge=0, le=600, description="how long to wait for a re-plugged adapter")
     comm_retries: int = Field(2, ge=0, le=10, description="retries of a failed bus transfer before giving up")
     latency_timer_ms: float = Field(
