@@ -253,7 +253,10 @@ def backup(config_file: Path | None, out: Path, cell_dir: Path | None = None) ->
                 shutil.copyfile(item.source, copy)
                 os.chmod(copy, stat.S_IMODE(item.source.stat().st_mode))
             except OSError as e:
-                raise BackupRefused(f"{item.source}: cannot read the {item.role}: {e.strerror or e}") from None
+                raise BackupRefused(
+                    f"{item.source}: cannot read the {item.role}: {e.strerror or e}",
+                    hint="run the backup as the service's user (or root): keys and the users file are theirs alone",
+                ) from None
             if item.role == "calibration":
                 calibration_id = _calibration_id(copy)
             kept[item.name] = copy

@@ -111,6 +111,7 @@ def test_a_backup_restored_into_a_new_folder_is_the_same_cell(cell, tmp_path, ca
     assert {a["role"] for a in manifest["absent"]} == {"robot frame"}  # never taught: said, not an error
 
     target = tmp_path / "restored"
+    target.mkdir()  # an empty folder is a new one
     assert main(["restore", str(archive), "--into", str(target)]) == 0
     out = capsys.readouterr().out
     assert "users: anna" in out and "recipes: bolts-only" in out
@@ -267,3 +268,17 @@ def test_a_running_line_service_holds_its_data_folder(tmp_path):
         open_service(cfg, False, stack)
         assert holder_of(cell_resource(tmp_path / "data")) == f"{Path(sys.argv[0]).name} pid {os.getpid()}"
     assert holder_of(cell_resource(tmp_path / "data")) is None
+
+
+def test_a_file_outside_the_cells_folder_comes_back_under_outside_and_is_said(cell, tmp_path, capsys):
+    etc = tmp_path / "etc"
+    etc.mkdir()
+    (etc / "line.toml").write_text(CONFIG)
+    archive = tmp_path / "cell.tar.gz"
+    assert main(["backup", "--config", str(etc / "line.toml"), "--out", str(archive), "--cell-dir", str(cell)]) == 0
+    target = tmp_path / "restored"
+    assert main(["restore", str(archive), "--into", str(target)]) == 0
+    out = capsys.readouterr().out
+    inside = target / "outside" / (etc / "line.toml").relative_to("/")
+    assert inside.read_text() == CONFIG
+    assert "outside the cell's folder" in out and "users: anna" in out
