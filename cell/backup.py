@@ -242,9 +242,8 @@ def backup(config_file: Path | None, out: Path, cell_dir: Path | None = None) ->
         raise OutputError(f"{out}: cannot write beside it: {e.strerror or e}") from None
     try:
         files: list[dict[str, Any]] = []
-        kept: dict[
-            str, Path
-        ] = {}  # the copy taken now is what goes in: a file replaced meanwhile cannot make a hash lie
+        # the copy taken now is what goes in: a file replaced meanwhile cannot make a hash lie
+        kept: dict[str, Path] = {}
         history: dict[str, Any] | None = None
         calibration_id = None
         for item in the_plan.items:

@@ -58,6 +58,14 @@ def secured_cell(work: Path, cache: Path) -> ServeProcess:
     return ServeProcess(work, "--config", str(work / "cell.toml"), "--log-dir", str(work / "logs"))
 
 
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """One secured cell for this module's clients (each leaves it Ready, its recipe unprepared)."""
+    serve = secured_cell(tmp_path_factory.mktemp("secured") / "cell", shared_cache_dir(tmp_path_factory))
+    yield serve
+    assert serve.stop() == 0
+
+
 def endpoint(serve: ServeProcess) -> str:
     return next(line.split("OPC UA ", 1)[1].split(";")[0] for line in serve.lines if line.startswith("ready:"))
 
@@ -66,82 +74,78 @@ def run(argv: list[str], env: dict[str, str] | None = None, cwd: Path | None = N
     return subprocess.run(argv, capture_output=True, text=True, timeout=180, env=env, cwd=cwd)
 
 
-def test_the_documented_python_client_and_screen_script_on_a_secured_cell(tmp_path, tmp_path_factory):
-    serve = secured_cell(tmp_path / "cell", shared_cache_dir(tmp_path_factory))
-    try:
-        certs = tmp_path / "cell" / "certs"
-        key, cert, uri = asyncio.run(make_client_certificate(tmp_path / "plc", "plc-line-3"))
-        program = tmp_path / "plc_sequence.py"
-        program.write_text(block("python", '"""A PLC\'s sequence'))
-        argv = [sys.executable, str(program), endpoint(serve), "--recipe", "bolts-and-nuts", "--results", "2"]
-        argv += ["--user", "plc", "--cert", str(cert), "--key", str(key), "--app-uri", uri]
-        argv += ["--server-cert", str(certs / "server-cert.der")]
-        env = {**os.environ, "CELL_PASSWORD": PASSWORD}
+def test_the_documented_python_client_and_screen_script_on_a_secured_cell(served, tmp_path):
+    certs = served.workdir / "certs"
+    key, cert, uri = asyncio.run(make_client_certificate(tmp_path / "plc", "plc-line-3"))
+    program = tmp_path / "plc_sequence.py"
+    program.write_text(block("python", '"""A PLC\'s sequence'))
+    argv = [sys.executable, str(program), endpoint(served), "--recipe", "bolts-and-nuts", "--results", "2"]
+    argv += ["--user", "plc", "--cert", str(cert), "--key", str(key), "--app-uri", uri]
+    argv += ["--server-cert", str(certs / "server-cert.der")]
+    env = {**os.environ, "CELL_PASSWORD": PASSWORD}
 
-        # step 1.3: the first connection is refused and the certificate saved in rejected/; moved to trusted/
-        refused = run(argv, env)
-        assert refused.returncode != 0 and "recipes:" not in refused.stdout
-        (saved,) = (certs / "rejected").iterdir()
-        assert saved.read_bytes() == cert.read_bytes()
-        (certs / "trusted").mkdir(exist_ok=True)
-        shutil.move(saved, certs / "trusted" / saved.name)
+    # step 1.3: the first connection is refused and the certificate saved in rejected/; moved to trusted/
+    refused = run(argv, env)
+    assert refused.returncode != 0 and "recipes:" not in refused.stdout
+    (saved,) = (certs / "rejected").iterdir()
+    assert saved.read_bytes() == cert.read_bytes()
+    (certs / "trusted").mkdir(exist_ok=True)
+    shutil.move(saved, certs / "trusted" / saved.name)
 
-        done = run(argv, env)
-        assert done.returncode == 0, f"{done.stdout}\n{done.stderr[-3000:]}"
-        out = done.stdout
-        assert "vision system: Operational / Ready" in out
-        assert "recipes: bolts-and-nuts\n" in out  # the shipped sample, listed by GetRecipeListFiltered
-        assert "prepared bolts-and-nuts" in out
-        job = re.search(r"^job (\S+) started$", out, re.M)
-        assert job is not None, out
-        assert len(re.findall(rf"^result {job[1]}/\d+: state 1, ", out, re.M)) == 2
-        assert f"job {job[1]} ended: state 3" in out  # stopped with parts left: Aborted
-        read_back = re.search(rf"^read back (\d+) of (\d+) results of job {job[1]} \(complete: True\)$", out, re.M)
-        assert read_back is not None and read_back[1] == read_back[2] and int(read_back[1]) >= 3, out
-        assert out.rstrip().endswith("done")
+    done = run(argv, env)
+    assert done.returncode == 0, f"{done.stdout}\n{done.stderr[-3000:]}"
+    out = done.stdout
+    assert "vision system: Operational / Ready" in out
+    assert "recipes: bolts-and-nuts\n" in out  # the shipped sample, listed by GetRecipeListFiltered
+    assert "prepared bolts-and-nuts" in out
+    job = re.search(r"^job (\S+) started$", out, re.M)
+    assert job is not None, out
+    assert len(re.findall(rf"^result {job[1]}/\d+: state 1, ", out, re.M)) == 2
+    assert f"job {job[1]} ended: state 3" in out  # stopped with parts left: Aborted
+    read_back = re.search(rf"^read back (\d+) of (\d+) results of job {job[1]} \(complete: True\)$", out, re.M)
+    assert read_back is not None and read_back[1] == read_back[2] and int(read_back[1]) >= 3, out
+    assert out.rstrip().endswith("done")
 
-        screen_url = serve.url
-        script = tmp_path / "screen_api.py"
-        script.write_text(block("python", '"""The operator screen'))
-        ca = str(certs / "screen-cert.pem")
-        shown = run(
-            [sys.executable, str(script), screen_url, "--user", "plc", "--ca", ca, "--recipe", "bolts-and-nuts"], env
+    screen_url = served.url
+    script = tmp_path / "screen_api.py"
+    script.write_text(block("python", '"""The operator screen'))
+    ca = str(certs / "screen-cert.pem")
+    shown = run(
+        [sys.executable, str(script), screen_url, "--user", "plc", "--ca", ca, "--recipe", "bolts-and-nuts"], env
+    )
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert shown.stdout.splitlines() == [
+        "logged in: True",
+        "prepare bolts-and-nuts: 200",
+        "recipe in force: bolts-and-nuts",
+        "unprepare: 200",
+        "logged out: 200",
+    ]
+    # the header is what lets a control through: the same session without it is refused
+    context = ssl.create_default_context(cafile=ca)
+    login = urllib.request.Request(
+        screen_url + "api/login",
+        json.dumps({"user": "plc", "password": PASSWORD}).encode(),
+        {"Content-Type": "application/json"},
+    )
+    with urllib.request.urlopen(login, context=context, timeout=30) as reply:
+        cookie = reply.headers["set-cookie"].split(";", 1)[0]
+        token = json.loads(reply.read())["csrf"]
+    for headers, status in (({}, 403), ({"X-CSRF-Token": "not-the-token"}, 403), ({"X-CSRF-Token": token}, 200)):
+        recipe = urllib.request.Request(
+            screen_url + "api/recipe",
+            b'{"recipe_id": ""}',
+            {"Content-Type": "application/json", "Cookie": cookie, **headers},
         )
-        assert shown.returncode == 0, shown.stderr[-3000:]
-        assert shown.stdout.splitlines() == [
-            "logged in: True",
-            "prepare bolts-and-nuts: 200",
-            "recipe in force: bolts-and-nuts",
-            "unprepare: 200",
-            "logged out: 200",
-        ]
-        # the header is what lets a control through: the same session without it is refused
-        context = ssl.create_default_context(cafile=ca)
-        login = urllib.request.Request(
-            screen_url + "api/login",
-            json.dumps({"user": "plc", "password": PASSWORD}).encode(),
-            {"Content-Type": "application/json"},
-        )
-        with urllib.request.urlopen(login, context=context, timeout=30) as reply:
-            cookie = reply.headers["set-cookie"].split(";", 1)[0]
-            token = json.loads(reply.read())["csrf"]
-        for headers, status in (({}, 403), ({"X-CSRF-Token": "not-the-token"}, 403), ({"X-CSRF-Token": token}, 200)):
-            recipe = urllib.request.Request(
-                screen_url + "api/recipe",
-                b'{"recipe_id": ""}',
-                {"Content-Type": "application/json", "Cookie": cookie, **headers},
-            )
-            try:
-                with urllib.request.urlopen(recipe, context=context, timeout=30) as reply:
-                    got = reply.status
-            except urllib.error.HTTPError as e:
-                got = e.code
-                assert "CSRF" in json.loads(e.read())["error"]
-            assert got == status, headers
+        try:
+            with urllib.request.urlopen(recipe, context=context, timeout=30) as reply:
+                got = reply.status
+        except urllib.error.HTTPError as e:
+            got = e.code
+            assert "CSRF" in json.loads(e.read())["error"]
+        assert got == status, headers
 
-        assert documented_methods() == asyncio.run(declared_methods(endpoint(serve), key, cert, uri))
-    finally:
-        assert serve.stop() == 0
+    assert documented_methods() == asyncio.run(declared_methods(endpoint(served), key, cert, uri))
 
 
 def documented_methods() -> list[str]:
@@ -192,34 +196,30 @@ async def declared_methods(url: str, key: Path, cert: Path, uri: str) -> list[st
 
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed: the node-opcua program is not run")
-def test_the_documented_node_opcua_client_on_a_secured_cell(tmp_path, tmp_path_factory, node_modules):  # noqa: F811
-    serve = secured_cell(tmp_path / "cell", shared_cache_dir(tmp_path_factory))
-    try:
-        certs = tmp_path / "cell" / "certs"
-        program = tmp_path / "plc_sequence.cjs"
-        program.write_text(block("js", "// The same PLC sequence"))
-        home = node_modules.parent  # node-opcua's own PKI folder: made once, kept with the install (not ~)
-        env = {
-            **os.environ,
-            "HOME": str(home),
-            "XDG_CONFIG_HOME": str(home / ".config"),
-            "NODE_PATH": str(node_modules),
-        }
-        key, cert, uri = asyncio.run(make_client_certificate(tmp_path / "plc", "plc-node"))
-        env |= {"CELL_USER": "plc", "CELL_PASSWORD": PASSWORD, "CELL_CERT": str(cert), "CELL_KEY": str(key)}
-        env["CELL_APP_URI"] = uri  # the application URI in the certificate
-        (certs / "trusted").mkdir(exist_ok=True)  # trusted as step 1.3 says (the refusal first: the Python test)
-        shutil.copy(cert, certs / "trusted" / "plc-node.der")
-        argv = ["node", str(program), endpoint(serve), "bolts-and-nuts", "2"]
-        done = run(argv, env)
-        assert done.returncode == 0, f"{done.stdout}\n{done.stderr[-3000:]}"
-        out = done.stdout
-        assert "recipes: bolts-and-nuts\n" in out and "prepared bolts-and-nuts" in out
-        job = re.search(r"^job (\S+) started$", out, re.M)
-        assert job is not None, out
-        assert len(re.findall(rf"^result {job[1]}/\d+: state 1$", out, re.M)) == 2
-        assert f"job {job[1]} ended: Ready" in out
-        assert re.search(rf"^read back (\d+) of \1 results of job {job[1]} \(complete: true\)$", out, re.M), out
-        assert out.rstrip().endswith("done")
-    finally:
-        assert serve.stop() == 0
+def test_the_documented_node_opcua_client_on_a_secured_cell(served, tmp_path, node_modules):  # noqa: F811
+    certs = served.workdir / "certs"
+    program = tmp_path / "plc_sequence.cjs"
+    program.write_text(block("js", "// The same PLC sequence"))
+    home = node_modules.parent  # node-opcua's own PKI folder: made once, kept with the install (not ~)
+    env = {
+        **os.environ,
+        "HOME": str(home),
+        "XDG_CONFIG_HOME": str(home / ".config"),
+        "NODE_PATH": str(node_modules),
+    }
+    key, cert, uri = asyncio.run(make_client_certificate(tmp_path / "plc", "plc-node"))
+    env |= {"CELL_USER": "plc", "CELL_PASSWORD": PASSWORD, "CELL_CERT": str(cert), "CELL_KEY": str(key)}
+    env["CELL_APP_URI"] = uri  # the application URI in the certificate
+    (certs / "trusted").mkdir(exist_ok=True)  # trusted as step 1.3 says (the refusal first: the Python test)
+    shutil.copy(cert, certs / "trusted" / "plc-node.der")
+    argv = ["node", str(program), endpoint(served), "bolts-and-nuts", "2"]
+    done = run(argv, env)
+    assert done.returncode == 0, f"{done.stdout}\n{done.stderr[-3000:]}"
+    out = done.stdout
+    assert "recipes: bolts-and-nuts\n" in out and "prepared bolts-and-nuts" in out
+    job = re.search(r"^job (\S+) started$", out, re.M)
+    assert job is not None, out
+    assert len(re.findall(rf"^result {job[1]}/\d+: state 1$", out, re.M)) == 2
+    assert f"job {job[1]} ended: Ready" in out
+    assert re.search(rf"^read back (\d+) of \1 results of job {job[1]} \(complete: true\)$", out, re.M), out
+    assert out.rstrip().endswith("done")
