@@ -35,6 +35,7 @@ COMMAND_MODULES = [
     "cell.commands.history",
     "cell.commands.report",
     "cell.commands.config",
+    "cell.commands.backup",
 ]
 
 log = logging.getLogger(__name__)

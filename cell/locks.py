@@ -107,3 +107,34 @@ def device_locks(arm_cfg: ArmConfig | None, camera_source: str | None = None) ->
         stack.close()
         raise
     return stack
+
+
+def holder_of(resource: str | os.PathLike[str]) -> str | None:
+    """Who holds the lock of `resource` now ("run-cell pid N"), or None when nobody does; takes
+    nothing (a lock that is free is released at once)."""
+    path = lock_path(str(resource))
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def cell_resource(data_dir: str | os.PathLike[str]) -> str:
+    """The resource a running line service holds for its whole life: its history data folder
+    (`run-cell restore` refuses a target whose data folder is held)."""
+    return os.path.join(os.path.realpath(data_dir), ".cell")
+
+
+def cell_lock(data_dir: str | os.PathLike[str]) -> contextlib.AbstractContextManager[Path]:
+    """Held by `run-cell serve` while it runs: Busy names the holder when another service runs on
+    the same data folder."""
+    return holding(cell_resource(data_dir), "cell (its history data folder)")

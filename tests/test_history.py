@@ -354,7 +354,7 @@ def test_the_query_api_filters_and_gets_by_id(tmp_path):
     assert report.mtbf_s == pytest.approx(7.0) and report.top_alarms == [("arm stalled", 1)]
 
 
-def _config_file(tmp_path, cfg) -> str:
+def config_file(tmp_path, cfg) -> str:
     path = tmp_path / "cell.toml"
     path.write_text(
         f'[run]\nlog_dir = "{cfg.run.log_dir}"\n[history]\ndata_dir = "{cfg.history.data_dir}"\ncell_name = "cell-a"\n'
@@ -365,7 +365,7 @@ def _config_file(tmp_path, cfg) -> str:
 def test_run_cell_history_json_and_csv(tmp_path, capsys):
     cfg = history_config(tmp_path)
     fill(cfg).close()
-    conf = _config_file(tmp_path, cfg)
+    conf = config_file(tmp_path, cfg)
     assert main(["history", "--config", conf, "--shift", "2026-12-01/early", "--json"]) == 0
     picks = json.loads(capsys.readouterr().out)
     assert len(picks) == 5
@@ -383,7 +383,7 @@ def test_run_cell_history_json_and_csv(tmp_path, capsys):
 def test_run_cell_report_and_its_chart(tmp_path, capsys):
     cfg = history_config(tmp_path)
     fill(cfg).close()
-    conf = _config_file(tmp_path, cfg)
+    conf = config_file(tmp_path, cfg)
     png = tmp_path / "chart.png"
     assert main(["report", "--config", conf, "--shift", "2026-12-01/early", "--png", str(png)]) == 0
     out = capsys.readouterr().out
@@ -397,7 +397,7 @@ def test_run_cell_report_and_its_chart(tmp_path, capsys):
 def _kolkata(tmp_path, cfg) -> str:
     """A plant at UTC+05:30 all year: its hours split UTC's, and no daylight saving blurs the offset."""
     path = tmp_path / "kolkata.toml"
-    path.write_text(Path(_config_file(tmp_path, cfg)).read_text() + '[shifts]\ntime_zone = "Asia/Kolkata"\n')
+    path.write_text(Path(config_file(tmp_path, cfg)).read_text() + '[shifts]\ntime_zone = "Asia/Kolkata"\n')
     return str(path)
 
 
@@ -447,7 +447,7 @@ def test_run_cell_history_says_the_zone_its_times_are_in(tmp_path, capsys):
 def test_bad_history_arguments_are_one_line_errors(tmp_path, capsys, argv, message):
     cfg = history_config(tmp_path)
     fill(cfg).close()
-    assert main([*argv, "--config", _config_file(tmp_path, cfg)]) == 2
+    assert main([*argv, "--config", config_file(tmp_path, cfg)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
 
@@ -471,3 +471,20 @@ def test_times_sort_as_text_in_sqlite(tmp_path):
 
     a, b = datetime(2026, 12, 1, 9, 59, 59, 999999, tzinfo=UTC), datetime(2026, 12, 1, 10, tzinfo=UTC)
     assert sqlite_time(a) < sqlite_time(b) and len(sqlite_time(a)) == len(sqlite_time(b))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["history", "copy"], "both are needed"),
+        (["history", "copy", "--to", "sqlite:///x.sqlite"], "give the server as postgresql://"),
+        (["history", "copy", "--to", "postgresql://cell@127.0.0.1:9/x", "--shift", "2026-12-01/early"], "--shift"),
+        (["history", "copy", "--to", "postgresql://cell@127.0.0.1:9/x", "--simulated"], "--simulated"),
+    ],
+)
+def test_history_copy_arguments_are_one_line_errors(tmp_path, capsys, argv, message):
+    cfg = history_config(tmp_path)
+    fill(cfg).close()
+    assert main([*argv, "--config", config_file(tmp_path, cfg)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err

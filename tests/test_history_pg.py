@@ -161,3 +161,43 @@ def test_counters_after_an_outage_and_a_restart_count_the_rows_still_in_the_outb
     finally:
         with psycopg.connect(pg_url, autocommit=True) as conn:
             conn.execute("GRANT INSERT, UPDATE ON ALL TABLES IN SCHEMA public TO cellw")
+
+
+def test_history_copy_moves_sqlite_rows_to_postgresql_once(tmp_path, pg_url, capsys):
+    """`run-cell history copy --to URL`: every row of a cell's SQLite history reaches the server; run
+    again (or after the cell wrote some there itself) nothing is added twice."""
+    import sqlite3
+
+    from cell.cli import main
+    from tests.test_history import config_file
+
+    cfg = history_config(tmp_path)
+    fill(cfg).close()
+    conf = config_file(tmp_path, cfg)
+    local = sqlite3.connect(tmp_path / "data" / "history.sqlite")
+    tables = ("calibrations", "jobs", "picks", "unreachable", "alarms", "commands", "states", "images", "marks")
+    counts = {t: local.execute(f"SELECT count(*) FROM {t}").fetchone()[0] for t in tables}
+    local.close()
+    assert counts["picks"] == 5 and counts["alarms"] >= 1
+    assert main(["history", "copy", "--config", conf, "--to", pg_url]) == 0
+    total = sum(counts.values())
+    assert f"{total} rows read, {total} added, 0 already on the server" in capsys.readouterr().out
+
+    on_server = history_config(tmp_path, url=pg_url)
+    reader = open_reader(on_server)
+    try:
+        assert [p["id"] for p in reader.list_picks()] == [f"{JOB}/{n}" for n in (1, 2, 3, 4, 6)]
+        assert reader.get_pick(f"{JOB}/4")["outcome"] == "failed"
+        assert reader.alarms()[0]["cleared_user"] == "anna"
+        server = {t: reader.db.execute(f"SELECT count(*) FROM {t}")[0][0] for t in tables}
+    finally:
+        reader.close()
+    assert server == counts
+
+    assert main(["history", "copy", "--config", conf, "--to", pg_url]) == 0  # idempotent
+    assert f"{total} rows read, 0 added, {total} already on the server" in capsys.readouterr().out
+    reader = open_reader(on_server)
+    try:
+        assert {t: reader.db.execute(f"SELECT count(*) FROM {t}")[0][0] for t in tables} == counts
+    finally:
+        reader.close()

@@ -45,6 +45,14 @@ def register(sub) -> None:
         description="Print the picks kept in the history store (oldest first). Times are ISO 8601; without a "
         "zone they are the plant's ([shifts].time_zone). A shift is DATE/NAME (2026-12-01/early).",
     )
+    p.add_argument(
+        "action",
+        nargs="?",
+        choices=["copy"],
+        help="copy: send every row of the SQLite history to the PostgreSQL server --to names (rows it holds "
+        "already are left as they are: run it again at will)",
+    )
+    p.add_argument("--to", metavar="URL", help="copy: the server, postgresql://USER@HOST:PORT/DB")
     add_store_arguments(p)
     p.add_argument("--since", help="from this time (ISO 8601, or a date)")
     p.add_argument("--until", help="before this time (ISO 8601, or a date)")
@@ -101,6 +109,8 @@ def cmd_history(args: argparse.Namespace) -> int:
     from cell.shifts import ShiftCalendar
 
     config = store_config(args)
+    if args.action == "copy" or args.to:
+        return _copy(args, config)
     if args.limit is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: give 1 or more")
     if args.dead_letter:
@@ -135,6 +145,44 @@ def cmd_history(args: argparse.Namespace) -> int:
     else:
         for line in _table(picks, calendar.zone):
             print(line)
+    return 0
+
+
+def _copy(args: argparse.Namespace, config: CellConfig) -> int:
+    from cell.history.config import database_url
+    from cell.history.copy import copy_history
+    from cell.history.db import open_postgresql, open_sqlite, redact, sqlite_path
+
+    if args.action != "copy" or not args.to:
+        raise InputError("history copy --to URL: both are needed", hint="run-cell history copy --to postgresql://...")
+    given = [o for o, v in (("--since", args.since), ("--until", args.until), ("--shift", args.shift)) if v]
+    given += [o for o, v in (("--job", args.job), ("--class", args.cls), ("--outcome", args.outcome)) if v]
+    given += [o for o, v in (("--limit", args.limit), ("--dead-letter", args.dead_letter)) if v]
+    given += [o for o, v in (("--json", args.json), ("--csv", args.csv), ("--simulated", args.simulated)) if v]
+    if given:  # rehearsals' picks never go to the plant's server
+        raise InputError(f"history copy sends every row: {', '.join(given)} does not apply", hint="leave it out")
+    if not args.to.startswith(("postgresql://", "postgres://")):
+        raise InputError(f"--to {redact(args.to)}: give the server as postgresql://USER@HOST:PORT/DB")
+    source_url = database_url(config.history, config.run.log_dir)
+    if not source_url.startswith("sqlite:///"):
+        raise InputError(
+            f"history copy: the store is {redact(source_url)}, not a SQLite file",
+            hint="give the SQLite history with --url sqlite:///PATH, or the config that kept it",
+        )
+    source = open_sqlite(sqlite_path(source_url), readonly=True)
+    try:
+        target = open_postgresql(args.to, config.history, "pick-cell history copy")
+        try:
+            print(f"copying {sqlite_path(source_url)} to {redact(args.to)}")
+            tables = copy_history(
+                source, target, progress=lambda t: print(f"  {t.table:13} {t.read:8} rows, {t.added:8} added")
+            )
+        finally:
+            target.close()
+    finally:
+        source.close()
+    read, added = sum(t.read for t in tables), sum(t.added for t in tables)
+    print(f"{read} rows read, {added} added, {read - added} already on the server")
     return 0
 
 

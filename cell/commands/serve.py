@@ -24,6 +24,8 @@ from cell.core.commands import RUNNING, Command, CommandRefused, VisionState
 from cell.core.eventbus import EventBus
 from cell.core.events import SIGNAL_ORIGIN, RobotReported
 from cell.errors import REPORTED_ERRORS, ConfigError
+from cell.history.config import data_dir
+from cell.locks import cell_lock
 from cell.logretention import LogPruner
 from cell.oplog import log_to_file
 from cell.service.fdlimit import check_open_files
@@ -112,6 +114,8 @@ def open_service(
     production's counters, reports and OPC UA never count its picks (rehearsal_config)."""
     if dry_run:
         config = rehearsal_config(config)
+    # one service per data folder, for as long as it runs (`run-cell restore` refuses a live cell by it)
+    resources.enter_context(cell_lock(data_dir(config.history, config.run.log_dir)))
     bus = EventBus()
     resources.callback(bus.close)
     cell = assemble(config, dry_run, resources, shift=True, progress=progress)
