@@ -46,15 +46,20 @@ class Value:
 def _fixed_values() -> tuple[Value, ...]:
     V, K = Value, Kind
     return (
-        V("vision_state", K.TEXT, "", "OPC 40100-1 state: Preoperational, Ready, SingleExecution, ..."),
+        V(
+            "vision_state",
+            K.TEXT,
+            "",
+            "OPC 40100-1 state: Preoperational, Ready, SingleExecution, ContinuousExecution, Halted, Error",
+        ),
         V("cell_state", K.TEXT, "", "the runner's step (CAPTURE, LOCATE, PICK, WAIT, PAUSED ...); IDLE between jobs"),
         V("paused", K.FLAG, "", "a job paused at a safe point (nothing moves)"),
         V("pausing", K.FLAG, "", "a pause was asked for; the last motion is finishing"),
         V("waiting_for_parts", K.FLAG, "", "continuous mode with nothing on the table to pick"),
-        V("job_id", K.TEXT, "", "the running job; empty between jobs"),
+        V("job_id", K.TEXT, "", "the running job (YYYYMMDD-HHMMSS-xxxx); empty between jobs"),
         V("job_mode", K.TEXT, "", "single or continuous while a job runs; empty between jobs"),
         V("recipe", K.TEXT, "", "the prepared recipe's id"),
-        V("hold", K.TEXT, "", "why starts are held; empty if none"),
+        V("hold", K.TEXT, "", "why starts are held (e.g. a recalibration awaiting its answer); empty if none"),
         V("picked", K.COUNT, "parts", "parts picked this shift, every class"),
     )
 
@@ -79,7 +84,7 @@ def _after_picked() -> tuple[Value, ...]:
         V("warnings_active", K.COUNT, "alarms", "warning alarms active"),
         V("heartbeat", K.COUNT, "", "+1 a second while the service runs"),
         V("calibration_id", K.TEXT, "", "content hash of the calibration in use"),
-        V("calibration_model", K.TEXT, "", "the pixel-to-table model"),
+        V("calibration_model", K.TEXT, "", "the pixel-to-table model (quadratic, homography, polynomial, camera)"),
         V("calibration_cv_rms_mm", K.NUMBER, "mm", "its cross-validated RMS error"),
         V("calibration_cv_max_mm", K.NUMBER, "mm", "its cross-validated largest error"),
         V("calibration_time", K.TIME, "", "when the calibration in use was made"),

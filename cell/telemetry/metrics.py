@@ -13,6 +13,7 @@ from typing import Any
 from cell.core.commands import Command
 from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import PickRecord, Snapshot
+from cell.core.values import snapshot_table
 from cell.core.values import snapshot_values as core_values
 from cell.telemetry.sparkplug import DataType
 
@@ -37,51 +38,64 @@ NODE = (
     Spec(DROPPED, D.UINT64, "messages", "updates not published since start (broker away, queue full)"),
 )
 
-_BEFORE_CLASSES = (
-    Spec(
-        "State",
-        D.STRING,
-        "",
-        "OPC 40100-1 state: Preoperational, Ready, SingleExecution, ContinuousExecution, Halted, Error",
-    ),
-    Spec("Cell State", D.STRING, "", "the runner's step (CAPTURE, LOCATE, PICK, WAIT, PAUSED ...); IDLE between jobs"),
-    Spec("Paused", D.BOOLEAN, "", "a job paused at a safe point (nothing moves)"),
-    Spec("Waiting For Parts", D.BOOLEAN, "", "continuous mode with nothing on the table to pick"),
-    Spec("Job/Id", D.STRING, "", "the running job (YYYYMMDD-HHMMSS-xxxx); empty between jobs"),
-    Spec("Job/Mode", D.STRING, "", "single or continuous while a job runs; empty between jobs"),
-    Spec("Recipe", D.STRING, "", "the prepared recipe's id"),
-    Spec("Hold", D.STRING, "", "why starts are held (e.g. a recalibration awaiting its answer); empty if none"),
-    Spec("Counters/Picked", D.UINT64, "parts", "parts picked this shift, every class"),
+# The metrics the snapshot decides: name, the value's key in cell.core.values (one mapping from the
+# Snapshot, and one meaning and unit, for OPC UA, Sparkplug and /metrics), type. The part classes'
+# counters go between the two (class_specs).
+_BEFORE_CLASSES_KEYS = (
+    ("State", "vision_state", D.STRING),
+    ("Cell State", "cell_state", D.STRING),
+    ("Paused", "paused", D.BOOLEAN),
+    ("Waiting For Parts", "waiting_for_parts", D.BOOLEAN),
+    ("Job/Id", "job_id", D.STRING),
+    ("Job/Mode", "job_mode", D.STRING),
+    ("Recipe", "recipe", D.STRING),
+    ("Hold", "hold", D.STRING),
+    ("Counters/Picked", "picked", D.UINT64),
 )
-_AFTER_CLASSES = (
-    Spec("Counters/Misses", D.UINT64, "picks", "picks that left the part on the table this shift"),
-    Spec("Counters/Retries", D.UINT64, "picks", "second and later attempts at a part this shift"),
-    Spec("Counters/Failed", D.UINT64, "parts", "parts given up after their last attempt this shift"),
-    Spec("Counters/Unreachable", D.UINT64, "parts", "parts the arm cannot reach this shift"),
-    Spec("Counters/Unknown Left", D.UINT64, "parts", "parts on the last frame that are not picked (unknown)"),
-    Spec("Rate/Parts Per Minute", D.DOUBLE, "parts/min", "pick rate over the last 20 picks; 0 when no job runs"),
+_AFTER_CLASSES_KEYS = (
+    ("Counters/Misses", "misses", D.UINT64),
+    ("Counters/Retries", "retries", D.UINT64),
+    ("Counters/Failed", "failed", D.UINT64),
+    ("Counters/Unreachable", "unreachable", D.UINT64),
+    ("Counters/Unknown Left", "unknown_left", D.UINT64),
+    ("Rate/Parts Per Minute", "parts_per_minute", D.DOUBLE),
+)
+_AFTER_PICK_KEYS = (
+    ("Alarm/Active", "alarm_active", D.BOOLEAN),
+    ("Alarm/Id", "alarm_id", D.STRING),
+    ("Alarm/Severity", "alarm_severity", D.STRING),
+    ("Alarm/Reason", "alarm_reason", D.STRING),
+    ("Alarm/Hint", "alarm_hint", D.STRING),
+    ("Alarm/Source", "alarm_source", D.STRING),
+    ("Alarm/Warnings", "warnings_active", D.UINT64),
+    ("Calibration/Id", "calibration_id", D.STRING),
+    ("Calibration/Model", "calibration_model", D.STRING),
+    ("Calibration/CV RMS mm", "calibration_cv_rms_mm", D.DOUBLE),
+    ("Calibration/CV Max mm", "calibration_cv_max_mm", D.DOUBLE),
+)
+# Last Pick: one metric per coordinate, from each finished pick (pick_values), not the snapshot
+LAST_PICK = (
     Spec("Last Pick/Id", D.STRING, "", "the pick attempt's id (JOB/N), unique across jobs and restarts"),
-    Spec("Last Pick/Class", D.STRING, "", "bolt or nut"),
+    Spec("Last Pick/Class", D.STRING, "", "the part's class (bolt, nut, a taught type)"),
     Spec("Last Pick/Outcome", D.STRING, "", "picked, missed, failed (given up) or rehearsed (dry run)"),
     Spec("Last Pick/Table X mm", D.DOUBLE, "mm", "where the part lay, table frame (the plate's)"),
     Spec("Last Pick/Table Y mm", D.DOUBLE, "mm", "where the part lay, table frame"),
     Spec("Last Pick/Robot X mm", D.DOUBLE, "mm", "the pick point in the arm's base frame"),
     Spec("Last Pick/Robot Y mm", D.DOUBLE, "mm", "the pick point in the arm's base frame"),
     Spec("Last Pick/Robot Z mm", D.DOUBLE, "mm", "the pick point in the arm's base frame"),
-    Spec("Last Pick/Jaw Angle deg", D.DOUBLE, "deg", "jaw angle for a bolt; null for a nut"),
+    Spec("Last Pick/Jaw Angle deg", D.DOUBLE, "deg", "the jaw angle; null where the class has no axis (a nut)"),
     Spec("Last Pick/Cycle ms", D.DOUBLE, "ms", "from choosing the target to the verdict; null for failed"),
-    Spec("Alarm/Active", D.BOOLEAN, "", "an alarm is shown (the fault, else the newest warning)"),
-    Spec("Alarm/Id", D.STRING, "", "the shown alarm's id"),
-    Spec("Alarm/Severity", D.STRING, "", "fault (needs Reset) or warning"),
-    Spec("Alarm/Reason", D.STRING, "", "what failed and where"),
-    Spec("Alarm/Hint", D.STRING, "", "what the operator can do about it"),
-    Spec("Alarm/Source", D.STRING, "", "what raised it: job, history, telemetry, drift ..."),
-    Spec("Alarm/Warnings", D.UINT64, "alarms", "warning alarms active"),
-    Spec("Calibration/Id", D.STRING, "", "content hash of the calibration in use"),
-    Spec("Calibration/Model", D.STRING, "", "the pixel-to-table model (quadratic, homography, polynomial, camera)"),
-    Spec("Calibration/CV RMS mm", D.DOUBLE, "mm", "its cross-validated RMS error"),
-    Spec("Calibration/CV Max mm", D.DOUBLE, "mm", "its cross-validated largest error"),
 )
+
+
+def _from_core(table: tuple[tuple[str, str, DataType], ...]) -> tuple[Spec, ...]:
+    """Specs whose unit and meaning are the core value's (cell.core.values), under Sparkplug's names."""
+    meaning = {v.key: v for v in snapshot_table(BUILT_IN_PARTS)}
+    return tuple(Spec(name, dtype, meaning[key].unit, meaning[key].meaning) for name, key, dtype in table)
+
+
+_BEFORE_CLASSES = _from_core(_BEFORE_CLASSES_KEYS)
+_AFTER_CLASSES = _from_core(_AFTER_CLASSES_KEYS) + LAST_PICK + _from_core(_AFTER_PICK_KEYS)
 
 
 def class_specs(parts: PartRegistry) -> tuple[Spec, ...]:
@@ -98,35 +112,7 @@ DEVICE = device_table(BUILT_IN_PARTS)  # with the built-in part classes (documen
 
 # metric name -> the value's key in cell.core.values (one mapping from the Snapshot for OPC UA,
 # Sparkplug and /metrics)
-_KEYS = {
-    "State": "vision_state",
-    "Cell State": "cell_state",
-    "Paused": "paused",
-    "Waiting For Parts": "waiting_for_parts",
-    "Job/Id": "job_id",
-    "Job/Mode": "job_mode",
-    "Recipe": "recipe",
-    "Hold": "hold",
-    "Counters/Picked": "picked",
-    "Counters/Misses": "misses",
-    "Counters/Retries": "retries",
-    "Counters/Failed": "failed",
-    "Counters/Unreachable": "unreachable",
-    "Counters/Unknown Left": "unknown_left",
-    "Rate/Parts Per Minute": "parts_per_minute",
-    "Alarm/Active": "alarm_active",
-    "Alarm/Id": "alarm_id",
-    "Alarm/Severity": "alarm_severity",
-    "Alarm/Reason": "alarm_reason",
-    "Alarm/Hint": "alarm_hint",
-    "Alarm/Source": "alarm_source",
-    "Alarm/Warnings": "warnings_active",
-    "Calibration/Id": "calibration_id",
-    "Calibration/Model": "calibration_model",
-    "Calibration/CV RMS mm": "calibration_cv_rms_mm",
-    "Calibration/CV Max mm": "calibration_cv_max_mm",
-}
-
+_KEYS = {name: key for name, key, _ in _BEFORE_CLASSES_KEYS + _AFTER_CLASSES_KEYS + _AFTER_PICK_KEYS}
 
 # Commands over MQTT (with telemetry.mqtt.commands): a host writes true to one of these (DCMD); the
 # answer comes back in the Command/Last metrics. Only these four verbs (and both starts) are offered.
