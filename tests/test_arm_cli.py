@@ -91,7 +91,7 @@ def test_real_arm_without_port_is_a_config_error(capsys):
             '[arm]\nkind = "serial"\n[arm.serial]\nbaud = -5\n',
             "arm.serial.baud: Input should be greater than or equal to 300",
         ),
-        ('[arm]\nkind = "robot"\n', "arm.kind: Input should be 'serial', 'dynamixel', 'mock' or 'sim'"),
+        ('[arm]\nkind = "robot"\n', "arm.kind: Input should be 'serial', 'dynamixel', 'mock', 'sim' or 'robot-server'"),
         ("[arm.serial]\nbaudrate = 9600\n", "arm.serial.baudrate: Extra inputs are not permitted"),
         ('[arm.serial.commands]\nfeed = "G1 X{x}"\n', "arm.serial.commands.feed: unknown placeholder {x}"),
         ("[arm.dynamixel]\ngripper_id = 12\n", "must be distinct"),

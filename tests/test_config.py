@@ -72,6 +72,6 @@ def test_sim_names_the_simulated_arm_and_mock_is_its_old_spelling_only_there():
 def test_cli_choices_are_the_configs_literals():
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     arm = next(a for a in build_parser()._actions if a.dest == "arm")
-    assert tuple(arm.choices) == get_args(ArmKind) == ("serial", "dynamixel", "mock", "sim")
+    assert tuple(arm.choices) == get_args(ArmKind) == ("serial", "dynamixel", "mock", "sim", "robot-server")
     assert next(a for a in sub["jog"]._actions if a.dest == "arm").choices == get_args(ArmKind)
     assert next(a for a in sub["locate"]._actions if a.dest == "preset").choices == get_args(Preset)
