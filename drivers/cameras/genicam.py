@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import importlib
+import ipaddress
 import logging
 import threading
 import time
@@ -38,7 +39,8 @@ INSTALL_HINT = (
     "libcairo2-dev pkg-config`, then `.venv/bin/pip install -e '.[genicam]'` (docs/cameras.md)"
 )
 LOSS_WARNING = "camera-frame-loss"
-FAKE_PREFIX = "Fake_"  # Aravis's in-process Fake interface (tests, docs/cameras.md)
+FAKE_PREFIX = "Fake_"
+ATTEMPT_S = 0.5  # beyond twice the exposure: a triggered frame that has not come is lost  # Aravis's in-process Fake interface (tests, docs/cameras.md)
 
 # GenICam's Bayer names give the first row's first two pixels; OpenCV's name the second row's.
 _CONVERSIONS: dict[str, int] = {
@@ -72,6 +74,14 @@ def aravis() -> Any:
 def _glib_error() -> type[Exception]:
     glib = importlib.import_module("gi.repository.GLib")
     return glib.Error  # type: ignore[no-any-return]
+
+
+def _is_address(text: str) -> bool:
+    try:
+        ipaddress.IPv4Address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _message(error: Exception) -> str:
@@ -167,6 +177,7 @@ class GenICamCamera(Camera):
         self._stream: Any = None
         self._warned = False
         self._lost_reason: str | None = None
+        self._attempt_s = ATTEMPT_S
 
     # -- connecting ------------------------------------------------------------------------------
 
@@ -191,6 +202,8 @@ class GenICamCamera(Camera):
 
     def _find(self, wait: bool) -> GenICamDevice | None:
         """The camera in Aravis's list (by its serial once seen), looked for until open_timeout_s if `wait`."""
+        if _is_address(self.wanted):  # opened directly, no discovery (a camera beyond broadcast's reach too)
+            return None
         wanted = self.device.serial if self.device is not None and self.device.serial else self.wanted
         deadline = time.monotonic() + (self.open_timeout_s if wait else 0.0)
         while True:
@@ -202,7 +215,14 @@ class GenICamCamera(Camera):
         ar = aravis()
         glib_error = _glib_error()
         device = self._find(wait)
-        target = device.device_id if device is not None else self.wanted  # an address beyond discovery's reach
+        if device is None and not _is_address(self.wanted):
+            raise CameraError(
+                f"no camera {self.wanted} answers",
+                source=self.source,
+                hint="`run-cell cameras` lists the cameras this computer sees; for GigE check the cable, power, "
+                "the link's address range, the firewall (GVCP is UDP port 3956) and rp_filter (docs/cameras.md)",
+            )
+        target = device.device_id if device is not None else self.wanted  # an address: opened directly
         try:
             camera = ar.Camera.new(target)
         except glib_error as e:
@@ -257,16 +277,21 @@ class GenICamCamera(Camera):
         )
 
     def _close(self, reachable: bool = True) -> None:
-        camera, stream = self._camera, self._stream
+        """Stop and release the camera. Aravis's release of a camera that no longer answers waits for
+        its control channel's timeouts (10 s): that is left to a thread of its own, not the caller."""
+        held = [self._camera, self._stream]
         self._camera = self._stream = None
+        camera, stream = held
         if reachable and camera is not None and stream is not None:
             try:
                 camera.stop_acquisition()
             except Exception as e:  # a lost camera cannot be told to stop
                 log.debug("camera %s: stop acquisition: %s", self.source, e)
-        if stream is not None:
-            stream.set_emit_signals(False)
-        del camera, stream  # the stream's thread and socket, the control channel: released with the last reference
+        del camera, stream
+        if reachable:
+            held.clear()  # the stream's thread and socket, the control channel: released with the last reference
+        else:
+            threading.Thread(target=held.clear, name=f"release {self.source}", daemon=True).start()
 
     # -- settings, checked against the camera's description -----------------------------------------
 
@@ -308,6 +333,8 @@ class GenICamCamera(Camera):
                 camera.gv_set_packet_delay(cfg.inter_packet_delay_ns)
         for name, value in cfg.features.items():
             self._set_feature(camera.get_device(), name, value)
+        # a software-triggered frame not begun within this is taken as lost whole and asked for again
+        self._attempt_s = ATTEMPT_S + 2 * camera.get_exposure_time() / 1e6
 
     def _set_region(self, camera: Any) -> None:
         w_lo, w_hi = camera.get_width_bounds()
@@ -380,6 +407,24 @@ class GenICamCamera(Camera):
         except _glib_error() as e:
             raise self._refuse(f"feature {name} = {value!r} refused: {_message(e)}") from None
 
+    def settings(self) -> dict[str, object]:
+        """What the open camera reports now (read back, not the config): exposure, gain, format, trigger."""
+        camera = self._camera
+        if camera is None:
+            raise CameraError("settings before connect", source=self.source)
+        device = camera.get_device()
+        values: dict[str, object] = {
+            "exposure_us": camera.get_exposure_time(),
+            "gain_db": camera.get_gain(),
+            "pixel_format": camera.get_pixel_format_as_string(),
+            "region_px": tuple(camera.get_region()),
+            "trigger_mode": device.get_string_feature_value("TriggerMode"),
+            "trigger_source": camera.get_trigger_source(),
+        }
+        if camera.is_gv_device():
+            values["packet_size_bytes"] = camera.gv_get_packet_size()
+        return values
+
     # -- frames ------------------------------------------------------------------------------------
 
     def _grab(self) -> np.ndarray:
@@ -389,7 +434,9 @@ class GenICamCamera(Camera):
         try:
             return self._acquire()
         except glib_error as e:
-            raise self._lost(_message(e)) from None
+            reason = _message(e)
+        # outside the except clause: the failed call's frames (holding the camera) are gone
+        raise self._lost(reason)
 
     def _reopen(self) -> None:
         """The camera was lost: open it again if the same serial answers; else it is still lost."""
@@ -425,12 +472,19 @@ class GenICamCamera(Camera):
         deadline = time.monotonic() + self.cfg.acquisition_timeout_s
         skip = 1 if self.cfg.trigger == "free-run" else 0  # the first one may have begun exposing before
         attempts = 0
-        if self.cfg.trigger == "software":
+        software = self.cfg.trigger == "software"
+        if software:
             camera.software_trigger()
         while (remaining_s := deadline - time.monotonic()) > 0:
-            buffer = stream.timeout_pop_buffer(max(1, int(remaining_s * 1e6)))
+            wait_s = min(remaining_s, self._attempt_s) if software else remaining_s
+            buffer = stream.timeout_pop_buffer(max(1, int(wait_s * 1e6)))
             if buffer is None:
-                break
+                if not software or wait_s >= remaining_s:
+                    break
+                attempts += 1  # the whole frame vanished (its every packet lost): ask again
+                self._count(False)
+                camera.software_trigger()
+                continue
             try:
                 if buffer.get_system_timestamp() < request_ns:
                     self.stats.stale_dropped += 1
@@ -442,7 +496,7 @@ class GenICamCamera(Camera):
                     log.debug(
                         "camera %s: frame %d incomplete: %s", self.source, buffer.get_frame_id(), buffer.get_status()
                     )
-                    if self.cfg.trigger == "software":
+                    if software:
                         camera.software_trigger()  # ask again while the time lasts
                     continue
                 if skip:
@@ -460,7 +514,10 @@ class GenICamCamera(Camera):
             finally:
                 stream.push_buffer(buffer)
         self.stats.timeouts += 1
-        self._probe(camera)  # a camera gone is "lost", not a timeout
+        gone = self._probe(camera)
+        del camera, stream
+        if gone is not None:  # a camera gone is "lost", not a timeout
+            raise self._lost(gone)
         raise self._refuse(
             f"no complete frame within {self.cfg.acquisition_timeout_s:g} s"
             + (f" ({attempts} incomplete)" if attempts else ""),
@@ -468,12 +525,13 @@ class GenICamCamera(Camera):
             "none at all: check the trigger (its line and wiring) and the firewall for the stream (docs/cameras.md)",
         )
 
-    def _probe(self, camera: Any) -> None:
-        """Raise the lost error if the camera no longer answers on its control channel."""
+    def _probe(self, camera: Any) -> str | None:
+        """Why the camera no longer answers on its control channel, or None if it does."""
         try:
             camera.get_device().read_register(0)
         except _glib_error() as e:
-            raise self._lost(_message(e)) from None
+            return _message(e)
+        return None
 
     def _count(self, complete: bool) -> None:
         stats = self.stats
