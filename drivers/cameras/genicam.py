@@ -250,6 +250,8 @@ class GenICamCamera(Camera):
             stream = camera.create_stream(None, None)
             if stream is None:
                 raise self._refuse("cannot open its stream")
+            if camera.is_gv_device():  # a receive buffer of a whole frame (up to net.core.rmem_max; docs/cameras.md)
+                stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.AUTO)
             payload = camera.get_payload()
             for _ in range(self.cfg.buffer_count):
                 stream.push_buffer(ar.Buffer.new_allocate(payload))
@@ -424,6 +426,19 @@ class GenICamCamera(Camera):
         if camera.is_gv_device():
             values["packet_size_bytes"] = camera.gv_get_packet_size()
         return values
+
+    def stream_counters(self) -> dict[str, int]:
+        """Aravis's counters of the open stream since connect (n_completed_buffers, n_failures,
+        n_missing_frames, n_missing_packets, n_resent_packets, n_underruns, ...): what reached this computer."""
+        stream = self._stream
+        if stream is None:
+            raise CameraError("stream counters before connect", source=self.source)
+        uint64 = importlib.import_module("gi.repository.GObject").TYPE_UINT64
+        return {
+            stream.get_info_name(i): int(stream.get_info_uint64(i))
+            for i in range(stream.get_n_infos())
+            if stream.get_info_type(i) == uint64
+        }
 
     # -- frames ------------------------------------------------------------------------------------
 
