@@ -21,7 +21,6 @@ import ipaddress
 import logging
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -154,10 +153,6 @@ class GenICamStats:
         return 100.0 * self.recent.count(False) / len(self.recent) if self.recent else 0.0
 
 
-WarningHook = Callable[[str, str, str], None]  # (key, reason, hint)
-ClearHook = Callable[[str], None]  # (key)
-
-
 class GenICamCamera(Camera):
     """`genicam:<id>`: the id is Aravis's device id, the serial number, or (GigE) the address."""
 
@@ -170,8 +165,6 @@ class GenICamCamera(Camera):
         self.stats = GenICamStats(recent=collections.deque(maxlen=cfg.loss_window_frames))
         self.last_frame: FrameInfo | None = None
         self.device: GenICamDevice | None = None  # what was opened (its serial is the one looked for again)
-        self.on_warning: WarningHook | None = None
-        self.on_clear: ClearHook | None = None
         self._connected = False  # between connect and disconnect, even while the camera is lost
         self._camera: Any = None
         self._stream: Any = None
