@@ -36,9 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.cameras.config import CameraConfig  # noqa: E402
-from drivers.cameras.factory import make_camera  # noqa: E402
+from drivers.cameras.config import GenICamConfig  # noqa: E402
 from drivers.cameras.genicam import GenICamCamera  # noqa: E402
+from drivers.cameras.video import VideoFileCamera  # noqa: E402
 
 W, H = 1920, 1080
 
@@ -53,12 +53,8 @@ def gvcp_port_free() -> bool:
 
 
 def genicam(**settings: object) -> GenICamCamera:
-    cfg = CameraConfig.model_validate(
-        {"source": "genicam:127.0.0.1", "width_px": W, "height_px": H, "genicam": settings}
-    )
-    camera = make_camera(cfg)
-    assert isinstance(camera, GenICamCamera)
-    return camera
+    """The cell's driver as make_camera builds it for camera.source = "genicam:127.0.0.1"."""
+    return GenICamCamera("127.0.0.1", W, H, 5.0, GenICamConfig.model_validate(settings))
 
 
 def timed(capture: Callable[[], np.ndarray], n: int) -> tuple[list[float], float, list[np.ndarray]]:
@@ -123,7 +119,7 @@ def run(args: argparse.Namespace) -> None:
         for frame in frames:
             writer.write(frame[:, :, 0])
         writer.release()
-        reference = make_camera(CameraConfig(source=str(video), width_px=W, height_px=H))
+        reference = VideoFileCamera(video, W, H)
         with reference:
             ref_walls, ref_cpu, ref_frames = timed(reference.capture, args.frames)
         same = all(np.array_equal(a, b) for a, b in zip(frames, ref_frames, strict=True))
