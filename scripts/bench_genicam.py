@@ -14,7 +14,12 @@ and opens it through the cell's driver (camera.source = "genicam:127.0.0.1"), 19
 3. sustained: free-run at --fps for --seconds, the frames read as they come; the stream's own counters
    (Aravis: completed, failed, missing frames and packets) over the whole run, at 0 % configured loss.
 
+4. --pulls N (instead of the above): the camera killed and started again N times under an open driver
+   (each: a capture lost in words, then captures until it is back); this process's descriptors,
+   threads and resident memory before and after (and 15 s after, when Aravis has let go).
+
     python scripts/bench_genicam.py [--frames 100] [--fps 30] [--seconds 5] [--packet-size 8192]
+    python scripts/bench_genicam.py --pulls 100
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.cameras.config import GenICamConfig  # noqa: E402
+from drivers.cameras.errors import CameraError  # noqa: E402
 from drivers.cameras.genicam import GenICamCamera  # noqa: E402
 from drivers.cameras.video import VideoFileCamera  # noqa: E402
 
@@ -81,6 +87,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--pulls", type=int, default=0, help="only the cable-pull soak, N times")
     ap.add_argument(
         "--packet-size", type=int, default=None, help="GigE stream packet size in bytes (default: Aravis negotiates)"
     )
@@ -90,14 +97,71 @@ def main() -> None:
         sys.exit("bench_genicam: no arv-fake-gv-camera-0.8 (Debian aravis-tools)")
     if not gvcp_port_free():
         sys.exit("bench_genicam: 127.0.0.1:3956 (GVCP) is taken: another fake camera runs (the tests?)")
-    proc = subprocess.Popen([fake, "-i", "127.0.0.1", "-s", "BENCH"], stdout=subprocess.DEVNULL)
+    fake_camera = FakeCamera(fake)
     try:
+        if args.pulls:
+            pulls(fake_camera, args.pulls)
+        else:
+            run(args)
+    finally:
+        fake_camera.stop()
+
+
+class FakeCamera:
+    def __init__(self, program: str):
+        self.program = program
+        self.proc = self.start()
+
+    def start(self) -> subprocess.Popen[bytes]:
+        proc = subprocess.Popen(
+            [self.program, "-i", "127.0.0.1", "-s", "BENCH"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         while gvcp_port_free():
             time.sleep(0.02)
-        run(args)
-    finally:
-        proc.kill()
-        proc.wait()
+        return proc
+
+    def stop(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+def held() -> str:
+    fds = len(os.listdir("/proc/self/fd"))
+    threads = len(os.listdir("/proc/self/task"))
+    with open("/proc/self/statm") as f:
+        rss_mb = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return f"{fds} descriptors, {threads} threads, {rss_mb:.1f} MB resident"
+
+
+def pulls(fake: FakeCamera, n: int) -> None:
+    camera = GenICamCamera(
+        "BENCH", 640, 480, 10.0, GenICamConfig(acquisition_timeout_s=1.0, features={"AcquisitionFrameRate": 200.0})
+    )
+    with camera:
+        camera.capture()
+        print(f"before: {held()}", flush=True)
+        t0 = time.monotonic()
+        for i in range(n):
+            fake.stop()
+            try:
+                camera.capture()
+                sys.exit("bench_genicam: a frame from a camera that is gone")
+            except CameraError as e:
+                assert " lost: " in str(e), e
+            fake.proc = fake.start()
+            while True:
+                try:
+                    camera.capture()
+                    break
+                except CameraError:
+                    continue
+            if (i + 1) % 10 == 0:
+                print(f"after {i + 1} pulls: {held()}", flush=True)
+        elapsed = time.monotonic() - t0
+        time.sleep(15)
+        print(
+            f"15 s later: {held()}; lost {camera.stats.lost}, back {camera.stats.reconnects}, {elapsed / n:.1f} s a pull"
+        )
 
 
 def run(args: argparse.Namespace) -> None:

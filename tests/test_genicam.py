@@ -263,6 +263,7 @@ def test_run_cell_camera_snapshot_from_a_genicam_camera(fake_gv, tmp_path, capsy
     assert main(["camera", "--config", str(config), "--snapshot", str(snap)]) == 0
     out = capsys.readouterr().out
     assert out.startswith(f"camera genicam:{fake_gv.serial}: 640 x 480 px\n") and f"snapshot: {snap}" in out
+    assert "raise camera.genicam.exposure_us or the backlight" in out  # the fake's ramp reads dark
     import cv2
 
     assert cv2.imread(str(snap)).shape == (480, 640, 3)
