@@ -240,12 +240,15 @@ class GenICamCamera(Camera):
         self._camera = camera
         try:
             self._configure(ar, camera)
+            payload = camera.get_payload()
             stream = camera.create_stream(None, None)
             if stream is None:
                 raise self._refuse("cannot open its stream")
-            if camera.is_gv_device():  # a receive buffer of a whole frame (up to net.core.rmem_max; docs/cameras.md)
-                stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.AUTO)
-            payload = camera.get_payload()
+            if camera.is_gv_device():
+                # room for a whole frame's packets in the kernel (each small packet costs it about twice its
+                # size): four frames' bytes, capped by net.core.rmem_max (docs/cameras.md)
+                stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
+                stream.set_property("socket-buffer-size", min(4 * payload, 2**31 - 1))
             for _ in range(self.cfg.buffer_count):
                 stream.push_buffer(ar.Buffer.new_allocate(payload))
             self._stream = stream
