@@ -235,7 +235,11 @@ class GenICamCamera(Camera):
                 interface="GigEVision" if camera.is_gv_device() else "USB3Vision",
             )
         if self.device is not None and self.device.serial and device.serial != self.device.serial:
-            raise CameraError(f"found {device.serial}, not {self.device.serial}", source=self.source)
+            raise CameraError(
+                f"{target} is now serial {device.serial}, not {self.device.serial} as when opened",
+                source=self.source,
+                hint="another camera took its address or id; name the camera by its serial number",
+            )
         self.device = device
         self._camera = camera
         try:
@@ -256,8 +260,8 @@ class GenICamCamera(Camera):
         except glib_error as e:
             self._close(reachable=False)
             raise self._refuse(_message(e)) from None
-        except BaseException:
-            self._close(reachable=False)
+        except BaseException:  # a setting refused: the camera answers, let it go at once
+            self._close()
             raise
         self._lost_reason = None
         log.info(
@@ -441,13 +445,17 @@ class GenICamCamera(Camera):
     def _grab(self) -> np.ndarray:
         if self._camera is None:
             self._reopen()
+        ar = aravis()
         glib_error = _glib_error()
         try:
             return self._acquire()
         except glib_error as e:
-            reason = _message(e)
+            reason, code = _message(e), getattr(e, "code", None)
         # outside the except clause: the failed call's frames (holding the camera) are gone
-        raise self._lost(reason)
+        gone = {int(ar.DeviceError.TIMEOUT), int(ar.DeviceError.NOT_CONNECTED), int(ar.DeviceError.TRANSFER_ERROR)}
+        if code in gone or self._probe(self._camera) is not None:
+            raise self._lost(reason)
+        raise self._refuse(reason, "the camera answers but refused the request: see its manual for the feature named")
 
     def _reopen(self) -> None:
         """The camera was lost: open it again if the same serial answers; else it is still lost."""
