@@ -46,7 +46,7 @@ def _aravis_missing() -> str | None:
 
         aravis()
     except CameraError as e:
-        return f"GenICam unavailable here ({e}); .ci/run installs Aravis and PyGObject"
+        return f"no GenICam here ({e}); .ci/run installs Aravis and PyGObject"
     return None
 
 
@@ -156,6 +156,38 @@ def test_the_driver_is_imported_only_for_a_genicam_source():
 def test_a_genicam_source_must_name_a_camera():
     with pytest.raises(CameraError, match=r"no camera named.*run-cell cameras"):
         make_camera(CameraConfig(source="genicam: "))
+
+
+def _without_pygobject(monkeypatch):
+    """This process as on a machine without PyGObject: importing gi fails as it would there."""
+    import importlib
+
+    real = importlib.import_module
+
+    def import_module(name, package=None):
+        if name == "gi" or name.startswith("gi."):
+            raise ModuleNotFoundError("No module named 'gi'")
+        return real(name, package)
+
+    monkeypatch.setattr(importlib, "import_module", import_module)
+
+
+def test_without_aravis_a_genicam_source_says_what_to_install(monkeypatch):
+    _without_pygobject(monkeypatch)
+    camera = genicam_camera("24312345")
+    with pytest.raises(
+        CameraError, match=r"no GenICam support here: No module named 'gi' \(hint: .*gir1\.2-aravis-0\.8.*genicam"
+    ):
+        camera.connect()
+    assert not camera.is_connected
+
+
+def test_without_aravis_run_cell_cameras_lists_the_rest_and_says_why(monkeypatch, capsys):
+    _without_pygobject(monkeypatch)
+    assert main(["cameras"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("OpenCV video devices: ")
+    assert "GenICam cameras: none listed: no GenICam support here: No module named 'gi'" in out
 
 
 @needs_fake_gv

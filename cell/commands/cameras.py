@@ -39,7 +39,7 @@ def cmd_cameras(args: argparse.Namespace) -> int:
 
         devices = list_devices(fake=args.fake)
     except CameraError as e:  # Aravis or PyGObject absent: say so, the OpenCV part stands
-        print(f"GenICam cameras: unavailable: {e}")
+        print(f"GenICam cameras: none listed: {e}")
         return 0
     print(f"GenICam cameras (Aravis): {len(devices) or 'none'}")
     for d in devices:

@@ -65,9 +65,9 @@ def aravis() -> Any:
         gi.require_version("Aravis", "0.8")
         return importlib.import_module("gi.repository.Aravis")
     except ImportError as e:
-        raise GenICamUnavailable(f"GenICam unavailable: {e}", hint=INSTALL_HINT) from None
+        raise GenICamUnavailable(f"no GenICam support here: {e}", hint=INSTALL_HINT) from None
     except ValueError as e:  # gi.require_version: the typelib is absent
-        raise GenICamUnavailable(f"GenICam unavailable: Aravis 0.8: {e}", hint=INSTALL_HINT) from None
+        raise GenICamUnavailable(f"no GenICam support here: Aravis 0.8: {e}", hint=INSTALL_HINT) from None
 
 
 def _glib_error() -> type[Exception]:
