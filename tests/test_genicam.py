@@ -125,6 +125,7 @@ def fake_gv(request) -> Iterator[FakeGV]:
 
 def genicam_config(wanted: str, w: int = 320, h: int = 240, **genicam: object) -> CameraConfig:
     genicam.setdefault("features", {"AcquisitionFrameRate": 200.0})  # the fake answers a trigger at its frame rate
+    genicam.setdefault("acquisition_timeout_s", 10.0)  # generous for a loaded machine; a passing test waits none of it
     return CameraConfig.model_validate(
         {"source": f"genicam:{wanted}", "width_px": w, "height_px": h, "timeout_s": 10, "genicam": genicam}
     )
@@ -241,7 +242,7 @@ def test_a_setting_the_camera_does_not_have_is_refused_naming_it(fake_gv, genica
 
 
 @needs_fake_gv
-@pytest.mark.parametrize("fake_gv", [300], indirect=True)  # 30 % of the stream's packets lost
+@pytest.mark.parametrize("fake_gv", [200], indirect=True)  # 20 % of the stream's packets lost: 2 in 3 frames
 def test_lost_packets_are_counted_retried_and_raise_the_loss_warning(fake_gv):
     camera = genicam_camera(
         "127.0.0.1", 64, 48, acquisition_timeout_s=30.0, loss_alarm_percent=1.0, loss_window_frames=10
@@ -262,7 +263,7 @@ def test_lost_packets_are_counted_retried_and_raise_the_loss_warning(fake_gv):
 
 @needs_fake_gv
 def test_the_camera_killed_is_lost_in_words_and_taken_back_when_it_returns(fake_gv):
-    camera = genicam_camera(fake_gv.serial, acquisition_timeout_s=1.0)
+    camera = genicam_camera(fake_gv.serial)
     with camera:
         camera.capture()
         fake_gv.kill()
