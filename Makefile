@@ -19,6 +19,12 @@ print("      the tests:", names(project["optional-dependencies"]["test"]))
 endef
 export LIST_DEPENDENCIES
 
+# GenICam cameras need Aravis's typelib and what PyGObject builds against (Debian: gir1.2-aravis-0.8,
+# libgirepository1.0-dev, libcairo2-dev, pkg-config); without them the genicam extra is left out and
+# `make demo`/`make test` work as before (the GenICam tests skip, saying why).
+GENICAM_LIBS := pkg-config --exists gobject-introspection-1.0 cairo 2>/dev/null \
+	&& ls /usr/lib/*/girepository-1.0/Aravis-0.8.typelib >/dev/null 2>&1
+
 # The first run sets up .venv (about a minute): a line per step before it starts, pip's own output quiet.
 # The cell alone (what a line PC runs, and `make demo`): its dependencies, no test tools. `make test`,
 # `check`, `lint` and `bench` add the [test] extra (pytest, Playwright, mypy, ruff ...) on top.
@@ -31,6 +37,13 @@ $(STAMP): pyproject.toml
 	@echo "[3/3] installing the cell and what it needs (a minute or so; longer without pip's cache):"
 	@$(PYTHON) -c "$$LIST_DEPENDENCIES" | head -1
 	@$(PY) -m pip install --quiet --progress-bar off -e .
+	@if $(GENICAM_LIBS); then \
+		echo "      GenICam cameras: PyGObject (the system has Aravis and gobject-introspection; 20 s to build)"; \
+		$(PY) -m pip install --quiet --progress-bar off -e '.[genicam]' \
+			|| echo "      GenICam cameras: PyGObject did not install; genicam: sources and their tests are off"; \
+	else \
+		echo "      GenICam cameras: off (no Aravis or gobject-introspection here: docs/cameras.md says what to install)"; \
+	fi
 	@touch $(STAMP)
 	@echo "$(VENV) is ready"
 

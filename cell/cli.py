@@ -29,6 +29,7 @@ COMMAND_MODULES = [
     "cell.commands.arm",
     "cell.commands.locate",
     "cell.commands.camera",
+    "cell.commands.cameras",
     "cell.commands.run",
     "cell.commands.serve",
     "cell.commands.users",

@@ -88,9 +88,11 @@ def _acquire(fd: int, resource: str, what: str, wait_s: float) -> None:
 
 
 def camera_lock(camera_source: str | None) -> contextlib.AbstractContextManager[object]:
-    """The lock of a camera device (an index is /dev/videoN); a file, folder, URL or the
-    simulation needs none."""
+    """The lock of a camera device (an index is /dev/videoN) or of a GenICam camera (by its id); a
+    file, folder, URL or the simulation needs none."""
     source = (camera_source or "").strip()
+    if source.startswith("genicam:"):
+        return holding(f"genicam://{source.removeprefix('genicam:').strip()}", "camera")
     device = f"/dev/video{source}" if source.isdigit() else source if source.startswith("/dev/") else None
     return holding(device, "camera") if device else contextlib.nullcontext()
 

@@ -575,3 +575,19 @@ def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one
         sure = replace(cal, statistics=stats, created_utc="2026-12-02T08:01:00+00:00")
         service.install_calibration(sure, replace(info, calibration_id=sure.content_id))
         assert service.snapshot().warnings == ()
+
+
+def test_a_cameras_warning_is_a_warning_alarm_until_the_camera_clears_it(tmp_path):
+    """A camera reports a condition short of a failure (a GenICam camera's share of incomplete frames,
+    drivers.cameras.genicam) through Camera.on_warning/on_clear, which the service makes its warnings."""
+    no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
+    with running(small_config(tmp_path, feeder=no_feeder)) as service:
+        camera = service.cell.camera
+        assert camera.on_warning is not None and camera.on_clear is not None
+        camera.on_warning("camera-frame-loss", "camera 24312345: 30 % of the last 100 frames came incomplete", "hint")
+        warnings = service.snapshot().warnings
+        assert [(w.source, w.reason) for w in warnings] == [
+            ("camera", "camera 24312345: 30 % of the last 100 frames came incomplete")
+        ]
+        camera.on_clear("camera-frame-loss")
+        assert service.snapshot().warnings == ()

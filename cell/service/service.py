@@ -176,6 +176,8 @@ class LineService:
         interval = self.config.service.capture_interval_s
         self.capture_interval_s = interval / self.config.sim.speed_factor if cell.sim is not None else interval
         self.camera = _Locked(cell.camera, self._device_lock)
+        cell.camera.on_warning = lambda key, reason, hint: self.raise_warning(key, reason, hint, "camera")
+        cell.camera.on_clear = self.clear_warning
         self.recipes = RecipeBook(self.config.service.machine_vision.recipes_dir)
         self.parts: PartRegistry = BUILT_IN_PARTS
         self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)

@@ -199,12 +199,16 @@ def assess(
         view.plate_note = str(e)
         view.partial = partial_plate(gray, max(8, config.plate.count // 4), 2 * config.plate.count)
     share = tracker.update(view.focus) if tracker is not None else None
-    view.advice = advice(view, share, limits)
+    genicam = config.camera.source.strip().startswith("genicam:")
+    view.advice = advice(view, share, limits, "camera.genicam.exposure_us" if genicam else "camera.exposure")
     return view
 
 
-def advice(view: CameraView, focus_share: float | None, limits: Limits = Limits()) -> list[str]:
-    """What to adjust, in words, most urgent first; empty when nothing needs it."""
+def advice(
+    view: CameraView, focus_share: float | None, limits: Limits = Limits(), exposure_key: str = "camera.exposure"
+) -> list[str]:
+    """What to adjust, in words, most urgent first; empty when nothing needs it. `exposure_key`: the
+    config key that sets this camera's exposure."""
     out: list[str] = []
     if focus_share is not None and focus_share < limits.focus_fraction:
         out.append(
@@ -213,13 +217,13 @@ def advice(view: CameraView, focus_share: float | None, limits: Limits = Limits(
     e = view.exposure
     if e.bright_clipped_pct > limits.bright_clipped_pct:
         out.append(
-            f"exposure: {e.bright_clipped_pct:.1f} % of the pixels are white: lower camera.exposure "
+            f"exposure: {e.bright_clipped_pct:.1f} % of the pixels are white: lower {exposure_key} "
             "(or dim the backlight) until none are"
         )
     elif e.backlight < limits.backlight_min or e.dark_clipped_pct > limits.dark_clipped_pct:
         out.append(
             f"exposure: too dark (the backlight reads {e.backlight:.0f} of 255, {e.dark_clipped_pct:.1f} % black): "
-            "raise camera.exposure or the backlight, short of white"
+            f"raise {exposure_key} or the backlight, short of white"
         )
     p = view.plate
     if p is None and view.partial is not None and view.partial.cut_at:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -23,6 +24,11 @@ class Camera(Device):
     source: str
     width_px: int
     height_px: int
+    # Where a camera reports a condition worth a warning alarm that is not a failure (a GenICam camera's
+    # share of incomplete frames): (key, reason, hint), and the key when it is over. The line service sets
+    # them to its warnings; left None, the driver only logs.
+    on_warning: Callable[[str, str, str], None] | None = None
+    on_clear: Callable[[str], None] | None = None
 
     @abc.abstractmethod
     def _grab(self) -> np.ndarray | None:

@@ -157,3 +157,19 @@ class OpenCVCamera(CaptureCamera):
             cap.grab()  # the buffered frame may be old: drop it, keep the next
             ok, frame = cap.read()
         return frame if ok else None
+
+
+def video_devices() -> list[tuple[int, str]]:
+    """The V4L2 capture devices here, as (index for camera.source, the device's own name), by index."""
+    found = []
+    for path in glob.glob("/dev/video*"):
+        number = path.removeprefix("/dev/video")
+        if not number.isdigit():
+            continue
+        try:
+            with open(f"/sys/class/video4linux/video{number}/name", encoding="utf-8", errors="replace") as f:
+                name = f.read().strip()
+        except OSError:
+            name = ""
+        found.append((int(number), name))
+    return sorted(found)
