@@ -17,10 +17,10 @@ from drivers.sim.pty_port import serve_pty
 
 pytestmark = pytest.mark.timeout(60)  # opens a pty with the emulated GRBL
 
-FAST = dict(
-    command_timeout_s=0.5,
+FAST = dict(  # a fast emulator; the waits for an answer stay generous (the emulator's thread may wait for a core)
+    command_timeout_s=5.0,
     motion_timeout_s=3.0,
-    connect_timeout_s=0.5,
+    connect_timeout_s=5.0,
     reconnect_timeout_s=2.0,
     poll_interval_s=0.02,
     speed_mm_s=100.0,
@@ -175,7 +175,7 @@ def test_home_by_moving_when_no_homing_command(grbl):
 
 def test_no_answer_times_out_as_no_response(grbl):
     emu, path = grbl
-    with make_arm(path) as arm:
+    with make_arm(path, command_timeout_s=0.5) as arm:
         emu.inject("no_answer")
         with pytest.raises(NoResponse) as info:
             arm.move_to(10, 10, 10)
@@ -250,7 +250,7 @@ def test_unlock_trusts_the_restarted_controllers_position_and_sends_x_only_then(
 def test_silent_device_at_connect_is_no_banner(grbl):
     emu, path = grbl
     emu.inject("no_answer")
-    arm = make_arm(path)
+    arm = make_arm(path, connect_timeout_s=0.5)
     with pytest.raises(NoResponse, match="no GRBL start-up banner"):
         arm.connect()
     assert not arm.is_connected
