@@ -133,10 +133,11 @@ class SimConfig(Strict):
     truth_offset_y_mm: float = Field(40.0, description="true robot Y of the table origin")
     truth_rotation_deg: float = Field(0.0, ge=-180, le=180, description="true rotation table -> robot")
     truth_table_z_mm: float = Field(0.0, description="true robot Z of the table surface")
-    layout: Literal["paper", "paper-square-to-base", "random"] = Field(
+    layout: Literal["paper", "paper-square-to-base", "paper-fixed-jaws", "random"] = Field(
         "paper",
         description="paper: Table IV's 9 bolts and 8 nuts plus a washer; paper-square-to-base: the same with "
-        "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip)",
+        "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip); "
+        "paper-fixed-jaws: every bolt across arm.serial.fixed_jaw_angle_deg (what a 3-axis gantry can grip)",
     )
     seed: int = Field(
         0,
