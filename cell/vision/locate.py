@@ -161,13 +161,15 @@ def _place(
     """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
-    world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
     bolt_on_side = verdict.cls == BOLT and head_px is not None
+    posed = bolt_on_side and prof is not None and head_px is not None and shaft_px is not None
+    # A posed bolt's place comes from its pose: its centroid is not mapped (a mapping call per part).
+    world = np.zeros(2) if posed else mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
     fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
-    if bolt_on_side and prof is not None and head_px is not None and shaft_px is not None:
+    if posed and prof is not None and head_px is not None and shaft_px is not None:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(

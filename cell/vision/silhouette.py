@@ -47,13 +47,12 @@ def shadow(points_xyz: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
 
 def polygon_moments(poly: np.ndarray) -> tuple[float, np.ndarray]:
     """Area (positive) and area centroid of a simple polygon (N, 2)."""
-    x, y = poly[:, 0], poly[:, 1]
-    xs, ys = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))
-    cross = x * ys - xs * y
-    a = cross.sum() / 2
+    nxt = np.concatenate((poly[1:], poly[:1]))
+    cross = poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]
+    a = float(cross.sum()) / 2
     if abs(a) < 1e-12:
         return 0.0, poly.mean(axis=0)
-    return abs(a), np.array([((x + xs) * cross).sum(), ((y + ys) * cross).sum()]) / (6 * a)
+    return abs(a), (cross @ (poly + nxt)) / (6 * a)
 
 
 def _hull(points: np.ndarray) -> np.ndarray:
@@ -85,8 +84,8 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     other, in order of their angle about their mean. (OpenCV's intersectConvexConvex returns the
     wrong polygon for the head's and the shaft's shadows, which share an edge where they join.)
 
-    A vertex counts as inside when it lies within a hair (1e-9 of the polygons' size, squared) of
-    every edge: a point on a shared edge is kept, and what this adds or leaves out is that small."""
+    A vertex counts as inside when it lies within a hair of every edge (a cross product of 1e-12
+    mm^2): a point on a shared edge is kept, and what this adds or leaves out is that small."""
     a_next = np.concatenate((a[1:], a[:1]))
     b_next = np.concatenate((b[1:], b[:1]))
     ea, eb = a_next - a, b_next - b
@@ -94,8 +93,7 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     # side_b[j, i]: where b's vertex j lies from a's edge i.
     side_a = eb[:, 0] * (a[:, 1:2] - b[:, 1]) - eb[:, 1] * (a[:, 0:1] - b[:, 0])
     side_b = ea[:, 0] * (b[:, 1:2] - a[:, 1]) - ea[:, 1] * (b[:, 0:1] - a[:, 0])
-    size = float(np.ptp(a, axis=0).max() + np.ptp(b, axis=0).max())
-    hair = 1e-9 * size * size
+    hair = 1e-12  # mm^2: about the part (the caster's frame), 1e-12 / an edge's length off it
     kept = [a[(side_a >= -hair).all(axis=1)], b[(side_b >= -hair).all(axis=1)]]
     # a's edge i (from vertex i to i + 1) crosses b's edge j where both change side.
     sa_next = np.concatenate((side_a[1:], side_a[:1]))  # [i, j]: a's vertex i + 1 from b's edge j
@@ -140,7 +138,9 @@ class Bolt:
     shaft_length_mm: float
     axis_deg: float
 
-    def solids(self, centre: np.ndarray) -> list[np.ndarray]:
+    def frame(self) -> tuple[np.ndarray, tuple[float, float], np.ndarray, tuple[float, float], np.ndarray, np.ndarray]:
+        """The head's and the shaft's rings (across the axis, height: (n, 2)) and where along the
+        axis each prism begins and ends, then the axis and across-axis unit vectors."""
         s, k, d, L = self.head_across_flats_mm, self.head_length_mm, self.shaft_mm, self.shaft_length_mm
         e = 2 * s / math.sqrt(3)  # the head's width seen from above (across corners)
         u0 = -(k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)  # head-shaft junction
@@ -148,12 +148,16 @@ class Bolt:
         axis, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
         head_vz = (e / 2) * _HEX_COS_SIN + (0.0, s / 2)
         shaft_vz = (d / 2) * _RING_COS_SIN + (0.0, s / 2)
+        return head_vz, (u0 - k, u0), shaft_vz, (u0, u0 + L), axis, side
+
+    def solids(self, centre: np.ndarray) -> list[np.ndarray]:
+        head_vz, head_u, shaft_vz, shaft_u, axis, side = self.frame()
 
         def prism(vz: np.ndarray, u_from: float, u_to: float) -> np.ndarray:
             ends = [centre + u * axis + vz[:, :1] * side for u in (u_from, u_to)]
             return np.column_stack([np.vstack(ends), np.concatenate([vz[:, 1], vz[:, 1]])])
 
-        return [prism(head_vz, u0 - k, u0), prism(shaft_vz, u0, u0 + L)]
+        return [prism(head_vz, *head_u), prism(shaft_vz, *shaft_u)]
 
 
 Shape = Nut | Bolt
@@ -167,10 +171,22 @@ class _Caster:
 
     def __init__(self, shape: Shape, camera_centre: np.ndarray):
         c = np.asarray(camera_centre, dtype=np.float64)
-        self.solids = []
-        for solid in shape.solids(np.zeros(2)):
-            k = c[2] / np.maximum(c[2] - solid[:, 2], 1e-9)
-            self.solids.append((c[:2] + (solid[:, :2] - c[:2]) * k[:, None], k[:, None] - 1.0))
+        self.solids: list[tuple[np.ndarray, np.ndarray]] = []
+        if isinstance(shape, Nut):  # the bottom hexagon (k = 1) and the top one
+            r = shape.across_flats_mm / math.sqrt(3)
+            hexagon = r * _unit_circle(np.deg2rad(shape.corner_deg + 60.0 * np.arange(6)))
+            k = c[2] / max(c[2] - shape.thickness_mm, 1e-9)
+            base = np.concatenate((hexagon, c[:2] + (hexagon - c[:2]) * k))
+            self.solids.append((base, np.repeat([[0.0], [k - 1.0]], 6, axis=0)))
+            return
+        # A bolt: the head's end faces (6 corners each) and the shaft's (_RING points each), all at
+        # the heights of their ring, so the magnifications are computed once per ring.
+        head_vz, head_u, shaft_vz, shaft_u, axis, side = shape.frame()
+        for vz, ends in ((head_vz, head_u), (shaft_vz, shaft_u)):
+            k = c[2] / np.maximum(c[2] - vz[:, 1:], 1e-9)  # (n, 1)
+            local = vz[:, :1] * side  # (n, 2): across the axis
+            base = np.concatenate([c[:2] + (u * axis + local - c[:2]) * k for u in ends])
+            self.solids.append((base, np.concatenate((k, k)) - 1.0))
 
     def moments(self, centre: np.ndarray) -> tuple[float, np.ndarray]:
         hulls = [cv2.convexHull((base + k1 * centre).astype(np.float32), clockwise=False) for base, k1 in self.solids]
