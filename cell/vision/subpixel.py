@@ -44,10 +44,10 @@ def subpixel_outline(gray: np.ndarray, outline: np.ndarray, fraction: float) -> 
     # The bilinear 4x upsampling of 8-bit levels is exact in 1/64ths of a level (its weights are
     # eighths): OpenCV computes it on 64 x the levels in 16 bits, in half the time of float32, and
     # each upsampled level (a whole number of 64ths) is below the (float32) threshold exactly when
-    # it is below the threshold's 64ths rounded up, which cv2.compare takes as it is.
+    # it is below the threshold's 64ths rounded up.
     up64 = cv2.resize(roi.astype(np.uint16) << 6, None, fx=UPSAMPLE, fy=UPSAMPLE, interpolation=cv2.INTER_LINEAR)
     level = float(np.float32(fraction * _median(paper)))
-    dark = cv2.compare(up64, float(math.ceil(64.0 * level)), cv2.CMP_LT)
+    dark = (up64 < math.ceil(64.0 * level)).view(np.uint8)
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return None
