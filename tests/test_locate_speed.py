@@ -122,8 +122,7 @@ def test_whole_frames_locate_as_before():
     config = PartsConfig()
     for frame, cal in _frames(2):
         ours = locate(frame, cal, config).objects
-        with previous.previous_locate():
-            theirs = locate(frame, cal, config).objects
+        theirs = previous.locate(frame, cal, config).objects
         assert len(ours) == len(theirs) >= 15
         for a, b in zip(ours, theirs, strict=True):
             assert (a.cls, a.pick, a.reason) == (b.cls, b.pick, b.reason)

@@ -91,10 +91,26 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
         warnings.append("the calibration has no camera pose: no part-height correction")
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
     scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
+    verdicts = [
+        classify(feat, blob.outer, local_scale, cfg, slope)
+        for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True)
+    ]
+    fines = [
+        _fine_outline(verdict, correct, cfg, gray, blob.outer)
+        for blob, verdict in zip(seg.blobs, verdicts, strict=True)
+    ]
+    outlines_mm = _outlines_on_table(
+        mapper,
+        [
+            _thinned(f) if f is not None and correct and _shadow_placed(v) else None
+            for v, f in zip(verdicts, fines, strict=True)
+        ],
+    )
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
-        verdict = classify(feat, blob.outer, local_scale, cfg, slope)
-        part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
+    for blob, feat, verdict, local_scale, fine, outline_mm in zip(
+        seg.blobs, feats, verdicts, scales, fines, outlines_mm, strict=True
+    ):
+        part = _place(feat, verdict, local_scale, mapper, cfg, correct, fine, outline_mm)
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
@@ -149,6 +165,40 @@ def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
     return 0.0
 
 
+def _posed(verdict: Verdict) -> bool:
+    """A bolt on its side with a width profile: its pose places it (footprint.py)."""
+    return (
+        verdict.cls == BOLT
+        and verdict.profile is not None
+        and verdict.head_width_px is not None
+        and verdict.shaft_width_px is not None
+    )
+
+
+def _shadow_placed(verdict: Verdict) -> bool:
+    """Placed by its shadow (with height correction): a nut, or a posed bolt."""
+    return verdict.cls == NUT or _posed(verdict)
+
+
+def _fine_outline(
+    verdict: Verdict, correct: bool, cfg: PartsConfig, gray: np.ndarray, outline: np.ndarray
+) -> np.ndarray | None:
+    """The sub-pixel outline where it is used: a bolt on its side (its pose), a nut with height correction."""
+    bolt_on_side = verdict.cls == BOLT and verdict.head_width_px is not None
+    if bolt_on_side or (verdict.cls == NUT and correct):
+        return subpixel_outline(gray, outline, cfg.segment.threshold_fraction)
+    return None
+
+
+def _outlines_on_table(mapper, outlines_px: list[np.ndarray | None]) -> list[np.ndarray | None]:
+    """Each outline mapped onto the table plane, all in one mapping call (its cost is mostly per call)."""
+    given = [o for o in outlines_px if o is not None]
+    if not given:
+        return [None] * len(outlines_px)
+    mapped = iter(np.split(mapper.pixel_to_table_mm(np.concatenate(given)), np.cumsum([len(o) for o in given])[:-1]))
+    return [None if o is None else next(mapped) for o in outlines_px]
+
+
 def _place(
     feat: Features,
     verdict: Verdict,
@@ -156,19 +206,18 @@ def _place(
     mapper,
     cfg: PartsConfig,
     correct: bool,
-    seen: tuple[np.ndarray, np.ndarray],
+    fine: np.ndarray | None,
+    outline_mm: np.ndarray | None,
 ) -> LocatedPart:
-    """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
+    """`fine`: the blob's sub-pixel outline where one is needed (a bolt's pose is measured on it);
+    `outline_mm`: that outline, thinned, on the table plane where the shadow places the part."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
     angle = head = grasp = jaw = None
     prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
-    bolt_on_side = verdict.cls == BOLT and head_px is not None
-    posed = bolt_on_side and prof is not None and head_px is not None and shaft_px is not None
+    posed = _posed(verdict)
     # A posed bolt's place comes from its pose: its centroid is not mapped (a mapping call per part).
     world = np.zeros(2) if posed else mapper.pixel_to_table_mm(centre, height_mm=height)[0]
-    needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
-    fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
     if posed and prof is not None and head_px is not None and shaft_px is not None:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
@@ -182,9 +231,8 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
-        if correct and fine is not None:
+        if correct and outline_mm is not None:
             # The shadow's centroid places the bolt; its head and grasp point move with it.
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
             shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
             world, head, grasp = world + shift, head + shift, grasp + shift
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
@@ -195,8 +243,7 @@ def _place(
         angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
         head = ends[0]
     elif verdict.cls == NUT:
-        if correct and fine is not None:
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
+        if correct and outline_mm is not None:
             nut = nut_from_outline(
                 outline_mm,
                 verdict.size_mm["across_flats_mm"],
