@@ -106,7 +106,7 @@ def resample(outline: np.ndarray, count: int | None = None, step_px: float = 0.5
     if s[-1] <= 0:
         return pts[:1]
     n = count or max(3, int(s[-1] / step_px))
-    t = np.linspace(0, s[-1], n, endpoint=False)
+    t = np.arange(n) * (s[-1] / n)  # np.linspace(0, s[-1], n, endpoint=False), without its overhead
     return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
 
 
