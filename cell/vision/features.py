@@ -114,9 +114,10 @@ def hexagonality(outline: np.ndarray, centre: tuple[float, float]) -> float:
     """Sixth angular harmonic of the outline's radius, relative to a regular hexagon's."""
     d = resample(outline, _OUTLINE_SAMPLES) - centre
     z = d.view(np.complex128)[:, 0]  # x + i y, as they lie in memory
-    theta = np.angle(z)
+    theta = np.arctan2(d[:, 1], d[:, 0])  # np.angle(z)
     r = np.abs(z)
-    dtheta = np.angle(np.concatenate((z[1:], z[:1])) * np.conj(z))  # turn from each sample to the next
+    turn = np.concatenate((z[1:], z[:1])) * np.conj(z)
+    dtheta = np.arctan2(turn.imag, turn.real)  # turn from each sample to the next
     mean_r = np.sum(r * dtheta) / (2 * np.pi)
     if abs(mean_r) < 1e-9:
         return 0.0
