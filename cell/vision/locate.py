@@ -43,9 +43,12 @@ class PixelScale:
         self.scale = float(mm_per_px)
 
     def pixel_to_table_mm(self, pixels, height_mm: float = 0.0) -> np.ndarray:
+        return self.lift_mm(np.asarray(pixels, dtype=np.float64).reshape(-1, 2) * self.scale, height_mm)
+
+    def lift_mm(self, on_table: np.ndarray, height_mm: float) -> np.ndarray:
         if height_mm:
             raise InputError("a plain pixel scale cannot correct for part height")
-        return np.asarray(pixels, dtype=np.float64).reshape(-1, 2) * self.scale
+        return on_table
 
     def mm_per_px(self, pixel) -> float:
         return self.scale
@@ -90,11 +93,27 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
-    scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
+    scales, slopes, centres_mm = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
+    verdicts = [
+        classify(feat, blob.outer, local_scale, cfg, slope)
+        for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True)
+    ]
+    fines = [
+        _fine_outline(verdict, correct, cfg, gray, blob.outer)
+        for blob, verdict in zip(seg.blobs, verdicts, strict=True)
+    ]
+    outlines_mm = _outlines_on_table(
+        mapper,
+        [
+            _thinned(f) if f is not None and correct and _shadow_placed(v) else None
+            for v, f in zip(verdicts, fines, strict=True)
+        ],
+    )
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
-        verdict = classify(feat, blob.outer, local_scale, cfg, slope)
-        part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
+    for blob, feat, verdict, local_scale, centre_mm, fine, outline_mm in zip(
+        seg.blobs, feats, verdicts, scales, centres_mm, fines, outlines_mm, strict=True
+    ):
+        part = _place(feat, verdict, local_scale, mapper, cfg, correct, centre_mm, fine, outline_mm)
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
@@ -116,23 +135,24 @@ def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
     return part
 
 
-def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel: the table-plane scale (mm/px, as Calibration.mm_per_px) and the view slope
-    (tangent of the angle between the camera's ray and the vertical; 0 without a pose).
+def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel: the table-plane scale (mm/px, as Calibration.mm_per_px), the view slope
+    (tangent of the angle between the camera's ray and the vertical; 0 without a pose) and the
+    point on the table plane (N, 2).
 
     One mapping call for all parts: a calibration's mapping is the costly step per part.
     """
     n = len(pixels)
     if n == 0:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros((0, 2))
     probes = np.concatenate([pixels, pixels + (1.0, 0.0), pixels + (0.0, 1.0)])
     q = mapper.pixel_to_table_mm(probes).reshape(3, n, 2)
     du, dv = q[1] - q[0], q[2] - q[0]
     scales = np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
     if mapper.camera is None:
-        return scales, np.zeros(n)
+        return scales, np.zeros(n), q[0]
     c = mapper.camera.center_table_mm
-    return scales, np.hypot(*(q[0] - c[:2]).T) / c[2]
+    return scales, np.hypot(*(q[0] - c[:2]).T) / c[2], q[0]
 
 
 def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
@@ -149,6 +169,40 @@ def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
     return 0.0
 
 
+def _posed(verdict: Verdict) -> bool:
+    """A bolt on its side with a width profile: its pose places it (footprint.py)."""
+    return (
+        verdict.cls == BOLT
+        and verdict.profile is not None
+        and verdict.head_width_px is not None
+        and verdict.shaft_width_px is not None
+    )
+
+
+def _shadow_placed(verdict: Verdict) -> bool:
+    """Placed by its shadow (with height correction): a nut, or a posed bolt."""
+    return verdict.cls == NUT or _posed(verdict)
+
+
+def _fine_outline(
+    verdict: Verdict, correct: bool, cfg: PartsConfig, gray: np.ndarray, outline: np.ndarray
+) -> np.ndarray | None:
+    """The sub-pixel outline where it is used: a bolt on its side (its pose), a nut with height correction."""
+    bolt_on_side = verdict.cls == BOLT and verdict.head_width_px is not None
+    if bolt_on_side or (verdict.cls == NUT and correct):
+        return subpixel_outline(gray, outline, cfg.segment.threshold_fraction)
+    return None
+
+
+def _outlines_on_table(mapper, outlines_px: list[np.ndarray | None]) -> list[np.ndarray | None]:
+    """Each outline mapped onto the table plane, all in one mapping call (its cost is mostly per call)."""
+    given = [o for o in outlines_px if o is not None]
+    if not given:
+        return [None] * len(outlines_px)
+    mapped = iter(np.split(mapper.pixel_to_table_mm(np.concatenate(given)), np.cumsum([len(o) for o in given])[:-1]))
+    return [None if o is None else next(mapped) for o in outlines_px]
+
+
 def _place(
     feat: Features,
     verdict: Verdict,
@@ -156,18 +210,27 @@ def _place(
     mapper,
     cfg: PartsConfig,
     correct: bool,
-    seen: tuple[np.ndarray, np.ndarray],
+    centre_mm: np.ndarray,
+    fine: np.ndarray | None,
+    outline_mm: np.ndarray | None,
 ) -> LocatedPart:
-    """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
+    """`centre_mm`: the centroid mapped onto the table plane; `fine`: the blob's sub-pixel outline
+    where one is needed (a bolt's pose is measured on it); `outline_mm`: that outline, thinned, on
+    the table plane where the shadow places the part."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
-    world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
-    bolt_on_side = verdict.cls == BOLT and head_px is not None
-    needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
-    fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
-    if bolt_on_side and prof is not None and head_px is not None and shaft_px is not None:
+    posed = _posed(verdict)
+    # The centroid at the part's reference height (a posed bolt's place comes from its pose): moved
+    # up from the table plane where the mapper can, else mapped again (a mapping call per part).
+    if posed:
+        world = np.zeros(2)
+    elif hasattr(mapper, "lift_mm"):
+        world = mapper.lift_mm(centre_mm.reshape(1, 2), height)[0]
+    else:
+        world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
+    if posed and prof is not None and head_px is not None and shaft_px is not None:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
@@ -180,9 +243,8 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
-        if correct and fine is not None:
+        if correct and outline_mm is not None:
             # The shadow's centroid places the bolt; its head and grasp point move with it.
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
             shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
             world, head, grasp = world + shift, head + shift, grasp + shift
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
@@ -193,8 +255,7 @@ def _place(
         angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
         head = ends[0]
     elif verdict.cls == NUT:
-        if correct and fine is not None:
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
+        if correct and outline_mm is not None:
             nut = nut_from_outline(
                 outline_mm,
                 verdict.size_mm["across_flats_mm"],
