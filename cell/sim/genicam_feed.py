@@ -160,6 +160,8 @@ class FedGenICamCamera(Camera):
 
     def disconnect(self) -> None:
         try:
+            if self._fake is not None:  # the default pattern again: no call into this object once it is gone
+                self._lib.arv.arv_fake_camera_set_fill_pattern(hash(self._fake), _FILL(), None, None)
             self.genicam.disconnect()
         finally:
             self._fake = None
