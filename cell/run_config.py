@@ -197,6 +197,13 @@ class SimConfig(Strict):
         description="run-cell serve: simulated time runs this many times faster than the wall "
         "clock (the feeder, the capture interval): rehearse a shift in minutes",
     )
+    camera_source: str = Field(
+        "sim",
+        pattern=r"^(sim|genicam:Fake_\d+)$",
+        description="the simulated camera's frames reach the cell straight (\"sim\") or through Aravis's "
+        'in-process Fake GenICam camera ("genicam:Fake_1"), fed each rendered frame: the GenICam driver\'s '
+        "whole path (trigger, stream, buffers, camera.genicam's settings) without a camera (docs/cameras.md)",
+    )
     feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(
         0,
