@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -20,7 +21,8 @@ from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, measure, width_profile
 from cell.vision.footprint import BoltPose, bolt_pose
-from cell.vision.segment import segment, to_gray
+from cell.vision.segment import Blob, segment, to_gray
+from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob
 from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
@@ -57,12 +59,13 @@ def _parts_config(config) -> PartsConfig:
     return config if isinstance(config, PartsConfig) else config.parts
 
 
-def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateResult:
+def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Sequence[ShapeModel] = ()) -> LocateResult:
     """Find, classify and locate the parts in one frame.
 
     calibration_or_scale: a Calibration (table mm in its plate frame, height correction
     possible) or a plain mm-per-pixel number. config: PartsConfig or CellConfig (its
-    .parts); None for the defaults.
+    .parts); None for the defaults. shapes: the recipe's taught part types (cell.vision.shapes),
+    tried on each blob before the built-in bolt and nut; none: bolts and nuts only, as always.
     """
     cfg = _parts_config(config)
     mapper = (
@@ -94,6 +97,12 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     found = []
     for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
+        taught, why = _taught(blob, feat, gray, mapper, cfg, shapes, local_scale, correct) if shapes else (None, "")
+        if taught is not None:
+            found.append(_refuse_non_finite(taught))
+            continue
+        if why and verdict.cls not in (BOLT, NUT):
+            verdict = Verdict(verdict.cls, why, verdict.size_mm)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
@@ -103,6 +112,54 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def _taught(
+    blob: Blob,
+    feat: Features,
+    gray: np.ndarray,
+    mapper,
+    cfg: PartsConfig,
+    shapes: Sequence[ShapeModel],
+    scale: float,
+    correct: bool,
+) -> tuple[LocatedPart | None, str]:
+    """The blob as a taught part type, or (None, why not; empty when the built-in rules should say)."""
+    if feat.touches_border:
+        return None, ""
+    silhouette = footprint_of_blob(
+        gray, blob.outer, mapper, cfg.segment.threshold_fraction, cfg.segment.noise_area_mm2 / scale**2
+    )
+    if silhouette is None:
+        return None, ""
+    camera_centre = mapper.camera.center_table_mm if correct else None
+    match, fp, why = best_match(silhouette, shapes, camera_centre)
+    if match is None or not match.accepted or fp is None:
+        return None, why
+    model = next(m for m in shapes if m.name == match.name)
+    grasp, jaw_deg = model.grip_on_table(match.centre_mm, match.angle_deg)
+    centre = match.centre_mm
+    return LocatedPart(
+        id=0,
+        cls=match.name,
+        reason=f"taught type {match.name}: fits its model (score {match.score:.3f}, "
+        f"differs by {match.misfit_mm2:.1f} mm2)",
+        pixel=(float(feat.centroid_px[0]), float(feat.centroid_px[1])),
+        table_mm=(float(centre[0]), float(centre[1])),
+        angle_deg=None if model.symmetry == 0 else float(match.angle_deg),
+        pick=True,
+        grasp_mm=(float(grasp[0]), float(grasp[1])),
+        jaw_opening_mm=model.grip.opening_mm,
+        features={
+            "area_mm2": fp.area_mm2,
+            "holes": len(fp.holes),
+            "symmetry": model.symmetry,
+            "jaw_angle_deg": jaw_deg,
+            "misfit_mm2": match.misfit_mm2,
+            "reference_height_mm": model.height_mm if correct else 0.0,
+        },
+        score=match.score,
+    ), ""
 
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
