@@ -27,6 +27,7 @@ COMMAND_MODULES = [
     "cell.commands.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
+    "cell.commands.part",
     "cell.commands.camera",
     "cell.commands.run",
     "cell.commands.serve",

@@ -102,7 +102,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
             found.append(_refuse_non_finite(taught))
             continue
         if why and verdict.cls not in (BOLT, NUT):
-            verdict = Verdict(verdict.cls, why, verdict.size_mm)
+            verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
@@ -112,6 +112,34 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def silhouettes(image_bgr: np.ndarray, mapper, config: PartsConfig) -> list[tuple[tuple, bool, float]]:
+    """Every blob large enough to be a part, as (its silhouette on the table plane (outer, holes;
+    table mm), whether it touches the image's edge, its area in mm2): what teaching learns from."""
+    image = np.asarray(image_bgr)
+    h, w = image.shape[:2]
+    scale = mapper.mm_per_px((w / 2, h / 2))
+    gray = to_gray(image)
+    seg = segment(
+        image,
+        config,
+        part_width_px=config.max_part_width_mm / scale,
+        noise_area_px=config.segment.noise_area_mm2 / scale**2,
+        gray=gray,
+    )
+    out = []
+    for blob in seg.blobs:
+        feat = measure(blob, seg.mask)
+        area = feat.outer_area_px * scale**2
+        if area < config.min_part_area_mm2:
+            continue
+        sil = footprint_of_blob(
+            gray, blob.outer, mapper, config.segment.threshold_fraction, config.segment.noise_area_mm2 / scale**2
+        )
+        if sil is not None:
+            out.append((sil, blob.touches_border, area))
+    return out
 
 
 def _taught(
