@@ -51,7 +51,7 @@ from cell.calibration.store import Calibration  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
 from cell.errors import CellError  # noqa: E402
 from cell.sim.cameras import FAMILIES, FAMILY, SimulatedCamera, random_camera  # noqa: E402
-from cell.sim.flatparts import layout, make_part, random_types, rect  # noqa: E402
+from cell.sim.flatparts import layout, make_part, random_types  # noqa: E402
 from cell.sim.parts import ExtrudedPart, PartSpec, random_scene, render_scene  # noqa: E402
 from cell.vision.config import PartsConfig  # noqa: E402
 from cell.vision.locate import locate, silhouettes  # noqa: E402
@@ -287,7 +287,7 @@ def main() -> int:
         print(
             f"centre error: mean {np.nanmean(c):.3f} mm, max {np.nanmax(c):.3f} mm; worst camera mean "
             f"{np.mean(worst.centre) if worst.centre else float('nan'):.3f} mm; angle error max "
-            f"{max((max(r.angle, default=0) for r in good)):.2f} deg (modulo symmetry)"
+            f"{max(max(r.angle, default=0) for r in good):.2f} deg (modulo symmetry)"
         )
         print(
             f"locate CPU, one core, 20 parts of 5 taught types: median over cameras "
