@@ -42,7 +42,8 @@ from cell.errors import CellError, InputError
 
 SCHEMA = "pick-cell.shape-model"
 SCHEMA_VERSION = 1
-HARMONICS = 16  # angular harmonics compared per ring
+HARMONICS = 12  # angular harmonics compared per ring
+HARMONIC_STEPS = 3  # the harmonics' raster is this many times coarser than the fit's (anti-aliased)
 RINGS = 8
 FIT_OPENING_MM = 0.3  # differences thinner than twice this are edge noise, not shape
 SYMMETRY_ORDERS = (8, 6, 5, 4, 3, 2)
@@ -96,7 +97,7 @@ class Footprint:
 def _moments(poly: np.ndarray) -> np.ndarray:
     """Area, first and second moments (A, Sx, Sy, Sxx, Syy, Sxy) of a simple polygon, orientation-free."""
     x, y = poly[:, 0], poly[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    xn, yn = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))
     c = x * yn - xn * y
     a = c.sum() / 2
     sx = ((x + xn) * c).sum() / 6
@@ -150,33 +151,48 @@ def fine_outlines(
 
 def _normals(poly: np.ndarray) -> np.ndarray:
     """Unit normal at each vertex pointing out of the polygon's interior (either orientation)."""
-    d = np.roll(poly, -1, axis=0) - np.roll(poly, 1, axis=0)
+    nxt, prv = np.concatenate((poly[1:], poly[:1])), np.concatenate((poly[-1:], poly[:-1]))
+    d = nxt - prv
     n = np.column_stack([d[:, 1], -d[:, 0]])
     x, y = poly[:, 0], poly[:, 1]
-    if (x * np.roll(y, -1) - np.roll(x, -1) * y).sum() < 0:  # clockwise: the right-hand normal points in
+    if (x * nxt[:, 1] - nxt[:, 0] * y).sum() < 0:  # clockwise: the right-hand normal points in
         n = -n
     return n / np.maximum(np.hypot(n[:, 0], n[:, 1]), 1e-12)[:, None]
 
 
+def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
+    """Per point of the outer outline (first) and the holes: whether its side faces away from the
+    camera's foot (what is seen there is the part's top edge)."""
+    out = []
+    for k, poly in enumerate(polys):
+        n = _normals(poly) * (1.0 if k == 0 else -1.0)  # from the material into the air
+        out.append(np.einsum("ij,ij->i", n, foot - poly) < 0)
+    return out
+
+
 def footprint_from_table(
-    outer_mm: np.ndarray, holes_mm: Sequence[np.ndarray], height_mm: float, camera_centre: np.ndarray | None
+    outer_mm: np.ndarray,
+    holes_mm: Sequence[np.ndarray],
+    height_mm: float,
+    camera_centre: np.ndarray | None,
+    far: Sequence[np.ndarray] | None = None,
 ) -> Footprint:
     """The footprint of a prism `height_mm` tall whose silhouette, mapped on the table plane, is
     `outer_mm` with `holes_mm`: points whose side faces away from the camera's foot are its top
-    edge, seen further out, and are moved back onto the plane at its height."""
+    edge, seen further out, and are moved back onto the plane at its height (`far`: those points,
+    from far_sides, where the caller has them)."""
+    polys = [np.asarray(outer_mm, float), *(np.asarray(h, float) for h in holes_mm)]
     if camera_centre is None or height_mm <= 0:
-        return Footprint(np.asarray(outer_mm, float), [np.asarray(h, float) for h in holes_mm])
+        return Footprint(polys[0], polys[1:])
     foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
     shrink = 1.0 - height_mm / cam_h
-
-    def correct(poly: np.ndarray, material_out: float) -> np.ndarray:
-        n = _normals(poly) * material_out  # from the material into the air
-        far = np.einsum("ij,ij->i", n, foot - poly) < 0
-        out = poly.copy()
-        out[far] = foot + (poly[far] - foot) * shrink
-        return out
-
-    return Footprint(correct(np.asarray(outer_mm, float), 1.0), [correct(np.asarray(h, float), -1.0) for h in holes_mm])
+    far = far_sides(polys, foot) if far is None else far
+    out = []
+    for poly, f in zip(polys, far, strict=True):
+        moved = poly.copy()
+        moved[f] = foot + (poly[f] - foot) * shrink
+        out.append(moved)
+    return Footprint(out[0], out[1:])
 
 
 # ---- rasters and harmonics ---------------------------------------------------------------------
@@ -202,8 +218,9 @@ class _Grid:
         rotor = np.exp(-1j * np.arctan2(y, x))
         return _Grid(step_mm, size, ring, rotor)
 
-    def draw(self, outer: np.ndarray, holes: Sequence[np.ndarray]) -> np.ndarray:
-        """uint8 0/1 mask of a footprint given in the grid's frame (origin at the centre, mm)."""
+    def draw(self, outer: np.ndarray, holes: Sequence[np.ndarray], soft: bool = False) -> np.ndarray:
+        """uint8 mask of a footprint given in the grid's frame (origin at the centre, mm): 0/1, or
+        with `soft` 0-255 with anti-aliased edges (for the harmonics)."""
         c = (self.size - 1) / 2
         shift = 4
 
@@ -212,23 +229,32 @@ class _Grid:
             return np.rint(q * (1 << shift)).astype(np.int32)
 
         m = np.zeros((self.size, self.size), np.uint8)
-        cv2.fillPoly(m, [px(outer)], 1, cv2.LINE_8, shift)
+        on, line = (255, cv2.LINE_AA) if soft else (1, cv2.LINE_8)
+        cv2.fillPoly(m, [px(outer)], on, line, shift)
         if holes:
-            cv2.fillPoly(m, [px(h) for h in holes], 0, cv2.LINE_8, shift)
+            cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
         return m
 
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
-        """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels of e^{-i k phi}, k = 1..K."""
+        """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
+        e^{-i k phi}, k = 1..K."""
         idx = np.flatnonzero(mask)
         ring = self.ring.ravel()[idx]
         inside = ring < RINGS
         ring, z = ring[inside], self.rotor.ravel()[idx][inside]
+        order = np.argsort(ring, kind="stable")
+        ring, z = ring[order], z[order] * 1.0
+        powers = np.cumprod(np.broadcast_to(z, (HARMONICS, z.size)), axis=0)  # e^{-i k phi}, k = 1..K
+        powers *= mask.ravel()[idx][inside][order]
         out = np.zeros((RINGS, HARMONICS), np.complex128)
-        zk = np.ones_like(z)
-        for k in range(HARMONICS):
-            zk = zk * z
-            out[:, k] = np.bincount(ring, zk.real, RINGS) + 1j * np.bincount(ring, zk.imag, RINGS)
+        present = np.flatnonzero(np.bincount(ring, minlength=RINGS))
+        if present.size:
+            starts = np.searchsorted(ring, present)
+            out[present] = np.add.reduceat(powers, starts, axis=1).T
         return out
+
+    def soft_harmonics(self, outer: np.ndarray, holes: Sequence[np.ndarray]) -> np.ndarray:
+        return self.harmonics(self.draw(outer, holes, soft=True))
 
 
 _K = np.arange(1, HARMONICS + 1)
@@ -376,9 +402,10 @@ class ShapeModel:
         fp = Footprint(self.outline_mm, self.holes_mm)
         self.area_mm2 = fp.area_mm2
         self.radius_mm = float(np.max(np.hypot(*self.outline_mm.T)))
-        self._grid = _Grid.make(grid_step_mm(self.area_mm2), self.radius_mm * 1.1 + 3.0)
-        self._mask = self._grid.draw(self.outline_mm, self.holes_mm)
-        self._harm = self._grid.harmonics(self._mask)
+        step = grid_step_mm(self.area_mm2)
+        self._grid = _Grid.make(step, self.radius_mm * 1.1 + 3.0)
+        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0)
+        self._harm = self._coarse.soft_harmonics(self.outline_mm, self.holes_mm)
 
     # -- finding
     def candidate(self, area_mm2: float, holes: int) -> bool:
@@ -394,9 +421,8 @@ class ShapeModel:
         plane (the fit: the model's predicted silhouette against it; without one, the footprint)."""
         outer, holes = fp.in_frame(fp.centroid_mm, 0.0)
         g = self._grid
-        angle = (
-            0.0 if self.symmetry == 0 else rotation_deg(g.harmonics(g.draw(outer, holes)), self._harm, self.symmetry)
-        )
+        harm = self._coarse.soft_harmonics(outer, holes)
+        angle = 0.0 if self.symmetry == 0 else rotation_deg(harm, self._harm, self.symmetry)
         if silhouette is None:
             seen = g.draw(outer, holes)
             drawn = predicted_silhouette(g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, 0.0, None)
@@ -696,9 +722,12 @@ def best_match(
     outer, holes = silhouette
     corrected: dict[float, Footprint] = {}
     best: tuple[Match, Footprint] | None = None
+    far = None if camera_centre is None else far_sides([outer, *holes], np.asarray(camera_centre[:2], float))
     for m in models:
+        if len(m.holes_mm) != len(holes):
+            continue
         if m.height_mm not in corrected:
-            corrected[m.height_mm] = footprint_from_table(outer, holes, m.height_mm, camera_centre)
+            corrected[m.height_mm] = footprint_from_table(outer, holes, m.height_mm, camera_centre, far)
         fp = corrected[m.height_mm]
         if not m.candidate(fp.area_mm2, len(holes)):
             continue
