@@ -235,6 +235,12 @@ class _Grid:
             cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
         return m
 
+    def fill(self, mask: np.ndarray, poly: np.ndarray) -> None:
+        """Paint a polygon (the grid's frame, mm) into a 0/1 mask."""
+        c = (self.size - 1) / 2
+        q = np.column_stack([c + poly[:, 0] / self.step_mm, c - poly[:, 1] / self.step_mm])
+        cv2.fillPoly(mask, [np.rint(q * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
         """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
         e^{-i k phi}, k = 1..K."""
@@ -295,7 +301,8 @@ def _turn(points: np.ndarray, angle_deg: float) -> np.ndarray:
     return np.asarray(points, float) @ rot.T
 
 
-_SWEEP_LAYERS = 5
+_SWEEP_LAYERS = 6  # at most: the bottom face, the top face and copies between them...
+_SWEEP_STEP_MM = 0.4  # ...at most this far apart (the gaps at corners are less than the fit's opening)
 
 
 def predicted_silhouette(
@@ -317,9 +324,11 @@ def predicted_silhouette(
     foot = np.asarray(camera_centre[:2], float) - centre_mm
     grow = float(camera_centre[2]) / (float(camera_centre[2]) - height_mm)
     top = foot + (placed - foot) * grow
+    sweep = float(np.max(np.hypot(*(top - placed).T)))
+    layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
     mask = np.zeros((grid.size, grid.size), np.uint8)
-    for t in np.linspace(0.0, 1.0, _SWEEP_LAYERS):
-        mask |= grid.draw(placed + t * (top - placed), [])
+    for t in np.linspace(0.0, 1.0, layers):
+        grid.fill(mask, placed + t * (top - placed))
     for h in placed_holes:
         light = grid.draw(h, []) & grid.draw(foot + (h - foot) * grow, [])
         mask &= 1 - light
