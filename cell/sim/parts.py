@@ -276,16 +276,17 @@ class ExtrudedPart:
     def placed(self, x_mm: float, y_mm: float, angle_deg: float) -> ExtrudedPart:
         return ExtrudedPart(self.name, self.outline_mm, self.holes_mm, self.height_mm, x_mm, y_mm, angle_deg)
 
-    def _to_table(self, uv: np.ndarray) -> np.ndarray:
+    def to_table(self, uv: np.ndarray) -> np.ndarray:
+        """Part frame -> table mm."""
         a = math.radians(self.angle_deg)
         rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
         return np.asarray(uv, dtype=np.float64) @ rot.T + (self.x_mm, self.y_mm)
 
     def top_view_outline_mm(self) -> np.ndarray:
-        return self._to_table(self.outline_mm)
+        return self.to_table(self.outline_mm)
 
     def top_view_holes_mm(self) -> list[np.ndarray]:
-        return [self._to_table(h) for h in self.holes_mm]
+        return [self.to_table(h) for h in self.holes_mm]
 
 
 def _polygon_px(camera: CameraModel, pts_mm: np.ndarray) -> np.ndarray:
