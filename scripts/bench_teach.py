@@ -215,8 +215,8 @@ def run_camera(sim: SimulatedCamera, args) -> CameraScore:
                 m = models[name]
                 if m.symmetry and o.angle_deg is not None:
                     period = 360.0 / m.symmetry
-                    e = (o.angle_deg - p.angle_deg - offsets[name] + period / 2) % period - period / 2
-                    score.angle.append(abs(e))
+                    miss = (o.angle_deg - p.angle_deg - offsets[name] + period / 2) % period - period / 2
+                    score.angle.append(abs(miss))
             else:
                 score.distractors += 1
                 if o.cls in models:
