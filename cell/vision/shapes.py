@@ -45,6 +45,7 @@ SCHEMA_VERSION = 1
 HARMONICS = 12  # angular harmonics compared per ring
 HARMONIC_STEPS = 3  # the harmonics' raster is this many times coarser than the fit's (anti-aliased)
 RINGS = 8
+AREA_TOLERANCE = 0.05  # a footprint's area against the model's, relative (at least)
 FIT_OPENING_MM = 0.3  # differences thinner than twice this are edge noise, not shape
 SYMMETRY_ORDERS = (8, 6, 5, 4, 3, 2)
 _UPSAMPLE = 4
@@ -441,7 +442,15 @@ class ShapeModel:
                 g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, self.height_mm, camera_centre
             )
         bad = misfit_mm2(seen, drawn, g.step_mm)
-        return Match(self.name, fp.centroid_mm, angle, bad, iou(seen, drawn), bad <= self.tolerance_mm2)
+        size_ok = abs(fp.area_mm2 / self.area_mm2 - 1.0) <= self.area_tolerance
+        return Match(self.name, fp.centroid_mm, angle, bad, iou(seen, drawn), bad <= self.tolerance_mm2 and size_ok)
+
+    @property
+    def area_tolerance(self) -> float:
+        """How far a footprint's area may be from the model's, relative: 5 %, or 3 standard deviations
+        of the examples' areas if more (a part slightly larger all round differs only in thin bands,
+        which the fit's opening does not count)."""
+        return max(AREA_TOLERANCE, 3.0 * self.consistency.get("area_sd_mm2", 0.0) / self.area_mm2)
 
     def grip_on_table(self, centre_mm: np.ndarray, angle_deg: float) -> tuple[np.ndarray, float]:
         """Where the jaws close on the table and the direction they close along (0-180 degrees)."""
@@ -757,6 +766,7 @@ def best_match(
         match,
         fp,
         f"matches no taught type (nearest {match.name}: differs by {match.misfit_mm2:.1f} mm2, "
+        f"area {fp.area_mm2:.1f} mm2 against {next(m for m in models if m.name == match.name).area_mm2:.1f}, "
         f"score {match.score:.3f})",
     )
 
