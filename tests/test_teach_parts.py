@@ -21,6 +21,7 @@ from cell.recipes import RecipeBook, load_recipe_file
 from cell.sim.flatparts import random_types
 from cell.sim.parts import PartSpec, render_scene
 from cell.vision.shapes import Footprint, ShapeModelError
+from tests.helpers import DATA, need
 
 W, H = 960, 540
 TYPES = random_types(seed=3)
@@ -245,3 +246,40 @@ def test_the_recipe_is_kept_and_a_type_taught_again_is_replaced(files, capsys):
     code, _, err = teach(capsys, files, "l-bracket", ["l-bracket-0.png"], "kept.toml")
     assert code != 0 and "speed" in err and recipe.read_text() == "speed = 3\n"
     assert not [p for p in os.listdir(files) if p.startswith("kept.toml.") or p.endswith(".tmp")]
+
+
+def test_real_photos_a_taught_type_is_told_from_the_others(tmp_path, capsys):
+    """Types taught from two real front-lit photos each are found in the other photos of the same
+    camera, and never given to another kind of part (the other parts fall to the built-in rules or
+    stay unknown)."""
+    photos = need(DATA / "parts-photos")
+    taught = {"ring": ("arandela_0000", "arandela_0030"), "screw": ("tornillo_0000", "tornillo_0040")}
+    taught["nut-real"] = ("tuerca_0000", "tuerca_0020")
+    for name, shots in taught.items():
+        images = [a for s in shots for a in ("--image", next(photos.glob(f"packt_*_{s}.png")))]
+        code, _, err = run(
+            capsys,
+            "part",
+            "teach",
+            name,
+            *images,
+            "--mm-per-px",
+            0.3,
+            "--height-mm",
+            2,
+            "--recipe",
+            tmp_path / "r.toml",
+        )
+        assert code == 0, err
+    kinds = {"tuerca": "nut-real", "arandela": "ring", "tornillo": "screw"}
+    found = {k: 0 for k in kinds.values()}
+    for photo in sorted(photos.glob("packt_*_0*.png")):
+        kind = kinds[photo.stem.split("_")[2]]
+        code, out, err = run(
+            capsys, "locate", "--image", photo, "--mm-per-px", 0.3, "--recipe", tmp_path / "r.toml", "--json"
+        )
+        assert code == 0, err
+        classes = [o["class"] for o in json.loads(out)["objects"]]
+        assert not set(classes) & (set(kinds.values()) - {kind}), (photo.name, classes)
+        found[kind] += classes.count(kind)
+    assert found["nut-real"] >= 8 and found["ring"] >= 4 and found["screw"] >= 4, found
