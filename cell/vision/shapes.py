@@ -531,6 +531,17 @@ def load_model(path: Path, sha256: str) -> ShapeModel:
     return ShapeModel.from_json(text, str(path))
 
 
+def perimeter_mm(polys: Sequence[np.ndarray]) -> float:
+    return float(sum(np.hypot(*(np.roll(p, -1, axis=0) - p).T).sum() for p in polys))
+
+
+def fit_tolerance_mm2(area_mm2: float, perimeter: float) -> float:
+    """How much a found part may differ from its model beyond the fit's opening: 0.4 % of its area
+    or 0.02 mm along its whole outline and holes (corners rounded by the blur, a tall part's
+    sweep approximated), at least 0.8 mm2. A missing hole of 3 mm or a mirrored arm is far more."""
+    return max(0.8, 0.004 * area_mm2, 0.02 * perimeter)
+
+
 def grid_step_mm(area_mm2: float) -> float:
     """Raster step for a part of this area: about 150 px across, 0.05-0.2 mm."""
     return float(np.clip(math.sqrt(area_mm2) / 150.0, 0.05, 0.2))
@@ -647,7 +658,7 @@ def teach(
     ref = int(np.argmin(sweeps))
     fp = examples[ref].footprint
     outer, holes = fp.in_frame(fp.centroid_mm, fp.principal_deg if fp.anisotropy >= 0.05 else 0.0)
-    tol = max(0.8, 0.004 * median)
+    tol = fit_tolerance_mm2(median, perimeter_mm([outer, *holes]))
     placeholder = Grip((0.0, 0.0), 0.0, 1.0, 1.0)
     trial = ShapeModel(name, height_mm, outer, holes, 1, True, tol, placeholder)
     fits = {k: trial.match(e.footprint, e.silhouette, e.camera_centre) for k, e in enumerate(examples) if k != ref}
