@@ -283,3 +283,28 @@ def test_real_photos_a_taught_type_is_told_from_the_others(tmp_path, capsys):
         assert not set(classes) & (set(kinds.values()) - {kind}), (photo.name, classes)
         found[kind] += classes.count(kind)
     assert found["nut-real"] >= 8 and found["ring"] >= 4 and found["screw"] >= 4, found
+
+
+def test_a_part_whose_jaws_would_touch_a_neighbour_waits(taught, files, cam, capsys):
+    """The L bracket's jaws close across its narrow width; a nut put right where a jaw goes makes it
+    wait (not picked, saying which part is in the way); the same nut further off does not."""
+    model = next(m for m in load_recipe_file(taught)[1] if m.name == "l-bracket")
+    centre, angle = np.array([140.0, 80.0]), 30.0
+    grasp, jaw_deg = model.grip_on_table(centre, angle + angle_offset("l-bracket", taught))
+    d = np.array([np.cos(np.radians(jaw_deg)), np.sin(np.radians(jaw_deg))])
+    results = {}
+    for name, reach in (
+        ("crowded", model.grip.opening_mm / 2 + 5.0 + 2.5),
+        ("clear", model.grip.opening_mm / 2 + 14.0),
+    ):
+        nut = grasp + reach * d
+        scene = [BRACKET.placed(*centre, angle), PartSpec("nut", "M5", float(nut[0]), float(nut[1]))]
+        cv2.imwrite(str(files / f"{name}.png"), render_scene(cam, scene, seed=4))
+        code, out, err = run(
+            capsys, "locate", "--image", files / f"{name}.png", "--calibration", files / "cal.json", "--recipe", taught,
+            "--json",
+        )  # fmt: skip
+        assert code == 0, err
+        results[name] = next(o for o in json.loads(out)["objects"] if o["class"] == "l-bracket")
+    assert results["crowded"]["pick"] is False and "jaws would touch part" in results["crowded"]["reason"]
+    assert results["clear"]["pick"] is True, results["clear"]["reason"]

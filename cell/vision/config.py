@@ -114,6 +114,9 @@ class PartsConfig(Strict):
     jaw_face_width_mm: float = Field(
         8.0, gt=0, le=200, description="how wide the jaw faces are (a taught part is gripped across that band)"
     )
+    jaw_thickness_mm: float = Field(
+        5.0, gt=0, le=100, description="how deep each jaw is: a taught part whose jaws would touch a neighbour waits"
+    )
 
     @property
     def use_height_correction(self) -> bool:

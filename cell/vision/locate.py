@@ -99,6 +99,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
         verdict = classify(feat, blob.outer, local_scale, cfg, slope)
         taught, why = _taught(blob, feat, gray, mapper, cfg, shapes, local_scale, correct) if shapes else (None, "")
         if taught is not None:
+            taught.outline_px = blob.outer
             found.append(_refuse_non_finite(taught))
             continue
         if why and verdict.cls not in (BOLT, NUT):
@@ -109,6 +110,8 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
     for i, part in enumerate(found, start=1):
         part.id = i
+    if shapes:
+        _leave_crowded(found, mapper, cfg)
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
@@ -188,6 +191,51 @@ def _taught(
         },
         score=match.score,
     ), ""
+
+
+def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
+    """A taught part whose jaws would touch a neighbour is left for later, saying which: each jaw a
+    rectangle `jaw_thickness_mm` deep and `jaw_face_width_mm` wide just outside the opening, on
+    either side of the grasp point along the direction the jaws close, against every other part's
+    silhouette on the table plane."""
+    taught = [p for p in found if p.pick and p.score is not None and p.grasp_mm is not None]
+    if not taught or len(found) < 2:
+        return
+    outlines = [np.asarray(p.outline_px, dtype=np.float64).reshape(-1, 2) for p in found]
+    mapped = mapper.pixel_to_table_mm(np.vstack(outlines))
+    cuts = np.cumsum([len(o) for o in outlines])[:-1]
+    polys = [q.astype(np.float32) for q in np.split(mapped, cuts)]
+    index = {id(p): i for i, p in enumerate(found)}
+    for part in taught:
+        a = math.radians(part.features["jaw_angle_deg"])
+        d, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+        g = np.asarray(part.grasp_mm)
+        half = (part.jaw_opening_mm or 0.0) / 2
+        t, w = cfg.jaw_thickness_mm, cfg.jaw_face_width_mm / 2
+        jaws = []
+        for sign in (1.0, -1.0):
+            near, far = g + sign * half * d, g + sign * (half + t) * d
+            jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
+        for j, other in enumerate(found):
+            if j == index[id(part)]:
+                continue
+            poly = polys[j]
+            if any(_overlap(jaw, poly) for jaw in jaws):
+                part.pick = False
+                part.reason = f"{part.cls}: the jaws would touch part {other.id}: left for later"
+                break
+
+
+def _overlap(jaw: np.ndarray, poly: np.ndarray) -> bool:
+    """Whether a jaw's rectangle (4 corners in order) and a part's outline overlap: a point of the
+    outline inside the rectangle, or a corner of the rectangle inside the outline."""
+    c = jaw.mean(axis=0)
+    u, v = jaw[1] - jaw[0], jaw[3] - jaw[0]
+    p = poly - c
+    inside = (np.abs(p @ u) <= 0.5 * float(u @ u)) & (np.abs(p @ v) <= 0.5 * float(v @ v))
+    if inside.any():
+        return True
+    return any(cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in jaw)
 
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
