@@ -154,6 +154,11 @@ def load_shape_models(recipe: Recipe, folder: Path) -> list[ShapeModel]:
         model = load_model(Path(folder) / t.model, t.model_sha256)
         if model.name != name:
             raise RecipeError(f"{Path(folder) / t.model}: a model of {model.name!r}, but the recipe names it {name!r}")
+        if abs(model.height_mm - t.height_mm) > 1e-6:
+            raise RecipeError(
+                f"types.{name}.height_mm = {t.height_mm:g}, but its model was taught at {model.height_mm:g} mm",
+                hint=f"teach {name!r} again at the height it has (run-cell part teach --height-mm)",
+            )
         models.append(model)
     return models
 
@@ -195,7 +200,7 @@ def add_taught_type(path: Path, model: ShapeModel) -> tuple[Path, str]:
         f"[types.{model.name}]",
         f'model = "{relative}"',
         f'model_sha256 = "{sha}"',
-        f"height_mm = {model.height_mm!r}",
+        f"height_mm = {round(model.height_mm, 4)!r}",  # as the model file has it
     ]
     if path.exists():
         try:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import cv2
 import numpy as np
@@ -17,7 +18,7 @@ from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.cli import main
-from cell.recipes import RecipeBook, load_recipe_file
+from cell.recipes import RecipeBook, RecipeError, load_recipe_file
 from cell.sim.flatparts import random_types
 from cell.sim.parts import PartSpec, render_scene
 from cell.vision.shapes import Footprint, ShapeModelError
@@ -220,6 +221,14 @@ def test_a_model_that_does_not_match_its_hash_is_refused(taught, files, capsys, 
     )  # fmt: skip
     assert code != 0 and "changed since the recipe named it" in err
     with pytest.raises(ShapeModelError, match="changed since the recipe named it"):
+        RecipeBook(copy).load("r")
+    # The recipe's height must be the model's.
+    model.write_bytes((files / recipe.types["plate-3h"].model).read_bytes())
+    RecipeBook(copy).load("r")
+    text = (copy / "r.toml").read_text()
+    at = text.index("[types.plate-3h]")
+    (copy / "r.toml").write_text(text[:at] + re.sub(r"height_mm = \S+", "height_mm = 9.5", text[at:], count=1))
+    with pytest.raises(RecipeError, match="taught at"):
         RecipeBook(copy).load("r")
 
 

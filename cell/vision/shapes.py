@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from cell.errors import CellError, InputError
+from cell.errors import CellError
 
 SCHEMA = "pick-cell.shape-model"
 SCHEMA_VERSION = 1
@@ -780,8 +780,3 @@ def best_match(
         f"area {fp.area_mm2:.1f} mm2 against {next(m for m in models if m.name == match.name).area_mm2:.1f}, "
         f"score {match.score:.3f})",
     )
-
-
-def check_image_scale(mm_per_px: float) -> None:
-    if not (mm_per_px > 0 and math.isfinite(mm_per_px)):
-        raise InputError(f"mm per pixel must be a positive number, got {mm_per_px}")
