@@ -48,7 +48,8 @@ RINGS = 8
 AREA_TOLERANCE = 0.05  # a footprint's area against the model's, relative (at least)
 FIT_OPENING_MM = 0.3  # differences thinner than twice this are edge noise, not shape
 SYMMETRY_ORDERS = (8, 6, 5, 4, 3, 2)
-_UPSAMPLE = 4
+_UPSAMPLE = 4  # at most; a large blob less (about 400 outline samples across it suffice)
+_SAMPLES_ACROSS = 400
 _MARGIN_PX = 4
 _COARSE_STEPS = 720
 
@@ -126,10 +127,12 @@ def fine_outlines(
     if paper.size < 16:
         return None
     level = fraction * float(np.median(paper))
-    up = cv2.resize(roi, None, fx=_UPSAMPLE, fy=_UPSAMPLE, interpolation=cv2.INTER_LINEAR)
+    k = int(np.clip(round(_SAMPLES_ACROSS / max(w, h, 1)), 1, _UPSAMPLE))
+    up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR) if k > 1 else roi
     dark = (up < level).astype(np.uint8)
     # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
-    keep = cv2.resize(cv2.dilate(part, np.ones((3, 3), np.uint8)), None, fx=_UPSAMPLE, fy=_UPSAMPLE)
+    keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
+    keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
     dark &= keep > 0
     contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if not contours or hierarchy is None:
@@ -139,12 +142,12 @@ def fine_outlines(
     best = max(outers, key=lambda i: cv2.contourArea(contours[i]))
 
     def px(c: np.ndarray) -> np.ndarray:
-        return (c.reshape(-1, 2).astype(np.float64) + 0.5) / _UPSAMPLE - 0.5 + (x0, y0)
+        return (c.reshape(-1, 2).astype(np.float64) + 0.5) / k - 0.5 + (x0, y0)
 
     holes = []
     j = hier[best][2]
     while j != -1:
-        if cv2.contourArea(contours[j]) >= min_hole_px * _UPSAMPLE**2:
+        if cv2.contourArea(contours[j]) >= min_hole_px * k**2:
             holes.append(px(contours[j]))
         j = hier[j][0]
     return px(contours[best]), holes
