@@ -201,10 +201,16 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
     taught = [p for p in found if p.pick and p.score is not None and p.grasp_mm is not None]
     if not taught or len(found) < 2:
         return
-    outlines = [np.asarray(p.outline_px, dtype=np.float64).reshape(-1, 2) for p in found]
-    mapped = mapper.pixel_to_table_mm(np.vstack(outlines))
+    # Outlines within half a pixel (the jaws' reach is millimetres), mapped in one call.
+    outlines = [
+        cv2.approxPolyDP(np.asarray(p.outline_px, dtype=np.int32).reshape(-1, 1, 2), 0.5, True).reshape(-1, 2)
+        for p in found
+    ]
+    mapped = mapper.pixel_to_table_mm(np.vstack(outlines).astype(np.float64))
     cuts = np.cumsum([len(o) for o in outlines])[:-1]
     polys = [q.astype(np.float32) for q in np.split(mapped, cuts)]
+    centres = np.array([q.mean(axis=0) for q in polys])
+    radii = np.array([float(np.max(np.hypot(*(q - c).T))) for q, c in zip(polys, centres, strict=True)])
     index = {id(p): i for i, p in enumerate(found)}
     for part in taught:
         a = math.radians(part.features["jaw_angle_deg"])
@@ -216,7 +222,10 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
         for sign in (1.0, -1.0):
             near, far = g + sign * half * d, g + sign * (half + t) * d
             jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
-        for j, other in enumerate(found):
+        reach = half + t + w + 1.0  # the farthest a jaw's corner lies from the grasp point, and a margin
+        near = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
+        for j in near:
+            other = found[j]
             if j == index[id(part)]:
                 continue
             poly = polys[j]
