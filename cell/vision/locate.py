@@ -223,8 +223,8 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
             near, far = g + sign * half * d, g + sign * (half + t) * d
             jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
         reach = half + t + w + 1.0  # the farthest a jaw's corner lies from the grasp point, and a margin
-        near = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
-        for j in near:
+        close = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
+        for j in close:
             other = found[j]
             if j == index[id(part)]:
                 continue
