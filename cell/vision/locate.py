@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -20,7 +21,8 @@ from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, measure, width_profile
 from cell.vision.footprint import BoltPose, bolt_pose
-from cell.vision.segment import segment, to_gray
+from cell.vision.segment import Blob, segment, to_gray
+from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob
 from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
@@ -60,12 +62,13 @@ def _parts_config(config) -> PartsConfig:
     return config if isinstance(config, PartsConfig) else config.parts
 
 
-def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateResult:
+def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Sequence[ShapeModel] = ()) -> LocateResult:
     """Find, classify and locate the parts in one frame.
 
     calibration_or_scale: a Calibration (table mm in its plate frame, height correction
     possible) or a plain mm-per-pixel number. config: PartsConfig or CellConfig (its
-    .parts); None for the defaults.
+    .parts); None for the defaults. shapes: the recipe's taught part types (cell.vision.shapes),
+    tried on each blob before the built-in bolt and nut; none: bolts and nuts only, as always.
     """
     cfg = _parts_config(config)
     mapper = (
@@ -113,15 +116,154 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     for blob, feat, verdict, local_scale, centre_mm, fine, outline_mm in zip(
         seg.blobs, feats, verdicts, scales, centres_mm, fines, outlines_mm, strict=True
     ):
+        taught, why = _taught(blob, feat, gray, mapper, cfg, shapes, local_scale, correct) if shapes else (None, "")
+        if taught is not None:
+            taught.outline_px = blob.outer
+            found.append(_refuse_non_finite(taught))
+            continue
+        if why and verdict.cls not in (BOLT, NUT):
+            verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
         part = _place(feat, verdict, local_scale, mapper, cfg, correct, centre_mm, fine, outline_mm)
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
     for i, part in enumerate(found, start=1):
         part.id = i
+    if shapes:
+        _leave_crowded(found, mapper, cfg)
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def silhouettes(image_bgr: np.ndarray, mapper, config: PartsConfig) -> list[tuple[tuple, bool, float]]:
+    """Every blob large enough to be a part, as (its silhouette on the table plane (outer, holes;
+    table mm), whether it touches the image's edge, its area in mm2): what teaching learns from."""
+    image = np.asarray(image_bgr)
+    h, w = image.shape[:2]
+    scale = mapper.mm_per_px((w / 2, h / 2))
+    gray = to_gray(image)
+    seg = segment(
+        image,
+        config,
+        part_width_px=config.max_part_width_mm / scale,
+        noise_area_px=config.segment.noise_area_mm2 / scale**2,
+        gray=gray,
+    )
+    out = []
+    for blob in seg.blobs:
+        feat = measure(blob, seg.mask)
+        area = feat.outer_area_px * scale**2
+        if area < config.min_part_area_mm2:
+            continue
+        sil = footprint_of_blob(
+            gray, blob.outer, mapper, config.segment.threshold_fraction, config.segment.noise_area_mm2 / scale**2
+        )
+        if sil is not None:
+            out.append((sil, blob.touches_border, area))
+    return out
+
+
+def _taught(
+    blob: Blob,
+    feat: Features,
+    gray: np.ndarray,
+    mapper,
+    cfg: PartsConfig,
+    shapes: Sequence[ShapeModel],
+    scale: float,
+    correct: bool,
+) -> tuple[LocatedPart | None, str]:
+    """The blob as a taught part type, or (None, why not; empty when the built-in rules should say)."""
+    if feat.touches_border:
+        return None, ""
+    silhouette = footprint_of_blob(
+        gray, blob.outer, mapper, cfg.segment.threshold_fraction, cfg.segment.noise_area_mm2 / scale**2
+    )
+    if silhouette is None:
+        return None, ""
+    camera_centre = mapper.camera.center_table_mm if correct else None
+    match, fp, why = best_match(silhouette, shapes, camera_centre)
+    if match is None or not match.accepted or fp is None:
+        return None, why
+    model = next(m for m in shapes if m.name == match.name)
+    grasp, jaw_deg = model.grip_on_table(match.centre_mm, match.angle_deg)
+    centre = match.centre_mm
+    return LocatedPart(
+        id=0,
+        cls=match.name,
+        reason=f"taught type {match.name}: fits its model (score {match.score:.3f}, "
+        f"differs by {match.misfit_mm2:.1f} mm2)",
+        pixel=(float(feat.centroid_px[0]), float(feat.centroid_px[1])),
+        table_mm=(float(centre[0]), float(centre[1])),
+        angle_deg=None if model.symmetry == 0 else float(match.angle_deg),
+        pick=True,
+        grasp_mm=(float(grasp[0]), float(grasp[1])),
+        jaw_opening_mm=model.grip.opening_mm,
+        features={
+            "area_mm2": fp.area_mm2,
+            "holes": len(fp.holes),
+            "symmetry": model.symmetry,
+            "jaw_angle_deg": jaw_deg,
+            "misfit_mm2": match.misfit_mm2,
+            "reference_height_mm": model.height_mm if correct else 0.0,
+        },
+        score=match.score,
+    ), ""
+
+
+def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
+    """A taught part whose jaws would touch a neighbour is left for later, saying which: each jaw a
+    rectangle `jaw_thickness_mm` deep and `jaw_face_width_mm` wide just outside the opening, on
+    either side of the grasp point along the direction the jaws close, against every other part's
+    silhouette on the table plane."""
+    taught = [p for p in found if p.pick and p.score is not None and p.grasp_mm is not None]
+    if not taught or len(found) < 2:
+        return
+    # Outlines within half a pixel (the jaws' reach is millimetres), mapped in one call.
+    outlines = [
+        cv2.approxPolyDP(np.asarray(p.outline_px, dtype=np.int32).reshape(-1, 1, 2), 0.5, True).reshape(-1, 2)
+        for p in found
+    ]
+    mapped = mapper.pixel_to_table_mm(np.vstack(outlines).astype(np.float64))
+    cuts = np.cumsum([len(o) for o in outlines])[:-1]
+    polys = [q.astype(np.float32) for q in np.split(mapped, cuts)]
+    centres = np.array([q.mean(axis=0) for q in polys])
+    radii = np.array([float(np.max(np.hypot(*(q - c).T))) for q, c in zip(polys, centres, strict=True)])
+    index = {id(p): i for i, p in enumerate(found)}
+    for part in taught:
+        a = math.radians(part.features["jaw_angle_deg"])
+        d, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+        g = np.asarray(part.grasp_mm)
+        half = (part.jaw_opening_mm or 0.0) / 2
+        t, w = cfg.jaw_thickness_mm, cfg.jaw_face_width_mm / 2
+        jaws = []
+        for sign in (1.0, -1.0):
+            near, far = g + sign * half * d, g + sign * (half + t) * d
+            jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
+        reach = half + t + w + 1.0  # the farthest a jaw's corner lies from the grasp point, and a margin
+        close = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
+        for j in close:
+            other = found[j]
+            if j == index[id(part)]:
+                continue
+            poly = polys[j]
+            if any(_overlap(jaw, poly) for jaw in jaws):
+                part.pick = False
+                part.reason = f"{part.cls}: the jaws would touch part {other.id}: left for later"
+                break
+
+
+def _overlap(jaw: np.ndarray, poly: np.ndarray) -> bool:
+    """Whether a jaw's rectangle (4 corners in order) and a part's outline overlap: a point of the
+    outline inside the rectangle, or a corner of the rectangle inside the outline."""
+    c = jaw.mean(axis=0)
+    u, v = jaw[1] - jaw[0], jaw[3] - jaw[0]
+    p = poly - c
+    inside = (np.abs(p @ u) <= 0.5 * float(u @ u)) & (np.abs(p @ v) <= 0.5 * float(v @ v))
+    if inside.any():
+        return True
+    return any(cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in jaw)
 
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
