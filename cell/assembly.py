@@ -171,6 +171,10 @@ def _simulated(
     if shift:
         feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))
         camera = FedCamera(sim.camera, feeder)
+    if config.sim.camera_source != "sim":  # the rendered frames through Aravis's Fake GenICam camera
+        from cell.sim.genicam_feed import fed_genicam
+
+        camera = fed_genicam(camera, make_camera(config.camera.model_copy(update={"source": config.sim.camera_source})))
     cell = Cell(config, camera, sim.arm, sim.calibration, True, sim)
     cell.plate_image = lambda: render_plate(sim.camera.model, config.plate, seed=config.sim.seed)
     cell.notes.append(f"simulated cell: {len(sim.world.parts)} parts; plate calibrated: {sim.calibration_note}")

@@ -28,6 +28,7 @@ COMMAND_MODULES = [
     "cell.commands.recalibrate",
     "cell.commands.arm",
     "cell.commands.locate",
+    "cell.commands.part",
     "cell.commands.camera",
     "cell.commands.cameras",
     "cell.commands.run",

@@ -19,6 +19,11 @@ exactly as a config file is: unknown keys, units out of range, NaN are errors na
     [parts.bolt]                   # vision limits (PartsConfig), defaults where not given
     length_mm = [13.0, 56.0]
 
+    [types.bracket-l]              # a taught part type (run-cell part teach writes this)
+    model = "models/bracket-l-1f2e3d4c5b6a.json"
+    model_sha256 = "1f2e3d4c5b6a..."   # the model file's sha256: a file that does not match is refused
+    height_mm = 3.0
+
 The recipe's id is its file name without `.toml`. `RecipeBook` lists, loads, validates,
 adds (written whole or not at all; a bad recipe is refused with what and where) and removes
 them; the line service decides when one becomes the active recipe (only in Ready).
@@ -35,12 +40,14 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from cell.atomicfile import write_text_atomic
+from cell.atomicfile import write_bytes_atomic, write_text_atomic
 from cell.config import CellConfig
+from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN
 from cell.core.records import RecipeInfo
 from cell.errors import CellError
 from cell.run_config import ClassPlan
 from cell.vision.config import PartsConfig
+from cell.vision.shapes import ShapeModel, load_model, sha256_of
 from drivers.config import Strict
 
 PartClass = Literal["bolt", "nut"]
@@ -51,6 +58,27 @@ SUFFIX = ".toml"
 
 class RecipeError(CellError):
     """A recipe that cannot be used: unknown, unreadable, invalid, or a name that is not allowed."""
+
+
+MODEL_PATH = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+
+
+class TaughtType(Strict):
+    """A part type taught from example images: its shape model file, named by its hash."""
+
+    model: str = Field(
+        description="the shape model file (JSON), relative to the recipe's folder; written by `run-cell part teach`"
+    )
+    model_sha256: str = Field(
+        pattern=r"^[0-9a-f]{64}$", description="the model file's sha256; a file that does not match is refused"
+    )
+    height_mm: float = Field(gt=0, le=200, description="the part's height above the table (its thickness lying)")
+
+    @model_validator(mode="after")
+    def _relative(self) -> TaughtType:
+        if not MODEL_PATH.match(self.model) or ".." in self.model.split("/"):
+            raise ValueError(f"model {self.model!r}: a relative path inside the recipe's folder (no '..')")
+        return self
 
 
 class Recipe(Strict):
@@ -68,10 +96,28 @@ class Recipe(Strict):
         PartsConfig(), description="vision limits: sizes that tell bolts, nuts and the rest apart"
     )
 
+    types: dict[str, TaughtType] = Field(
+        default_factory=dict, description="part types taught from images (`run-cell part teach`), by name"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _taught_only(cls, data: object) -> object:
+        """A recipe of taught types alone (as `run-cell part teach` creates one) needs no [pick]."""
+        if isinstance(data, dict) and data.get("types") and "pick" not in data:
+            return {**data, "pick": {}}
+        return data
+
     @model_validator(mode="after")
     def _picks_something(self) -> Recipe:
-        if not self.pick:
-            raise ValueError("pick: name at least one class to pick ([pick.bolt] or [pick.nut])")
+        if not self.pick and not self.types:
+            raise ValueError("pick: name at least one class to pick ([pick.bolt] or [pick.nut]) or teach a type")
+        for name in self.types:
+            if not NAME_PATTERN.match(name) or name in BUILT_IN_PARTS or name == "unknown":
+                raise ValueError(
+                    f"types.{name}: a taught type's name is 1-32 lower-case letters, digits, - and _, starting with a "
+                    "letter, and not bolt, nut or unknown"
+                )
         return self
 
     @property
@@ -99,6 +145,84 @@ def parse_recipe(text: str, where: str) -> Recipe:
         return Recipe.model_validate(data)
     except ValidationError as e:
         raise RecipeError(f"{where}: invalid recipe: {_errors(e)}", hint="see docs/opcua-machinevision.md") from None
+
+
+def load_shape_models(recipe: Recipe, folder: Path) -> list[ShapeModel]:
+    """The recipe's taught types' models, each file checked against the hash the recipe names."""
+    models = []
+    for name, t in recipe.types.items():
+        model = load_model(Path(folder) / t.model, t.model_sha256)
+        if model.name != name:
+            raise RecipeError(f"{Path(folder) / t.model}: a model of {model.name!r}, but the recipe names it {name!r}")
+        if abs(model.height_mm - t.height_mm) > 1e-6:
+            raise RecipeError(
+                f"types.{name}.height_mm = {t.height_mm:g}, but its model was taught at {model.height_mm:g} mm",
+                hint=f"teach {name!r} again at the height it has (run-cell part teach --height-mm)",
+            )
+        models.append(model)
+    return models
+
+
+def load_recipe_file(path: Path) -> tuple[Recipe, list[ShapeModel]]:
+    """A recipe file and its taught types' models (RecipeError, ShapeModelError saying what)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: recipe not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise RecipeError(f"{path}: cannot read recipe: {e}") from None
+    recipe = parse_recipe(text, str(path))
+    return recipe, load_shape_models(recipe, path.parent)
+
+
+def _section_range(lines: list[str], name: str) -> tuple[int, int] | None:
+    """Lines [start, end) of the `[types.NAME]` table and its sub-tables, if the text has one."""
+    header = re.compile(r"^\s*\[\s*types\s*\.\s*\"?" + re.escape(name) + r"\"?\s*(\.|\])")
+    start = next((i for i, line in enumerate(lines) if header.match(line)), None)
+    if start is None:
+        return None
+    end = start + 1
+    while end < len(lines) and not (lines[end].lstrip().startswith("[") and not header.match(lines[end])):
+        end += 1
+    return start, end
+
+
+def add_taught_type(path: Path, model: ShapeModel) -> tuple[Path, str]:
+    """Write the model file beside the recipe (models/NAME-<sha>.json) and name it in the recipe
+    (`[types.NAME]`, replacing a former teaching of that name; the recipe created if absent). Both
+    written whole or not at all, the recipe validated first. Returns the model's path and sha256."""
+    path = Path(path)
+    data = model.to_json().encode("utf-8")
+    sha = sha256_of(data)
+    relative = f"models/{model.name}-{sha[:12]}.json"
+    section = [
+        f"[types.{model.name}]",
+        f'model = "{relative}"',
+        f'model_sha256 = "{sha}"',
+        f"height_mm = {round(model.height_mm, 4)!r}",  # as the model file has it
+    ]
+    if path.exists():
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise RecipeError(f"{path}: cannot read recipe: {e}") from None
+        parse_recipe(text, str(path))  # a broken recipe is not made worse
+        lines = text.splitlines()
+        where = _section_range(lines, model.name)
+        if where is None:
+            lines = [*lines, "", *section] if lines else section
+        else:
+            lines = [*lines[: where[0]], *section, "", *lines[where[1] :]]
+        new = "\n".join(lines).rstrip("\n") + "\n"
+    else:
+        new = 'description = "taught part types"\n\n' + "\n".join(section) + "\n"
+    parse_recipe(new, str(path))
+    target = path.parent / relative
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(target, data)
+    write_text_atomic(path, new)
+    return target, sha
 
 
 def _errors(err: ValidationError) -> str:
@@ -161,6 +285,7 @@ class RecipeBook:
             raise RecipeError(f"recipe {recipe_id!r} not found in {self.folder}: {e.strerror}") from None
 
     def load(self, recipe_id: str) -> Recipe:
+        """The recipe, validated, its taught types' model files checked against their hashes."""
         path = self.path(recipe_id)
         try:
             text = path.read_text(encoding="utf-8")
@@ -168,7 +293,9 @@ class RecipeBook:
             raise RecipeError(f"recipe {recipe_id!r} not found in {self.folder}") from None
         except (OSError, UnicodeDecodeError) as e:
             raise RecipeError(f"{path}: cannot read recipe: {e}") from None
-        return parse_recipe(text, str(path))
+        recipe = parse_recipe(text, str(path))
+        load_shape_models(recipe, self.folder)
+        return recipe
 
     def add(self, recipe_id: str, text: str) -> RecipeInfo:
         """Validate, then write whole. The same content again is accepted (nothing changes);

@@ -133,10 +133,11 @@ class SimConfig(Strict):
     truth_offset_y_mm: float = Field(40.0, description="true robot Y of the table origin")
     truth_rotation_deg: float = Field(0.0, ge=-180, le=180, description="true rotation table -> robot")
     truth_table_z_mm: float = Field(0.0, description="true robot Z of the table surface")
-    layout: Literal["paper", "paper-square-to-base", "random"] = Field(
+    layout: Literal["paper", "paper-square-to-base", "paper-fixed-jaws", "random"] = Field(
         "paper",
         description="paper: Table IV's 9 bolts and 8 nuts plus a washer; paper-square-to-base: the same with "
-        "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip)",
+        "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip); "
+        "paper-fixed-jaws: every bolt across arm.serial.fixed_jaw_angle_deg (what a 3-axis gantry can grip)",
     )
     seed: int = Field(
         0,
@@ -195,6 +196,13 @@ class SimConfig(Strict):
         le=10000,
         description="run-cell serve: simulated time runs this many times faster than the wall "
         "clock (the feeder, the capture interval): rehearse a shift in minutes",
+    )
+    camera_source: str = Field(
+        "sim",
+        pattern=r"^(sim|genicam:Fake_\d+)$",
+        description="the simulated camera's frames reach the cell straight (\"sim\") or through Aravis's "
+        'in-process Fake GenICam camera ("genicam:Fake_1"), fed each rendered frame: the GenICam driver\'s '
+        "whole path (trigger, stream, buffers, camera.genicam's settings) without a camera (docs/cameras.md)",
     )
     feeder: FeederConfig = FeederConfig()
     arm_fault_after_grips: int = Field(

@@ -27,6 +27,15 @@ right. Locate time is the median of --repeat runs per frame on one core (cv2.set
 
     python scripts/bench_parts.py [--cameras 8] [--scenes 3] [--families "640 x 480,1280 x 720"] [--compare]
     python scripts/bench_parts.py --quick        # 2 cameras, 1 scene per family
+
+--speed: locate's CPU time alone, on 1920 x 1080 frames of 17-19 parts (nuts and bolts, two
+washers), each camera calibrated with the default pipeline: the current code and the previous
+implementation (tests/locate_reference.py, kept as the reference) on the same frames in the same
+run, interleaved, --repeat times each; a frame's time is its fastest run (the machine's other work
+only adds), and the median and the worst frame are printed, with how far the two codes' answers
+differ (they must agree).
+
+    python scripts/bench_parts.py --speed [--cameras 8] [--scenes 3] [--repeat 7]
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import math  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -283,15 +293,85 @@ def family_report(name: str, results: list[CameraRun], runs: list[str]) -> dict:
     return row
 
 
+def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int) -> int:
+    """Locate CPU time per 1920 x 1080 frame of 17-19 parts, one core: current against previous."""
+    from tests import locate_reference as previous
+
+    family = FAMILY["1920 x 1080"]
+    index = [f.name for f in FAMILIES].index(family.name)
+    parts_config = PartsConfig()
+    rows = []  # (camera seed, scene, parts, current ms, previous ms, largest difference mm)
+    print(f"{'camera':>7}{'scene':>6}{'parts':>6}{'current ms':>12}{'previous ms':>13}{'ratio':>7}{'diff mm':>10}")
+    for i in range(cameras):
+        sim = random_camera(family, seed_base + 1000 * index + i)
+        config = CellConfig(plate=sim.plate)
+        try:
+            cal = calibrate(render_plate(sim.camera, sim.plate, sim.optics, seed=sim.seed), config).calibration
+        except PlateNotFound as e:
+            print(f"{sim.seed:>7}  calibration failed: {e}")
+            continue
+        for k in range(scenes):
+            seed = sim.seed * 10 + k
+            rng = np.random.default_rng(seed)
+            parts = random_scene(seed=seed, n_parts=(17, 19), area_mm=sim.scene_area_mm)
+            frame = render_scene(sim.camera, parts, sim.optics, seed=seed, exposure=float(rng.uniform(0.8, 1.1)))
+            now, before = [], []
+            for _ in range(repeat):
+                t = time.process_time()
+                ours = locate(frame, cal, parts_config)
+                now.append(1e3 * (time.process_time() - t))
+                t = time.process_time()
+                theirs = previous.locate(frame, cal, parts_config)
+                before.append(1e3 * (time.process_time() - t))
+            diff = max(
+                (math.dist(a.table_mm, b.table_mm) for a, b in zip(ours.objects, theirs.objects, strict=True)),
+                default=0.0,
+            )
+            if [o.cls for o in ours.objects] != [o.cls for o in theirs.objects]:
+                diff = math.inf
+            rows.append((sim.seed, k, len(parts), min(now), min(before), diff))
+            print(
+                f"{sim.seed:>7}{k:>6}{len(parts):>6}{min(now):>12.1f}{min(before):>13.1f}"
+                f"{min(now) / min(before):>7.2f}{diff:>10.1e}",
+                flush=True,
+            )
+    if not rows:
+        return 1
+    cur, prev, ratio = (
+        np.array([r[3] for r in rows]),
+        np.array([r[4] for r in rows]),
+        np.array([r[3] / r[4] for r in rows]),
+    )
+    print(
+        f"\nlocate CPU time per 1920 x 1080 frame, 17-19 parts, one core, fastest of {repeat} runs, over {len(rows)} "
+        f"frames ({len(set(r[0] for r in rows))} cameras):"
+    )
+    print(f"  current:  median {np.median(cur):.1f} ms, worst {cur.max():.1f} ms")
+    print(f"  previous: median {np.median(prev):.1f} ms, worst {prev.max():.1f} ms")
+    print(f"  current / previous: median {np.median(ratio):.2f}, worst {ratio.max():.2f}")
+    print(f"  largest difference between their part positions: {max(r[5] for r in rows):.1e} mm")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cameras", type=int, default=8, help="random cameras per family")
     ap.add_argument("--scenes", type=int, default=3, help="scenes per camera")
     ap.add_argument("--families", default=",".join(f.name for f in FAMILIES), help="comma-separated family names")
-    ap.add_argument("--repeat", type=int, default=1, help="locate timing repeats per frame (median reported)")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=None,
+        help="locate timing repeats per frame (median reported; --speed: 7, fastest)",
+    )
     ap.add_argument("--compare", action="store_true", help="also without height correction, and the paper preset")
     ap.add_argument("--quick", action="store_true", help="2 cameras and 1 scene per family (a smoke run)")
     ap.add_argument("--seed-base", type=int, default=SEED_BASE)
+    ap.add_argument(
+        "--speed",
+        action="store_true",
+        help="locate CPU time only, 1920 x 1080 frames of 17-19 parts: the current code against the previous one",
+    )
     ap.add_argument(
         "--measured-height-sd",
         type=float,
@@ -306,6 +386,10 @@ def main() -> int:
         help="also calibrate with a second plate image, the plate raised on a spacer this thick; 0: not",
     )
     args = ap.parse_args()
+    if args.speed:
+        cv2.setNumThreads(1)
+        return speed_bench(args.cameras, args.scenes, args.repeat or 7, args.seed_base)
+    args.repeat = 1 if args.repeat is None else args.repeat
     if args.quick:
         args.cameras, args.scenes = 2, 1
     cv2.setNumThreads(1)

@@ -97,9 +97,27 @@ def test_unreachable_target_refused_before_anything_is_sent(grbl):
         sent = list(emu.lines_received)
         with pytest.raises(OutOfReach, match=r"x = 250 mm is outside the workspace \[0, 200\] mm"):
             arm.move_to(250, 10, 10)
-        with pytest.raises(OutOfReach, match="no tool rotation command"):
+        with pytest.raises(OutOfReach, match=r"jaws at 30.0 deg, and this arm has no rotation axis: .* 30.0 deg off"):
             arm.move_to(10, 10, 10, angle_deg=30)
         assert emu.lines_received == sent
+
+
+def test_an_arm_without_rotation_grips_at_its_fixed_jaw_angle_and_refuses_the_rest(grbl):
+    """A 3-axis GRBL (issue 33): a grip within fixed_jaw_tolerance_deg of the fixed angle (jaw angles
+    repeat every 180 deg) is made at that angle, no rotation line sent; any other is refused before
+    anything is sent, saying what the jaws can do."""
+    emu, path = grbl
+    with make_arm(path, fixed_jaw_angle_deg=20.0, fixed_jaw_tolerance_deg=10.0) as arm:
+        for angle in (25.0, 11.0, -165.0, 199.0):  # 5, 9, 5 and 1 deg off
+            arm.move_to(40, 50, 10, angle_deg=angle)
+            assert arm.status().pose.x_mm == pytest.approx(40.0)
+            arm.move_to(60, 50, 10)
+        sent = list(emu.lines_received)
+        for angle in (31.0, -75.0, 110.0):  # 11, 85 and 90 deg off
+            with pytest.raises(OutOfReach, match=r"its jaws close at 20.0 deg \(arm.serial.fixed_jaw_angle_deg\)"):
+                arm.move_to(40, 50, 10, angle_deg=angle)
+        assert emu.lines_received == sent
+    assert not any(line.startswith(("G0 A", "G1 A")) for line in emu.lines_received)
 
 
 def test_rotary_axis_by_configuration():

@@ -200,3 +200,27 @@ def test_a_layout_out_of_the_arms_reach_is_refused_before_anything_moves(tmp_pat
     events = audit_of(tmp_path)
     assert [e["command"] for e in events if e["kind"] == "arm"] == ["connect"]
     assert_emulator_gone(events)
+
+
+def test_a_gantry_without_a_rotation_axis_picks_the_bolts_its_fixed_jaws_grip(tmp_path, capsys):
+    """A 3-axis GRBL (issue 33): no rotation command, the jaws close at arm.serial.fixed_jaw_angle_deg.
+    With every bolt laid across that angle (layout paper-fixed-jaws) the table is cleared through the
+    real driver and the emulated GRBL, each bolt gripped with no turn of the jaws; a bolt at another
+    angle is refused before any motion, saying why (tests/test_grbl_driver.py)."""
+    base = CONFIGS["serial"].read_text()
+    assert 'rotate = "G0 A{angle_deg:.2f}"' in base and 'layout = "paper"' in base
+    text = base.replace('rotate = "G0 A{angle_deg:.2f}"', 'rotate = ""').replace(
+        'layout = "paper"', 'layout = "paper-fixed-jaws"'
+    )
+    text = text.replace("[arm.serial]\n", "[arm.serial]\nfixed_jaw_angle_deg = -45.0\n", 1)
+    text = text.replace("width_px = 1920\nheight_px = 1080", "width_px = 1280\nheight_px = 720")  # faster
+    cfg = tmp_path / "gantry-3-axis.toml"
+    cfg.write_text(text)
+    assert main(["--config", str(cfg), "--log-dir", str(tmp_path)]) == 0
+    assert "DONE: no pickable part left (0 failed, 0 unreachable)" in capsys.readouterr().out
+    events = audit_of(tmp_path)
+    summary = next(e for e in events if e["kind"] == "summary")
+    assert summary["picked"] == {"bolt": 9, "nut": 8} and summary["misses"] == 0
+    jaws = [e["jaw_angle_deg"] for e in events if e["kind"] == "target" and e["cls"] == "bolt"]
+    assert len(jaws) == 9 and all(abs((a + 45.0 + 90.0) % 180.0 - 90.0) <= 5.0 for a in jaws), jaws
+    assert_emulator_gone(events)

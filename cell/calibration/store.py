@@ -46,7 +46,11 @@ class Calibration:
         nearer the camera: scale towards the camera's foot by (H - h) / H.
         """
         px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        on_table = np.asarray(self.model(px)).reshape(-1, 2)
+        return self.lift_mm(np.asarray(self.model(px)).reshape(-1, 2), height_mm)
+
+    def lift_mm(self, on_table: np.ndarray, height_mm: float) -> np.ndarray:
+        """Points the calibration mapped onto the table plane (N, 2) moved along their rays to the
+        plane `height_mm` above it: pixel_to_table_mm's second step, for points mapped already."""
         if height_mm == 0.0:
             return on_table
         if self.camera is None:

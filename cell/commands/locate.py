@@ -13,6 +13,7 @@ from cell.calibration.store import Calibration
 from cell.commands.argtypes import finite_float
 from cell.config import load_config
 from cell.imageio import check_image_path, read_image, write_image_atomic
+from cell.recipes import load_recipe_file
 from cell.vision.annotate import annotate
 from cell.vision.config import Preset
 from cell.vision.locate import PixelScale, locate
@@ -22,7 +23,7 @@ from cell.vision.types import LocateResult
 def register(sub) -> None:
     p = sub.add_parser(
         "locate",
-        help="find, classify and locate bolts and nuts in an image",
+        help="find, classify and locate bolts, nuts and taught part types in an image",
         description="Find the parts in one image, classify each (bolt, nut, or unknown with the reason) and give "
         "its table position through a calibration or a plain mm-per-pixel scale. Prints a table (--json: "
         "JSON); --annotate writes the image with each part outlined, numbered and labelled.",
@@ -34,6 +35,9 @@ def register(sub) -> None:
         "--mm-per-px", type=finite_float, help="a plain scale for an uncalibrated image (no height correction)"
     )
     p.add_argument("--config", type=Path, help="cell config TOML (its [parts] table)")
+    p.add_argument(
+        "--recipe", type=Path, help="recipe TOML whose taught part types are found too (run-cell part teach)"
+    )
     p.add_argument("--preset", choices=get_args(Preset), help="override parts.preset")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -54,8 +58,9 @@ def cmd_locate(args: argparse.Namespace) -> int:
         mapper = PixelScale(args.mm_per_px)
     if args.annotate is not None:
         check_image_path(args.annotate)  # refuse before the work, not after it
+    shapes = load_recipe_file(args.recipe)[1] if args.recipe is not None else []  # refused before the image
     image = read_image(args.image, config.camera.max_image_px, mapper.image_size)
-    result = locate(image, mapper, parts)
+    result = locate(image, mapper, parts, shapes)
     if args.annotate:
         write_image_atomic(args.annotate, annotate(image, result))
     if args.json:
@@ -91,6 +96,7 @@ def to_json(result: LocateResult) -> dict:
                 "grasp_mm": _round(p.grasp_mm),
                 "jaw_opening_mm": _number(p.jaw_opening_mm, 2),
                 "head_mm": _round(p.head_mm),
+                "score": _number(p.score, 4),
             }
         )
     return {
@@ -105,13 +111,14 @@ def format_table(result: LocateResult) -> str:
     w, h = result.image_size
     lines = [f"{len(result.objects)} objects in a {w} x {h} image ({result.elapsed_ms:.1f} ms)"]
     lines += [f"warning: {text}" for text in result.warnings]
+    wide = max([8, *(len(p.cls) + 1 for p in result.objects)])
     lines.append(
-        f"{'No.':>4}  {'Object':<8}{'x (px)':>9}{'y (px)':>9}{'X (mm)':>10}{'Y (mm)':>10}{'Angle':>8}  Pick  Reason"
+        f"{'No.':>4}  {'Object':<{wide}}{'x (px)':>9}{'y (px)':>9}{'X (mm)':>10}{'Y (mm)':>10}{'Angle':>8}  Pick  Reason"
     )
     for p in result.objects:
         angle = "" if p.angle_deg is None else f"{p.angle_deg:.1f}"
         lines.append(
-            f"{p.id:>4}  {p.cls.capitalize():<8}{p.pixel[0]:>9.1f}{p.pixel[1]:>9.1f}"
+            f"{p.id:>4}  {p.cls.capitalize():<{wide}}{p.pixel[0]:>9.1f}{p.pixel[1]:>9.1f}"
             f"{p.table_mm[0]:>10.3f}{p.table_mm[1]:>10.3f}{angle:>8}  {'yes' if p.pick else 'no ':<4}  {p.reason}"
         )
     return "\n".join(lines)

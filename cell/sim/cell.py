@@ -113,13 +113,20 @@ def nearest_outline_mm(a: PartSpec, others: list[PartSpec]) -> float:
     return float(np.sqrt(dx.min()))  # the square root of the least square: the least distance
 
 
-def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None) -> list[PartSpec]:
+_ACROSS_FIXED_JAWS_DEG = (0.0, -2.0, 2.0)  # well within a fixed-jaw arm's tolerance (5 deg by default)
+
+
+def paper_layout(
+    seed: int = 0, base_table_mm: tuple[float, float] | None = None, jaws_table_deg: float | None = None
+) -> list[PartSpec]:
     """Table IV's 17 parts at their published positions, plus an M8 washer in the widest gap.
 
     Sizes cycle through common M5-M10 parts; each bolt is turned to the angle (of 12 tried)
     that leaves the most room to its neighbours, so no two outlines touch. Given the arm's
     base (table frame), each bolt is instead laid square to the line from the base (see
-    _square_to_base): a 4-axis arm closes its jaws along that line, so it grips no other bolt.
+    _square_to_base): a 4-axis arm closes its jaws along that line, so it grips no other bolt. Given
+    a fixed jaw angle (`jaws_table_deg`, table frame: a 3-axis gantry's jaws less the table's rotation),
+    each bolt lies across it (within 2 deg), head one way or the other, whichever leaves most room.
     """
     rng = np.random.default_rng(seed)
     parts: list[PartSpec] = []
@@ -137,7 +144,17 @@ def paper_layout(seed: int = 0, base_table_mm: tuple[float, float] | None = None
         def room(c: PartSpec) -> float:
             return nearest_outline_mm(c, others)
 
-        if base_table_mm is None:
+        if jaws_table_deg is not None:
+            axis = jaws_table_deg - 90.0  # the jaws close across the bolt's axis
+            parts[i] = max(
+                (
+                    PartSpec("bolt", p.size, p.x_mm, p.y_mm, axis + turn + a, p.length_mm)
+                    for turn in (0.0, 180.0)
+                    for a in _ACROSS_FIXED_JAWS_DEG
+                ),
+                key=room,
+            )
+        elif base_table_mm is None:
             parts[i] = max(
                 (PartSpec("bolt", p.size, p.x_mm, p.y_mm, a + jitter, p.length_mm) for a in range(0, 360, 30)), key=room
             )
@@ -245,6 +262,8 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
     if sim.layout == "random":
         parts = random_scene(sim.seed)
+    elif sim.layout == "paper-fixed-jaws":
+        parts = paper_layout(sim.seed, jaws_table_deg=config.arm.serial.fixed_jaw_angle_deg - truth.rotation_deg)
     elif sim.layout == "paper-square-to-base":
         parts = paper_layout(sim.seed, truth.robot_to_table(config.arm.dynamixel.geometry.yaw_axis_x_mm, 0.0))
     else:

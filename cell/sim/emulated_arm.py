@@ -4,8 +4,9 @@ simulated world, so what the camera sees next is what the driver made the emulat
 The driver comes from the normal factory with arm.port set to the pty: every command goes
 through the real protocol code. The emulator's gripper events decide the world: closing
 grips at the emulated tool point and jaw angle, opening releases there. The emulated GRBL
-machine has an A axis turning the gripper (without arm.serial.commands.rotate the driver
-refuses the angle a bolt needs); the emulated bus knows the arm's config, so its tool pose
+machine has an A axis turning the gripper; without arm.serial.commands.rotate it stands for a
+3-axis gantry whose jaws close at arm.serial.fixed_jaw_angle_deg, and the driver refuses a grip
+at any other angle (beyond fixed_jaw_tolerance_deg); the emulated bus knows the arm's config, so its tool pose
 comes from the servos' present positions through the arm's kinematics.
 """
 
@@ -73,7 +74,7 @@ def emulated_arm(
         emulator, name = DxlBusEmulator(cfg.dynamixel, speed_scale=speed_scale), "ttyDXL"
     else:
         raise ValueError(f"no emulator for arm.kind {cfg.kind!r}")
-    emulator.add_tool_listener(_acting_on(world))
+    emulator.add_tool_listener(_acting_on(world, _fixed_jaws_deg(cfg)))
     if fault_after_grips:
         emulator.add_tool_listener(_fault_after(emulator, fault_after_grips, cfg.dynamixel.gripper_id, fault))
     with serve_pty(emulator, name) as path:
@@ -95,11 +96,20 @@ def _for_emulator(cfg: ArmConfig, path: str) -> ArmConfig:
     return cfg.model_copy(update={"port": path, "dynamixel": dxl})
 
 
-def _acting_on(world: World) -> ToolListener:
+def _fixed_jaws_deg(cfg: ArmConfig) -> float:
+    """Where a G-code machine without a rotation axis has its jaws closing (the emulator's A axis then
+    never turns: 0 plus this); 0 for the others, whose pose gives the angle."""
+    if cfg.kind == "serial" and not cfg.serial.commands.rotate:
+        return cfg.serial.fixed_jaw_angle_deg
+    return 0.0
+
+
+def _acting_on(world: World, jaws_offset_deg: float = 0.0) -> ToolListener:
     """The jaws act on the world where the emulated arm really is, not where it was told to go."""
 
     def on_gripper(closed: bool, x_mm: float, y_mm: float, z_mm: float, angle_deg: float) -> None:
         xyz = (x_mm, y_mm, z_mm)
+        angle_deg += jaws_offset_deg
         what = world.grip(xyz, angle_deg).reason if closed else world.release(xyz)
         log.debug(
             "emulated gripper %s at (%.2f, %.2f, %.2f) mm, %.2f deg: %s",

@@ -22,6 +22,7 @@ Typical use (helper code for the simulated cell reuses these):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -252,11 +253,74 @@ def _convex_outline_px(camera: CameraModel, pts_mm: np.ndarray) -> np.ndarray:
     return _distort(camera, _densify(hull))
 
 
-def part_coverage(camera: CameraModel, part: PartSpec) -> tuple[tuple[int, int], np.ndarray] | None:
+@dataclass(frozen=True, eq=False)
+class ExtrudedPart:
+    """A flat part of any shape: its top-view outline and holes (its own frame, mm, the origin at
+    the footprint's area centroid with the holes taken out) extruded to `height_mm`, lying at
+    (x_mm, y_mm) turned by `angle_deg` (counter-clockwise from +X). A taught part type's stand-in."""
+
+    name: str
+    outline_mm: np.ndarray
+    holes_mm: tuple[np.ndarray, ...]
+    height_mm: float
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    angle_deg: float = 0.0
+
+    kind = "extruded"
+
+    @property
+    def footprint_centre_mm(self) -> tuple[float, float]:
+        return (self.x_mm, self.y_mm)
+
+    def placed(self, x_mm: float, y_mm: float, angle_deg: float) -> ExtrudedPart:
+        return ExtrudedPart(self.name, self.outline_mm, self.holes_mm, self.height_mm, x_mm, y_mm, angle_deg)
+
+    def to_table(self, uv: np.ndarray) -> np.ndarray:
+        """Part frame -> table mm."""
+        a = math.radians(self.angle_deg)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return np.asarray(uv, dtype=np.float64) @ rot.T + (self.x_mm, self.y_mm)
+
+    def top_view_outline_mm(self) -> np.ndarray:
+        return self.to_table(self.outline_mm)
+
+    def top_view_holes_mm(self) -> list[np.ndarray]:
+        return [self.to_table(h) for h in self.holes_mm]
+
+
+def _polygon_px(camera: CameraModel, pts_mm: np.ndarray) -> np.ndarray:
+    """Distorted-pixel polygon of a flat polygon (X, Y, height), convex or not."""
+    return _distort(camera, _densify(_ideal_pixels(camera, pts_mm)))
+
+
+def _extruded_polygons(
+    camera: CameraModel, part: ExtrudedPart
+) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """The pixel polygons whose union is an extruded part's silhouette (bottom, top, each wall),
+    and each hole's two openings."""
+    h = part.height_mm
+
+    def at(xy: np.ndarray, z: float) -> np.ndarray:
+        return np.column_stack([xy, np.full(len(xy), z)])
+
+    outline = part.top_view_outline_mm()
+    polys = [_polygon_px(camera, at(outline, 0.0)), _polygon_px(camera, at(outline, h))]
+    for p, q in zip(outline, np.roll(outline, -1, axis=0), strict=True):
+        wall = np.array([[*p, 0.0], [*q, 0.0], [*q, h], [*p, h]])
+        polys.append(_convex_outline_px(camera, wall))
+    holes = [(_polygon_px(camera, at(x, 0.0)), _polygon_px(camera, at(x, h))) for x in part.top_view_holes_mm()]
+    return polys, holes
+
+
+def part_coverage(camera: CameraModel, part: PartSpec | ExtrudedPart) -> tuple[tuple[int, int], np.ndarray] | None:
     """((x0, y0), coverage) of one part: fraction of each pixel in its box that is dark."""
-    solids, holes = part.solids()
-    solid_polys = [_convex_outline_px(camera, s) for s in solids]
-    hole_polys = [(_convex_outline_px(camera, b), _convex_outline_px(camera, t)) for b, t in holes]
+    if isinstance(part, ExtrudedPart):
+        solid_polys, hole_polys = _extruded_polygons(camera, part)
+    else:
+        solids, holes = part.solids()
+        solid_polys = [_convex_outline_px(camera, s) for s in solids]
+        hole_polys = [(_convex_outline_px(camera, b), _convex_outline_px(camera, t)) for b, t in holes]
     allpts = np.vstack(solid_polys)
     x0 = max(int(math.floor(allpts[:, 0].min())) - 2, 0)
     y0 = max(int(math.floor(allpts[:, 1].min())) - 2, 0)
@@ -275,15 +339,16 @@ def part_coverage(camera: CameraModel, part: PartSpec) -> tuple[tuple[int, int],
         return m
 
     mask = np.zeros(shape, np.uint8)
-    for poly in solid_polys:
-        mask |= fill(poly)
+    for poly in solid_polys:  # painted one by one: a union (fillPoly of a list would not be one)
+        sub = ((poly - (x0, y0) + 0.5) * S - 0.5) * (1 << shift)
+        cv2.fillPoly(mask, [np.rint(sub).astype(np.int32)], 255, cv2.LINE_8, shift)
     for bottom, top in hole_polys:
         mask &= ~(fill(bottom) & fill(top))
     cov = cv2.resize(mask.astype(np.float32) / 255.0, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
     return (x0, y0), cov
 
 
-def scene_opacity(camera: CameraModel, parts: list[PartSpec]) -> np.ndarray:
+def scene_opacity(camera: CameraModel, parts: Sequence[PartSpec | ExtrudedPart]) -> np.ndarray:
     """Opacity (0 clear, 1 opaque) of all parts, float64 at the camera's resolution."""
     opacity = np.zeros((camera.height_px, camera.width_px), np.float64)
     for part in parts:
@@ -298,7 +363,7 @@ def scene_opacity(camera: CameraModel, parts: list[PartSpec]) -> np.ndarray:
 
 def render_scene(
     camera: CameraModel,
-    parts: list[PartSpec],
+    parts: Sequence[PartSpec | ExtrudedPart],
     optics: Optics = Optics(),
     seed: int = 0,
     exposure: float = 1.0,

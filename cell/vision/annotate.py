@@ -28,6 +28,17 @@ Box = tuple[int, int, int, int]  # x0, y0, x1, y1 in image pixels; x1 and y1 exc
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 COLOURS_BGR = {"bolt": (0, 140, 255), "nut": (0, 160, 0), "unknown": (40, 40, 220)}
 TEXT_BGR = {"bolt": (0, 0, 0), "nut": (255, 255, 255), "unknown": (255, 255, 255)}
+TAUGHT_BGR = (170, 60, 150)  # every taught part type (cell.vision.shapes)
+
+
+def _colour(cls: str) -> tuple[int, int, int]:
+    return COLOURS_BGR.get(cls, TAUGHT_BGR)
+
+
+def _text_colour(cls: str) -> tuple[int, int, int]:
+    return TEXT_BGR.get(cls, (255, 255, 255))
+
+
 JAWS_BGR = (255, 80, 0)
 
 # Unknown parts' short labels: the first of these words found in the reason decides.
@@ -260,6 +271,8 @@ def _legend_entries(result: LocateResult, order: Sequence[int] | None) -> list[t
     entries: list[tuple[str, str]] = [
         (cls, text) for cls, text in (("bolt", "bolt"), ("nut", "nut"), ("unknown", "not picked")) if cls in present
     ]
+    if present - {"bolt", "nut", "unknown"}:
+        entries.insert(len(entries) - ("unknown" in present), ("taught", "taught type"))
     if order is None and result.objects:
         entries.append(("number", "part No."))
     elif order:
@@ -309,7 +322,7 @@ def _place_legend(out: Layout, result: LocateResult, order: Sequence[int] | None
 
 
 def _draw_part(out: np.ndarray, p: LocatedPart, style: Style) -> None:
-    colour = COLOURS_BGR[p.cls]
+    colour = _colour(p.cls)
     if p.outline_px is not None and len(p.outline_px):
         outline = np.asarray(p.outline_px).reshape(-1, 1, 2).astype(np.int32)
         drawn = cv2.approxPolyDP(outline, 0.35 * style.thick + 0.35, True)  # 5x fewer segments to draw, unseen
@@ -368,15 +381,15 @@ def _draw_leader(out: np.ndarray, label: PlacedLabel, part: LocatedPart, style: 
     x0, y0, x1, y1 = label.box_px
     cx, cy = part.pixel
     start = (int(np.clip(cx, x0, x1 - 1)), int(np.clip(cy, y0, y1 - 1)))
-    cv2.line(out, start, _pt(part.pixel), COLOURS_BGR[label.cls], max(1, style.thick // 2), cv2.LINE_AA)
+    cv2.line(out, start, _pt(part.pixel), _colour(label.cls), max(1, style.thick // 2), cv2.LINE_AA)
 
 
 def _draw_label(out: np.ndarray, label: PlacedLabel, style: Style) -> None:
     x0, y0, x1, y1 = label.box_px
-    cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), COLOURS_BGR[label.cls], -1)
+    cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), _colour(label.cls), -1)
     _, _, base = style.box_size(label.text)
     org = (x0 + style.pad, y1 - style.pad - base)
-    cv2.putText(out, label.text, org, FONT, style.font_scale, TEXT_BGR[label.cls], style.thick, cv2.LINE_AA)
+    cv2.putText(out, label.text, org, FONT, style.font_scale, _text_colour(label.cls), style.thick, cv2.LINE_AA)
 
 
 def _draw_legend(out: np.ndarray, plan: Layout, style: Style) -> None:
@@ -399,9 +412,9 @@ def _draw_legend(out: np.ndarray, plan: Layout, style: Style) -> None:
             cv2.putText(out, "1", (cx - tw // 2, mid + th // 2), FONT, 0.8 * scale, (0, 0, 0), thick, cv2.LINE_AA)
         elif kind == "unknown":
             dense = np.linspace(a, b, 16).astype(np.int32)
-            _dashed(out, dense, COLOURS_BGR[kind], style.thick, max(2, (b[0] - a[0]) // 4), closed=False)
+            _dashed(out, dense, _colour(kind), style.thick, max(2, (b[0] - a[0]) // 4), closed=False)
         else:
-            cv2.line(out, a, b, COLOURS_BGR[kind], style.thick + 1, cv2.LINE_AA)
+            cv2.line(out, a, b, _colour(kind), style.thick + 1, cv2.LINE_AA)
         org = (ix0 + swatch + style.pad, iy1 - style.pad - base)
         cv2.putText(out, text, org, FONT, scale, (255, 255, 255), thick, cv2.LINE_AA)
 

@@ -105,6 +105,18 @@ class PartsConfig(Strict):
         25.0, gt=0, description="widest part expected (its narrow way); sizes the backlight estimate"
     )
     jaw_clearance_mm: float = Field(3.0, ge=0, description="added to the part's width for the jaw opening")
+    jaw_max_opening_mm: float = Field(
+        30.0,
+        gt=0,
+        le=500,
+        description="the gripper's widest opening: a taught part wider where it is gripped is refused",
+    )
+    jaw_face_width_mm: float = Field(
+        8.0, gt=0, le=200, description="how wide the jaw faces are (a taught part is gripped across that band)"
+    )
+    jaw_thickness_mm: float = Field(
+        5.0, gt=0, le=100, description="how deep each jaw is: a taught part whose jaws would touch a neighbour waits"
+    )
 
     @property
     def use_height_correction(self) -> bool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -20,7 +21,8 @@ from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, measure, width_profile
 from cell.vision.footprint import BoltPose, bolt_pose
-from cell.vision.segment import segment, to_gray
+from cell.vision.segment import Blob, segment, to_gray
+from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob
 from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
@@ -43,9 +45,12 @@ class PixelScale:
         self.scale = float(mm_per_px)
 
     def pixel_to_table_mm(self, pixels, height_mm: float = 0.0) -> np.ndarray:
+        return self.lift_mm(np.asarray(pixels, dtype=np.float64).reshape(-1, 2) * self.scale, height_mm)
+
+    def lift_mm(self, on_table: np.ndarray, height_mm: float) -> np.ndarray:
         if height_mm:
             raise InputError("a plain pixel scale cannot correct for part height")
-        return np.asarray(pixels, dtype=np.float64).reshape(-1, 2) * self.scale
+        return on_table
 
     def mm_per_px(self, pixel) -> float:
         return self.scale
@@ -57,12 +62,13 @@ def _parts_config(config) -> PartsConfig:
     return config if isinstance(config, PartsConfig) else config.parts
 
 
-def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateResult:
+def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Sequence[ShapeModel] = ()) -> LocateResult:
     """Find, classify and locate the parts in one frame.
 
     calibration_or_scale: a Calibration (table mm in its plate frame, height correction
     possible) or a plain mm-per-pixel number. config: PartsConfig or CellConfig (its
-    .parts); None for the defaults.
+    .parts); None for the defaults. shapes: the recipe's taught part types (cell.vision.shapes),
+    tried on each blob before the built-in bolt and nut; none: bolts and nuts only, as always.
     """
     cfg = _parts_config(config)
     mapper = (
@@ -90,19 +96,174 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateRe
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
     feats = [measure(blob, seg.mask) for blob in seg.blobs]
-    scales, slopes = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
+    scales, slopes, centres_mm = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
+    verdicts = [
+        classify(feat, blob.outer, local_scale, cfg, slope)
+        for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True)
+    ]
+    fines = [
+        _fine_outline(verdict, correct, cfg, gray, blob.outer)
+        for blob, verdict in zip(seg.blobs, verdicts, strict=True)
+    ]
+    outlines_mm = _outlines_on_table(
+        mapper,
+        [
+            _thinned(f) if f is not None and correct and _shadow_placed(v) else None
+            for v, f in zip(verdicts, fines, strict=True)
+        ],
+    )
     found = []
-    for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True):
-        verdict = classify(feat, blob.outer, local_scale, cfg, slope)
-        part = _place(feat, verdict, local_scale, mapper, cfg, correct, (gray, blob.outer))
+    for blob, feat, verdict, local_scale, centre_mm, fine, outline_mm in zip(
+        seg.blobs, feats, verdicts, scales, centres_mm, fines, outlines_mm, strict=True
+    ):
+        taught, why = _taught(blob, feat, gray, mapper, cfg, shapes, local_scale, correct) if shapes else (None, "")
+        if taught is not None:
+            taught.outline_px = blob.outer
+            found.append(_refuse_non_finite(taught))
+            continue
+        if why and verdict.cls not in (BOLT, NUT):
+            verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
+        part = _place(feat, verdict, local_scale, mapper, cfg, correct, centre_mm, fine, outline_mm)
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
     for i, part in enumerate(found, start=1):
         part.id = i
+    if shapes:
+        _leave_crowded(found, mapper, cfg)
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def silhouettes(image_bgr: np.ndarray, mapper, config: PartsConfig) -> list[tuple[tuple, bool, float]]:
+    """Every blob large enough to be a part, as (its silhouette on the table plane (outer, holes;
+    table mm), whether it touches the image's edge, its area in mm2): what teaching learns from."""
+    image = np.asarray(image_bgr)
+    h, w = image.shape[:2]
+    scale = mapper.mm_per_px((w / 2, h / 2))
+    gray = to_gray(image)
+    seg = segment(
+        image,
+        config,
+        part_width_px=config.max_part_width_mm / scale,
+        noise_area_px=config.segment.noise_area_mm2 / scale**2,
+        gray=gray,
+    )
+    out = []
+    for blob in seg.blobs:
+        feat = measure(blob, seg.mask)
+        area = feat.outer_area_px * scale**2
+        if area < config.min_part_area_mm2:
+            continue
+        sil = footprint_of_blob(
+            gray, blob.outer, mapper, config.segment.threshold_fraction, config.segment.noise_area_mm2 / scale**2
+        )
+        if sil is not None:
+            out.append((sil, blob.touches_border, area))
+    return out
+
+
+def _taught(
+    blob: Blob,
+    feat: Features,
+    gray: np.ndarray,
+    mapper,
+    cfg: PartsConfig,
+    shapes: Sequence[ShapeModel],
+    scale: float,
+    correct: bool,
+) -> tuple[LocatedPart | None, str]:
+    """The blob as a taught part type, or (None, why not; empty when the built-in rules should say)."""
+    if feat.touches_border:
+        return None, ""
+    silhouette = footprint_of_blob(
+        gray, blob.outer, mapper, cfg.segment.threshold_fraction, cfg.segment.noise_area_mm2 / scale**2
+    )
+    if silhouette is None:
+        return None, ""
+    camera_centre = mapper.camera.center_table_mm if correct else None
+    match, fp, why = best_match(silhouette, shapes, camera_centre)
+    if match is None or not match.accepted or fp is None:
+        return None, why
+    model = next(m for m in shapes if m.name == match.name)
+    grasp, jaw_deg = model.grip_on_table(match.centre_mm, match.angle_deg)
+    centre = match.centre_mm
+    return LocatedPart(
+        id=0,
+        cls=match.name,
+        reason=f"taught type {match.name}: fits its model (score {match.score:.3f}, "
+        f"differs by {match.misfit_mm2:.1f} mm2)",
+        pixel=(float(feat.centroid_px[0]), float(feat.centroid_px[1])),
+        table_mm=(float(centre[0]), float(centre[1])),
+        angle_deg=None if model.symmetry == 0 else float(match.angle_deg),
+        pick=True,
+        grasp_mm=(float(grasp[0]), float(grasp[1])),
+        jaw_opening_mm=model.grip.opening_mm,
+        features={
+            "area_mm2": fp.area_mm2,
+            "holes": len(fp.holes),
+            "symmetry": model.symmetry,
+            "jaw_angle_deg": jaw_deg,
+            "misfit_mm2": match.misfit_mm2,
+            "reference_height_mm": model.height_mm if correct else 0.0,
+        },
+        score=match.score,
+    ), ""
+
+
+def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
+    """A taught part whose jaws would touch a neighbour is left for later, saying which: each jaw a
+    rectangle `jaw_thickness_mm` deep and `jaw_face_width_mm` wide just outside the opening, on
+    either side of the grasp point along the direction the jaws close, against every other part's
+    silhouette on the table plane."""
+    taught = [p for p in found if p.pick and p.score is not None and p.grasp_mm is not None]
+    if not taught or len(found) < 2:
+        return
+    # Outlines within half a pixel (the jaws' reach is millimetres), mapped in one call.
+    outlines = [
+        cv2.approxPolyDP(np.asarray(p.outline_px, dtype=np.int32).reshape(-1, 1, 2), 0.5, True).reshape(-1, 2)
+        for p in found
+    ]
+    mapped = mapper.pixel_to_table_mm(np.vstack(outlines).astype(np.float64))
+    cuts = np.cumsum([len(o) for o in outlines])[:-1]
+    polys = [q.astype(np.float32) for q in np.split(mapped, cuts)]
+    centres = np.array([q.mean(axis=0) for q in polys])
+    radii = np.array([float(np.max(np.hypot(*(q - c).T))) for q, c in zip(polys, centres, strict=True)])
+    index = {id(p): i for i, p in enumerate(found)}
+    for part in taught:
+        a = math.radians(part.features["jaw_angle_deg"])
+        d, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+        g = np.asarray(part.grasp_mm)
+        half = (part.jaw_opening_mm or 0.0) / 2
+        t, w = cfg.jaw_thickness_mm, cfg.jaw_face_width_mm / 2
+        jaws = []
+        for sign in (1.0, -1.0):
+            near, far = g + sign * half * d, g + sign * (half + t) * d
+            jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
+        reach = half + t + w + 1.0  # the farthest a jaw's corner lies from the grasp point, and a margin
+        close = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
+        for j in close:
+            other = found[j]
+            if j == index[id(part)]:
+                continue
+            poly = polys[j]
+            if any(_overlap(jaw, poly) for jaw in jaws):
+                part.pick = False
+                part.reason = f"{part.cls}: the jaws would touch part {other.id}: left for later"
+                break
+
+
+def _overlap(jaw: np.ndarray, poly: np.ndarray) -> bool:
+    """Whether a jaw's rectangle (4 corners in order) and a part's outline overlap: a point of the
+    outline inside the rectangle, or a corner of the rectangle inside the outline."""
+    c = jaw.mean(axis=0)
+    u, v = jaw[1] - jaw[0], jaw[3] - jaw[0]
+    p = poly - c
+    inside = (np.abs(p @ u) <= 0.5 * float(u @ u)) & (np.abs(p @ v) <= 0.5 * float(v @ v))
+    if inside.any():
+        return True
+    return any(cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in jaw)
 
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
@@ -116,23 +277,24 @@ def _refuse_non_finite(part: LocatedPart) -> LocatedPart:
     return part
 
 
-def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel: the table-plane scale (mm/px, as Calibration.mm_per_px) and the view slope
-    (tangent of the angle between the camera's ray and the vertical; 0 without a pose).
+def _local_geometry(mapper, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel: the table-plane scale (mm/px, as Calibration.mm_per_px), the view slope
+    (tangent of the angle between the camera's ray and the vertical; 0 without a pose) and the
+    point on the table plane (N, 2).
 
     One mapping call for all parts: a calibration's mapping is the costly step per part.
     """
     n = len(pixels)
     if n == 0:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros((0, 2))
     probes = np.concatenate([pixels, pixels + (1.0, 0.0), pixels + (0.0, 1.0)])
     q = mapper.pixel_to_table_mm(probes).reshape(3, n, 2)
     du, dv = q[1] - q[0], q[2] - q[0]
     scales = np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
     if mapper.camera is None:
-        return scales, np.zeros(n)
+        return scales, np.zeros(n), q[0]
     c = mapper.camera.center_table_mm
-    return scales, np.hypot(*(q[0] - c[:2]).T) / c[2]
+    return scales, np.hypot(*(q[0] - c[:2]).T) / c[2], q[0]
 
 
 def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
@@ -149,6 +311,40 @@ def reference_height_mm(verdict: Verdict, config: PartsConfig) -> float:
     return 0.0
 
 
+def _posed(verdict: Verdict) -> bool:
+    """A bolt on its side with a width profile: its pose places it (footprint.py)."""
+    return (
+        verdict.cls == BOLT
+        and verdict.profile is not None
+        and verdict.head_width_px is not None
+        and verdict.shaft_width_px is not None
+    )
+
+
+def _shadow_placed(verdict: Verdict) -> bool:
+    """Placed by its shadow (with height correction): a nut, or a posed bolt."""
+    return verdict.cls == NUT or _posed(verdict)
+
+
+def _fine_outline(
+    verdict: Verdict, correct: bool, cfg: PartsConfig, gray: np.ndarray, outline: np.ndarray
+) -> np.ndarray | None:
+    """The sub-pixel outline where it is used: a bolt on its side (its pose), a nut with height correction."""
+    bolt_on_side = verdict.cls == BOLT and verdict.head_width_px is not None
+    if bolt_on_side or (verdict.cls == NUT and correct):
+        return subpixel_outline(gray, outline, cfg.segment.threshold_fraction)
+    return None
+
+
+def _outlines_on_table(mapper, outlines_px: list[np.ndarray | None]) -> list[np.ndarray | None]:
+    """Each outline mapped onto the table plane, all in one mapping call (its cost is mostly per call)."""
+    given = [o for o in outlines_px if o is not None]
+    if not given:
+        return [None] * len(outlines_px)
+    mapped = iter(np.split(mapper.pixel_to_table_mm(np.concatenate(given)), np.cumsum([len(o) for o in given])[:-1]))
+    return [None if o is None else next(mapped) for o in outlines_px]
+
+
 def _place(
     feat: Features,
     verdict: Verdict,
@@ -156,18 +352,27 @@ def _place(
     mapper,
     cfg: PartsConfig,
     correct: bool,
-    seen: tuple[np.ndarray, np.ndarray],
+    centre_mm: np.ndarray,
+    fine: np.ndarray | None,
+    outline_mm: np.ndarray | None,
 ) -> LocatedPart:
-    """`seen`: the grey frame and the blob's outline (a bolt's pose is measured on a sub-pixel outline)."""
+    """`centre_mm`: the centroid mapped onto the table plane; `fine`: the blob's sub-pixel outline
+    where one is needed (a bolt's pose is measured on it); `outline_mm`: that outline, thinned, on
+    the table plane where the shadow places the part."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
-    world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     angle = head = grasp = jaw = None
     prof, head_px, shaft_px = verdict.profile, verdict.head_width_px, verdict.shaft_width_px
-    bolt_on_side = verdict.cls == BOLT and head_px is not None
-    needs_outline = bolt_on_side or (verdict.cls == NUT and correct)
-    fine = subpixel_outline(*seen, cfg.segment.threshold_fraction) if needs_outline else None
-    if bolt_on_side and prof is not None and head_px is not None and shaft_px is not None:
+    posed = _posed(verdict)
+    # The centroid at the part's reference height (a posed bolt's place comes from its pose): moved
+    # up from the table plane where the mapper can, else mapped again (a mapping call per part).
+    if posed:
+        world = np.zeros(2)
+    elif hasattr(mapper, "lift_mm"):
+        world = mapper.lift_mm(centre_mm.reshape(1, 2), height)[0]
+    else:
+        world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
+    if posed and prof is not None and head_px is not None and shaft_px is not None:
         if fine is not None:
             prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
@@ -180,9 +385,8 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
-        if correct and fine is not None:
+        if correct and outline_mm is not None:
             # The shadow's centroid places the bolt; its head and grasp point move with it.
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
             shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
             world, head, grasp = world + shift, head + shift, grasp + shift
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
@@ -193,8 +397,7 @@ def _place(
         angle = math.degrees(math.atan2(d[1], d[0])) % 180.0
         head = ends[0]
     elif verdict.cls == NUT:
-        if correct and fine is not None:
-            outline_mm = mapper.pixel_to_table_mm(_thinned(fine))
+        if correct and outline_mm is not None:
             nut = nut_from_outline(
                 outline_mm,
                 verdict.size_mm["across_flats_mm"],

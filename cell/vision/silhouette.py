@@ -29,6 +29,14 @@ _SWEEP_DEG = 12.0  # edges this close to the sweep's direction are the sweep's, 
 _RING = 96  # points on a shaft's rim (as the renderer draws it)
 
 
+def _unit_circle(angles: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.cos(angles), np.sin(angles)])
+
+
+_RING_COS_SIN = _unit_circle(np.linspace(0.0, 2 * np.pi, _RING, endpoint=False))  # a shaft's rim
+_HEX_COS_SIN = _unit_circle(np.deg2rad(60.0 * np.arange(6)))  # a bolt head's corners
+
+
 def shadow(points_xyz: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
     """(N, 2) where each point (X, Y, height) is seen on the table plane from the camera centre."""
     p = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
@@ -39,27 +47,31 @@ def shadow(points_xyz: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
 
 def polygon_moments(poly: np.ndarray) -> tuple[float, np.ndarray]:
     """Area (positive) and area centroid of a simple polygon (N, 2)."""
-    x, y = poly[:, 0], poly[:, 1]
-    xs, ys = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))
-    cross = x * ys - xs * y
-    a = cross.sum() / 2
+    nxt = np.concatenate((poly[1:], poly[:1]))
+    cross = poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]
+    a = float(cross.sum()) / 2
     if abs(a) < 1e-12:
         return 0.0, poly.mean(axis=0)
-    return abs(a), np.array([((x + xs) * cross).sum(), ((y + ys) * cross).sum()]) / (6 * a)
+    return abs(a), (cross @ (poly + nxt)) / (6 * a)
 
 
 def _hull(points: np.ndarray) -> np.ndarray:
+    """The convex hull of (N, 2) points, counter-clockwise (positive area), in float64: OpenCV picks
+    the vertices (in float32, about the points' mean) and the float64 points are kept."""
     origin = points.mean(axis=0)
-    hull = cv2.convexHull((points - origin).astype(np.float32)).reshape(-1, 2)
-    return hull.astype(np.float64) + origin
+    index = cv2.convexHull((points - origin).astype(np.float32), clockwise=False, returnPoints=False).reshape(-1)
+    hull = points[index]
+    x, y = hull[:, 0], hull[:, 1]
+    if float(x[:-1] @ y[1:] - x[1:] @ y[:-1] + x[-1] * y[0] - x[0] * y[-1]) < 0:
+        hull = hull[::-1]
+    return hull
 
 
 def _union_moments(hulls: list[np.ndarray]) -> tuple[float, np.ndarray]:
-    """Area and area centroid of the union of two convex polygons (or of one)."""
-    moments = [polygon_moments(h) for h in hulls]
+    """Area and area centroid of the union of two convex polygons (or of one), each counter-clockwise."""
     if len(hulls) == 1:
-        return moments[0]
-    (a1, c1), (a2, c2) = moments
+        return polygon_moments(hulls[0])
+    (a1, c1), (a2, c2) = polygon_moments(hulls[0]), polygon_moments(hulls[1])
     inter = _intersection(hulls[0], hulls[1])
     a12, c12 = (0.0, c1) if len(inter) < 3 else polygon_moments(inter)
     area = a1 + a2 - a12
@@ -67,27 +79,35 @@ def _union_moments(hulls: list[np.ndarray]) -> tuple[float, np.ndarray]:
 
 
 def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The intersection of two convex polygons: `a` clipped by each edge of `b` in turn
-    (Sutherland-Hodgman, float64). OpenCV's intersectConvexConvex returns the wrong polygon for
-    the head's and the shaft's shadows, which share an edge where they join."""
-    if len(b) > len(a):
-        a, b = b, a  # the work grows with the clipping polygon's edges
-    x, y = b[:, 0], b[:, 1]
-    if float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) < 0:
-        b = b[::-1]  # counter-clockwise: inside is to the left of every edge
-    out = a
-    for p, q in zip(b, np.roll(b, -1, axis=0), strict=True):
-        if len(out) < 3:
-            return np.zeros((0, 2))
-        nxt = np.roll(out, -1, axis=0)
-        side = (q[0] - p[0]) * (out[:, 1] - p[1]) - (q[1] - p[1]) * (out[:, 0] - p[0])
-        side_nxt = np.roll(side, -1)
-        inside = side >= 0
-        crossing = inside != (side_nxt >= 0)
-        t = side / np.where(crossing, side - side_nxt, 1.0)
-        cut = out + (nxt - out) * t[:, None]
-        out = np.stack([out, cut], axis=1).reshape(-1, 2)[np.stack([inside, crossing], axis=1).reshape(-1)]
-    return out
+    """The intersection of two counter-clockwise convex polygons, in float64, all at once: the
+    vertices of each inside the other, and the points where an edge of one crosses an edge of the
+    other, in order of their angle about their mean. (OpenCV's intersectConvexConvex returns the
+    wrong polygon for the head's and the shaft's shadows, which share an edge where they join.)
+
+    A vertex counts as inside when it lies within a hair of every edge (a cross product of 1e-12
+    mm^2): a point on a shared edge is kept, and what this adds or leaves out is that small."""
+    a_next = np.concatenate((a[1:], a[:1]))
+    b_next = np.concatenate((b[1:], b[:1]))
+    ea, eb = a_next - a, b_next - b
+    # side_a[i, j]: where a's vertex i lies from b's edge j (> 0: to its left, inside);
+    # side_b[j, i]: where b's vertex j lies from a's edge i.
+    side_a = eb[:, 0] * (a[:, 1:2] - b[:, 1]) - eb[:, 1] * (a[:, 0:1] - b[:, 0])
+    side_b = ea[:, 0] * (b[:, 1:2] - a[:, 1]) - ea[:, 1] * (b[:, 0:1] - a[:, 0])
+    hair = 1e-12  # mm^2: about the part (the caster's frame), 1e-12 / an edge's length off it
+    kept = [a[(side_a >= -hair).all(axis=1)], b[(side_b >= -hair).all(axis=1)]]
+    # a's edge i (from vertex i to i + 1) crosses b's edge j where both change side.
+    sa_next = np.concatenate((side_a[1:], side_a[:1]))  # [i, j]: a's vertex i + 1 from b's edge j
+    sb_next = np.concatenate((side_b[1:], side_b[:1]))  # [j, i]: b's vertex j + 1 from a's edge i
+    crosses = ((side_a >= 0) != (sa_next >= 0)) & ((side_b >= 0) != (sb_next >= 0)).T
+    i, j = np.nonzero(crosses)
+    if len(i):
+        t = side_a[i, j] / (side_a[i, j] - sa_next[i, j])
+        kept.append(a[i] + ea[i] * t[:, None])
+    pts = np.concatenate(kept)
+    if len(pts) < 3:
+        return np.zeros((0, 2))
+    d = pts - pts.mean(axis=0)
+    return pts[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
 
 
 @dataclass(frozen=True)
@@ -118,30 +138,82 @@ class Bolt:
     shaft_length_mm: float
     axis_deg: float
 
-    def solids(self, centre: np.ndarray) -> list[np.ndarray]:
+    def frame(self) -> tuple[np.ndarray, tuple[float, float], np.ndarray, tuple[float, float], np.ndarray, np.ndarray]:
+        """The head's and the shaft's rings (across the axis, height: (n, 2)) and where along the
+        axis each prism begins and ends, then the axis and across-axis unit vectors."""
         s, k, d, L = self.head_across_flats_mm, self.head_length_mm, self.shaft_mm, self.shaft_length_mm
         e = 2 * s / math.sqrt(3)  # the head's width seen from above (across corners)
         u0 = -(k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)  # head-shaft junction
         a = math.radians(self.axis_deg)
         axis, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
-        corners = np.deg2rad(60.0 * np.arange(6))
-        ring = np.linspace(0.0, 2 * np.pi, _RING, endpoint=False)
-        head_vz = np.column_stack([e / 2 * np.cos(corners), s / 2 + e / 2 * np.sin(corners)])
-        shaft_vz = np.column_stack([d / 2 * np.cos(ring), s / 2 + d / 2 * np.sin(ring)])
+        head_vz = (e / 2) * _HEX_COS_SIN + (0.0, s / 2)
+        shaft_vz = (d / 2) * _RING_COS_SIN + (0.0, s / 2)
+        return head_vz, (u0 - k, u0), shaft_vz, (u0, u0 + L), axis, side
+
+    def solids(self, centre: np.ndarray) -> list[np.ndarray]:
+        head_vz, head_u, shaft_vz, shaft_u, axis, side = self.frame()
 
         def prism(vz: np.ndarray, u_from: float, u_to: float) -> np.ndarray:
             ends = [centre + u * axis + vz[:, :1] * side for u in (u_from, u_to)]
             return np.column_stack([np.vstack(ends), np.concatenate([vz[:, 1], vz[:, 1]])])
 
-        return [prism(head_vz, u0 - k, u0), prism(shaft_vz, u0, u0 + L)]
+        return [prism(head_vz, *head_u), prism(shaft_vz, *shaft_u)]
 
 
 Shape = Nut | Bolt
 
 
+class _Caster:
+    """One shape's shadows from one camera centre, for any footprint centre c: each solid's points
+    and their magnifications k = H / (H - z) are computed once, at footprint centre 0; at c a point
+    is seen at base + k c, which is kept relative to c (c + (base + (k - 1) c)), where float32 holds
+    it to 1e-6 mm: OpenCV then takes the hulls and their moments in one call each."""
+
+    def __init__(self, shape: Shape, camera_centre: np.ndarray):
+        c = np.asarray(camera_centre, dtype=np.float64)
+        self.solids: list[tuple[np.ndarray, np.ndarray]] = []
+        if isinstance(shape, Nut):  # the bottom hexagon (k = 1) and the top one
+            r = shape.across_flats_mm / math.sqrt(3)
+            hexagon = r * _unit_circle(np.deg2rad(shape.corner_deg + 60.0 * np.arange(6)))
+            k = c[2] / max(c[2] - shape.thickness_mm, 1e-9)
+            base = np.concatenate((hexagon, c[:2] + (hexagon - c[:2]) * k))
+            self.solids.append((base, np.repeat([[0.0], [k - 1.0]], 6, axis=0)))
+            return
+        # A bolt: the head's end faces (6 corners each) and the shaft's (_RING points each), all at
+        # the heights of their ring, so the magnifications are computed once per ring.
+        head_vz, head_u, shaft_vz, shaft_u, axis, side = shape.frame()
+        for vz, ends in ((head_vz, head_u), (shaft_vz, shaft_u)):
+            k = c[2] / np.maximum(c[2] - vz[:, 1:], 1e-9)  # (n, 1)
+            local = vz[:, :1] * side  # (n, 2): across the axis
+            base = np.concatenate([c[:2] + (u * axis + local - c[:2]) * k for u in ends])
+            self.solids.append((base, np.concatenate((k, k)) - 1.0))
+
+    def moments(self, centre: np.ndarray) -> tuple[float, np.ndarray]:
+        hulls = [cv2.convexHull((base + k1 * centre).astype(np.float32), clockwise=False) for base, k1 in self.solids]
+        area, offset = _hull_moments(hulls[0])
+        if len(hulls) == 2:  # the union: both areas, less their overlap
+            a2, c2 = _hull_moments(hulls[1])
+            overlap = _intersection(
+                hulls[0].reshape(-1, 2).astype(np.float64), hulls[1].reshape(-1, 2).astype(np.float64)
+            )
+            a12, c12 = (0.0, offset) if len(overlap) < 3 else polygon_moments(overlap)
+            union = area + a2 - a12
+            offset = (area * offset + a2 * c2 - a12 * c12) / max(union, 1e-12)
+            area = union
+        return area, centre + offset
+
+
+def _hull_moments(hull: np.ndarray) -> tuple[float, np.ndarray]:
+    """Area and area centroid of a polygon OpenCV holds (float32, N x 1 x 2)."""
+    m = cv2.moments(hull)
+    if m["m00"] <= 0:
+        return 0.0, hull.reshape(-1, 2).astype(np.float64).mean(axis=0)
+    return m["m00"], np.array([m["m10"], m["m01"]]) / m["m00"]
+
+
 def shadow_moments(shape: Shape, centre: np.ndarray, camera_centre: np.ndarray) -> tuple[float, np.ndarray]:
     """Area and area centroid of the shadow `shape` casts on the table plane from the camera centre."""
-    return _union_moments([_hull(shadow(s, camera_centre)) for s in shape.solids(np.asarray(centre, float))])
+    return _Caster(shape, camera_centre).moments(np.asarray(centre, dtype=np.float64))
 
 
 def footprint_centre(
@@ -151,8 +223,9 @@ def footprint_centre(
     the table plane); `start_mm` a first guess (default: the measured centroid)."""
     measured = np.asarray(measured_mm, dtype=np.float64)
     c = measured.copy() if start_mm is None else np.asarray(start_mm, dtype=np.float64).copy()
+    caster = _Caster(shape, camera_centre)
     for _ in range(steps):
-        c = c + (measured - shadow_moments(shape, c, camera_centre)[1])
+        c = c + (measured - caster.moments(c)[1])
     return c
 
 

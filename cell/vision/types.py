@@ -15,7 +15,7 @@ class LocatedPart:
     """A part found in one frame. Table coordinates are in the calibration's plate frame, mm."""
 
     id: int
-    cls: PartClass
+    cls: str  # bolt, nut, a taught type's name, or unknown
     reason: str  # why this class (and, for unknown, why it is not picked)
     pixel: tuple[float, float]  # sub-pixel centroid of the outline, image px
     table_mm: tuple[float, float]  # footprint centre on the table (height-corrected), table mm
@@ -25,6 +25,7 @@ class LocatedPart:
     jaw_opening_mm: float | None = None  # jaw opening needed to close on the part
     head_mm: tuple[float, float] | None = None  # bolts: head end, table mm
     features: dict = field(default_factory=dict)  # area_mm2, elongation, hexagonality, holes...
+    score: float | None = None  # taught types: how well the outline fits the model (0-1)
     outline_px: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N, 1, 2) int32, for drawing
 
 

@@ -149,6 +149,20 @@ class SerialArmConfig(Strict):
     soft_reset_on_connect: bool = Field(True, description="send Ctrl-X and expect the GRBL banner on connect")
     speed_mm_s: float = Field(50.0, gt=0, le=5000, description="feed for moves; 0-length rapid moves unused")
     rapid_moves: bool = Field(False, description="use the rapid template (firmware's top speed) for moves")
+    fixed_jaw_angle_deg: float = Field(
+        0.0,
+        ge=-90,
+        le=90,
+        description="without commands.rotate (a 3-axis machine): the direction the jaws close, robot frame, "
+        "degrees counter-clockwise from +X; a grip asked at another angle is refused (the part left, with why)",
+    )
+    fixed_jaw_tolerance_deg: float = Field(
+        5.0,
+        gt=0,
+        le=90,
+        description="without commands.rotate: how far a grip's angle may be from fixed_jaw_angle_deg and still be "
+        "made at the fixed angle (a bolt's jaws across its axis within this; the simulated jaws grip within 5)",
+    )
     home_position_mm: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="where `home` moves when commands.home is empty"
     )

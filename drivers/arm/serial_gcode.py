@@ -79,9 +79,24 @@ NO_HOMING_CYCLE_HINT = (
 )
 
 
+def _at_fixed_jaw_angle(cfg: SerialArmConfig, where: str, angle_deg: float) -> None:
+    """An arm without a rotation axis grips at its one jaw angle: OutOfReach, saying so, when the grip
+    asked for is further from it than the tolerance (jaw angles repeat every 180 deg)."""
+    fixed = cfg.fixed_jaw_angle_deg
+    off = abs((angle_deg - fixed + 90.0) % 180.0 - 90.0)
+    if off > cfg.fixed_jaw_tolerance_deg:
+        raise OutOfReach(
+            f"{where}: the grip needs the jaws at {angle_deg:.1f} deg, and this arm has no rotation axis: its jaws "
+            f"close at {fixed:.1f} deg (arm.serial.fixed_jaw_angle_deg), {off:.1f} deg off, more than "
+            f"arm.serial.fixed_jaw_tolerance_deg ({cfg.fixed_jaw_tolerance_deg:g} deg); the part is left",
+            hint="a part turned the other way is picked; for every angle give the arm a rotation axis "
+            "(arm.serial.commands.rotate, e.g. 'G0 A{angle_deg:.2f}')",
+        )
+
+
 def plan_move(cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle_deg: float | None = None) -> list[str]:
     """The G-code lines for a move, after checking the target; OutOfReach if refused."""
-    where = f"target ({x_mm}, {y_mm}, {z_mm}) mm"
+    where = f"target ({x_mm:.1f}, {y_mm:.1f}, {z_mm:.1f}) mm"
     if why := cfg.workspace.violation(x_mm, y_mm, z_mm):
         raise OutOfReach(f"{where}: {why} (arm.serial.workspace)")
     fields = dict(x_mm=x_mm, y_mm=y_mm, z_mm=z_mm, angle_deg=angle_deg or 0.0, feed_mm_min=cfg.speed_mm_s * 60.0)
@@ -89,12 +104,10 @@ def plan_move(cfg: SerialArmConfig, x_mm: float, y_mm: float, z_mm: float, angle
     if angle_deg is not None:
         if not math.isfinite(angle_deg):
             raise OutOfReach(f"{where}: angle {angle_deg} deg is not a number")
-        if not cfg.commands.rotate:
-            raise OutOfReach(
-                f"{where} at angle {angle_deg} deg: this arm has no tool rotation command",
-                hint="omit the angle, or set arm.serial.commands.rotate (e.g. 'G0 A{angle_deg:.2f}')",
-            )
-        lines.append(cfg.commands.rotate.format(**fields))
+        if cfg.commands.rotate:
+            lines.append(cfg.commands.rotate.format(**fields))
+        else:
+            _at_fixed_jaw_angle(cfg, where, angle_deg)  # no rotation axis: the jaws stay as they are
     template = cfg.commands.rapid if cfg.rapid_moves else cfg.commands.feed
     lines.append(template.format(**fields))
     return lines

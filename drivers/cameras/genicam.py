@@ -183,6 +183,11 @@ class GenICamCamera(Camera):
         """The camera as the operator knows it: its serial number once seen, else the configured id."""
         return self.device.serial if self.device is not None and self.device.serial else self.wanted
 
+    @property
+    def aravis_camera(self) -> Any:
+        """The open Aravis.Camera (None while closed or lost); it changes when the camera is opened again."""
+        return self._camera
+
     def connect(self) -> None:
         self.stats = GenICamStats(recent=collections.deque(maxlen=self.cfg.loss_window_frames))
         self._warned = False

@@ -1,0 +1,80 @@
+"""`run-cell part teach`: a part type learnt from example images, added to a recipe."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cell.calibration.store import Calibration
+from cell.commands.argtypes import finite_float
+from cell.config import load_config
+from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN
+from cell.errors import InputError
+from cell.imageio import read_image
+from cell.recipes import add_taught_type
+from cell.vision.locate import PixelScale, silhouettes
+from cell.vision.shapes import Example, teach
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "part",
+        help="teach a part type from example images",
+        description="Part types a recipe picks beside bolts and nuts (docs/parts.md, 'Teaching a part type').",
+    )
+    verbs = p.add_subparsers(dest="part_command", metavar="VERB", required=True)
+    t = verbs.add_parser(
+        "teach",
+        help="learn a part type from images of examples, each alone on the backlit table",
+        description="Learn a part type's shape from one or more images, each showing one or more examples of "
+        "the part alone on the backlit table; write its model beside the recipe (models/NAME-<sha>.json) and "
+        "name it in the recipe ([types.NAME], the recipe created if absent). Prints how consistent the examples "
+        "were, the symmetry found and the grip; refuses when the examples disagree, touch, leave the image or "
+        "cannot be gripped.",
+    )
+    t.add_argument("name", help="the part type's name: 1-32 lower-case letters, digits, - and _ (e.g. bracket-l)")
+    t.add_argument("--image", required=True, action="append", type=Path, help="an image of examples (repeat)")
+    where = t.add_mutually_exclusive_group(required=True)
+    where.add_argument("--calibration", type=Path, help="calibration JSON (table mm, height correction)")
+    where.add_argument("--mm-per-px", type=finite_float, help="a plain scale for an uncalibrated camera")
+    t.add_argument("--height-mm", required=True, type=finite_float, help="the part's height lying on the table")
+    t.add_argument("--recipe", required=True, type=Path, help="recipe TOML to add the type to (created if absent)")
+    t.add_argument("--config", type=Path, help="cell config TOML (its [parts]: segmentation, jaws)")
+    t.set_defaults(func=cmd_teach)
+
+
+def cmd_teach(args: argparse.Namespace) -> int:
+    name = args.name
+    if not NAME_PATTERN.match(name) or name in BUILT_IN_PARTS or name == "unknown":
+        raise InputError(
+            f"part type name {name!r} not allowed",
+            hint="1-32 lower-case letters, digits, - and _, starting with a letter; not bolt, nut or unknown",
+        )
+    if not 0 < args.height_mm <= 200:
+        raise InputError(f"--height-mm {args.height_mm:g}: the part's height, more than 0 and at most 200 mm")
+    config = load_config(args.config)
+    parts = config.parts
+    mapper: Calibration | PixelScale
+    mapper = Calibration.load(args.calibration) if args.calibration is not None else PixelScale(args.mm_per_px)
+    camera_centre = mapper.camera.center_table_mm if mapper.camera is not None and parts.use_height_correction else None
+    examples = []
+    for path in args.image:
+        image = read_image(path, config.camera.max_image_px, mapper.image_size)
+        found = silhouettes(image, mapper, parts)
+        if not found:
+            raise InputError(f"{path}: no part seen", hint="the part alone on the backlit table, dark against it")
+        for i, (sil, border, _) in enumerate(found, start=1):
+            examples.append(Example.of(sil, args.height_mm, camera_centre, f"{path.name} part {i}", border))
+    report = teach(
+        name,
+        examples,
+        args.height_mm,
+        max_opening_mm=parts.jaw_max_opening_mm,
+        jaw_face_mm=parts.jaw_face_width_mm,
+        clearance_mm=parts.jaw_clearance_mm,
+    )
+    model_path, sha = add_taught_type(args.recipe, report.model)
+    for line in report.lines:
+        print(line)
+    print(f"wrote {model_path} (sha256 {sha[:12]}...) and [types.{name}] in {args.recipe}")
+    return 0

@@ -1,0 +1,785 @@
+"""Taught part types: a shape model learnt from example silhouettes, found at any angle with a score.
+
+A taught part is a flat part of known height lying on the backlit table (a bracket, a plate, a
+spacer, a clip): a prism, its top-view outline with holes extruded to its height. Its model is
+data (`ShapeModel`, a JSON file the recipe names by its sha256):
+
+- the footprint in the part's own frame: the outline and its holes in table millimetres, the
+  origin at the footprint's area centroid (holes taken out), the x axis along its principal axis
+  (for a shape whose inertia is round, the frame of the example it was learnt from);
+- the rotational symmetry found from the shape (order n: the part looks the same turned by
+  360/n degrees; 0 for a round part) and whether its mirror image is another part;
+- the grip: where and at what angle the jaws close, and how far they must open.
+
+The footprint seen in a frame comes from the silhouette through the calibration, corrected for
+the part's height without any lens model: a backlit prism's outline is, on the side facing the
+camera's foot, its bottom edge, and on the far side its top edge (seen further out). So each
+outline point is mapped on the table plane or on the plane at the part's height by the direction
+its outward normal faces; holes likewise (the light passes where both openings overlap).
+
+Finding: the footprint is rasterised about its centroid; its angular harmonics per ring (the
+Fourier series of the area in rings about the centroid) against the model's give the rotation
+(the correlation's peak, refined by the harmonics' phases); the model drawn at that pose against
+the footprint gives the fit: the area where they differ beyond an opening of `FIT_OPENING_MM` (so
+an edge a tenth of a millimetre off does not count, a missing hole or a mirrored arm does), and
+the overlap (intersection over union) as the score.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cell.errors import CellError
+
+SCHEMA = "pick-cell.shape-model"
+SCHEMA_VERSION = 1
+HARMONICS = 12  # angular harmonics compared per ring
+HARMONIC_STEPS = 3  # the harmonics' raster is this many times coarser than the fit's (anti-aliased)
+RINGS = 8
+AREA_TOLERANCE = 0.05  # a footprint's area against the model's, relative (at least)
+FIT_OPENING_MM = 0.3  # differences thinner than twice this are edge noise, not shape
+SYMMETRY_ORDERS = (8, 6, 5, 4, 3, 2)
+_UPSAMPLE = 4  # at most; a large blob less (about 400 outline samples across it suffice)
+_SAMPLES_ACROSS = 400
+_MARGIN_PX = 4
+_COARSE_STEPS = 720
+
+
+class ShapeModelError(CellError):
+    """A shape model file that cannot be used: unreadable, invalid, or not the file the recipe names."""
+
+
+class TeachRefused(CellError):
+    """The examples cannot make a model: they disagree, touch, leave the image, or cannot be gripped."""
+
+
+# ---- the footprint of one silhouette ----------------------------------------------------------
+
+
+@dataclass
+class Footprint:
+    """A part's footprint on the table: outer outline and holes (table mm, closed polygons)."""
+
+    outer: np.ndarray
+    holes: list[np.ndarray]
+    area_mm2: float = 0.0
+    centroid_mm: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    principal_deg: float = 0.0
+    anisotropy: float = 0.0  # (l1 - l2) / (l1 + l2) of the second moments: 0 round inertia
+
+    def __post_init__(self) -> None:
+        m = _moments(self.outer) - sum((_moments(h) for h in self.holes), np.zeros(6))
+        a, sx, sy, sxx, syy, sxy = m
+        if a <= 0:
+            self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
+            return
+        cx, cy = sx / a, sy / a
+        mxx, myy, mxy = sxx / a - cx * cx, syy / a - cy * cy, sxy / a - cx * cy
+        self.area_mm2 = float(a)
+        self.centroid_mm = np.array([cx, cy])
+        self.principal_deg = math.degrees(0.5 * math.atan2(2 * mxy, mxx - myy))
+        self.anisotropy = float(math.hypot(mxx - myy, 2 * mxy) / max(mxx + myy, 1e-12))
+
+    def in_frame(self, centre: np.ndarray, angle_deg: float) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The outline and holes moved to `centre` and turned by -angle (into a part's frame)."""
+        a = math.radians(angle_deg)
+        rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
+        return (self.outer - centre) @ rot.T, [(h - centre) @ rot.T for h in self.holes]
+
+
+def _moments(poly: np.ndarray) -> np.ndarray:
+    """Area, first and second moments (A, Sx, Sy, Sxx, Syy, Sxy) of a simple polygon, orientation-free."""
+    x, y = poly[:, 0], poly[:, 1]
+    xn, yn = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))
+    c = x * yn - xn * y
+    a = c.sum() / 2
+    sx = ((x + xn) * c).sum() / 6
+    sy = ((y + yn) * c).sum() / 6
+    sxx = ((x * x + x * xn + xn * xn) * c).sum() / 12
+    syy = ((y * y + y * yn + yn * yn) * c).sum() / 12
+    sxy = ((x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c).sum() / 24
+    m = np.array([a, sx, sy, sxx, syy, sxy])
+    return -m if a < 0 else m
+
+
+def fine_outlines(
+    gray: np.ndarray, outline: np.ndarray, fraction: float, min_hole_px: float
+) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """The blob's outer outline and its holes to a fraction of a pixel (image px): the threshold's
+    contour on the grey image interpolated 4x (as subpixel.py does for the outer outline alone)."""
+    H, W = gray.shape
+    x, y, w, h = cv2.boundingRect(outline)
+    x0, y0 = max(x - _MARGIN_PX, 0), max(y - _MARGIN_PX, 0)
+    x1, y1 = min(x + w + _MARGIN_PX, W), min(y + h + _MARGIN_PX, H)
+    roi = gray[y0:y1, x0:x1]
+    part = np.zeros(roi.shape, np.uint8)
+    cv2.drawContours(part, [outline], -1, 255, -1, offset=(-x0, -y0))
+    paper = roi[cv2.dilate(part, np.ones((5, 5), np.uint8)) == 0]
+    if paper.size < 16:
+        return None
+    level = fraction * float(np.median(paper))
+    k = int(np.clip(round(_SAMPLES_ACROSS / max(w, h, 1)), 1, _UPSAMPLE))
+    up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR) if k > 1 else roi
+    dark = (up < level).astype(np.uint8)
+    # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
+    keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
+    keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
+    dark &= keep > 0
+    contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    if not contours or hierarchy is None:
+        return None
+    hier = hierarchy[0]
+    outers = [i for i in range(len(contours)) if hier[i][3] == -1]
+    best = max(outers, key=lambda i: cv2.contourArea(contours[i]))
+
+    def px(c: np.ndarray) -> np.ndarray:
+        return (c.reshape(-1, 2).astype(np.float64) + 0.5) / k - 0.5 + (x0, y0)
+
+    holes = []
+    j = hier[best][2]
+    while j != -1:
+        if cv2.contourArea(contours[j]) >= min_hole_px * k**2:
+            holes.append(px(contours[j]))
+        j = hier[j][0]
+    return px(contours[best]), holes
+
+
+def _normals(poly: np.ndarray) -> np.ndarray:
+    """Unit normal at each vertex pointing out of the polygon's interior (either orientation)."""
+    nxt, prv = np.concatenate((poly[1:], poly[:1])), np.concatenate((poly[-1:], poly[:-1]))
+    d = nxt - prv
+    n = np.column_stack([d[:, 1], -d[:, 0]])
+    x, y = poly[:, 0], poly[:, 1]
+    if (x * nxt[:, 1] - nxt[:, 0] * y).sum() < 0:  # clockwise: the right-hand normal points in
+        n = -n
+    return n / np.maximum(np.hypot(n[:, 0], n[:, 1]), 1e-12)[:, None]
+
+
+def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
+    """Per point of the outer outline (first) and the holes: whether its side faces away from the
+    camera's foot (what is seen there is the part's top edge)."""
+    out = []
+    for k, poly in enumerate(polys):
+        n = _normals(poly) * (1.0 if k == 0 else -1.0)  # from the material into the air
+        out.append(np.einsum("ij,ij->i", n, foot - poly) < 0)
+    return out
+
+
+def footprint_from_table(
+    outer_mm: np.ndarray,
+    holes_mm: Sequence[np.ndarray],
+    height_mm: float,
+    camera_centre: np.ndarray | None,
+    far: Sequence[np.ndarray] | None = None,
+) -> Footprint:
+    """The footprint of a prism `height_mm` tall whose silhouette, mapped on the table plane, is
+    `outer_mm` with `holes_mm`: points whose side faces away from the camera's foot are its top
+    edge, seen further out, and are moved back onto the plane at its height (`far`: those points,
+    from far_sides, where the caller has them)."""
+    polys = [np.asarray(outer_mm, float), *(np.asarray(h, float) for h in holes_mm)]
+    if camera_centre is None or height_mm <= 0:
+        return Footprint(polys[0], polys[1:])
+    foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
+    shrink = 1.0 - height_mm / cam_h
+    far = far_sides(polys, foot) if far is None else far
+    out = []
+    for poly, f in zip(polys, far, strict=True):
+        moved = poly.copy()
+        moved[f] = foot + (poly[f] - foot) * shrink
+        out.append(moved)
+    return Footprint(out[0], out[1:])
+
+
+# ---- rasters and harmonics ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """A square raster about a part's centroid: `size` px of `step_mm`; per pixel its ring and angle."""
+
+    step_mm: float
+    size: int
+    ring: np.ndarray  # int, per pixel (RINGS: outside the largest ring)
+    rotor: np.ndarray  # complex e^{-i phi} per pixel
+
+    @staticmethod
+    def make(step_mm: float, radius_mm: float) -> _Grid:
+        size = int(2 * math.ceil(radius_mm / step_mm) + 8)
+        c = (size - 1) / 2
+        yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+        x, y = (xx - c) * step_mm, (c - yy) * step_mm  # y up: the table frame's angles
+        r = np.hypot(x, y)
+        ring = np.minimum((r / radius_mm * RINGS).astype(np.int64), RINGS)
+        rotor = np.exp(-1j * np.arctan2(y, x))
+        return _Grid(step_mm, size, ring, rotor)
+
+    def draw(self, outer: np.ndarray, holes: Sequence[np.ndarray], soft: bool = False) -> np.ndarray:
+        """uint8 mask of a footprint given in the grid's frame (origin at the centre, mm): 0/1, or
+        with `soft` 0-255 with anti-aliased edges (for the harmonics)."""
+        c = (self.size - 1) / 2
+        shift = 4
+
+        def px(p: np.ndarray) -> np.ndarray:
+            q = np.column_stack([c + p[:, 0] / self.step_mm, c - p[:, 1] / self.step_mm])
+            return np.rint(q * (1 << shift)).astype(np.int32)
+
+        m = np.zeros((self.size, self.size), np.uint8)
+        on, line = (255, cv2.LINE_AA) if soft else (1, cv2.LINE_8)
+        cv2.fillPoly(m, [px(outer)], on, line, shift)
+        if holes:
+            cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
+        return m
+
+    def fill(self, mask: np.ndarray, poly: np.ndarray) -> None:
+        """Paint a polygon (the grid's frame, mm) into a 0/1 mask."""
+        c = (self.size - 1) / 2
+        q = np.column_stack([c + poly[:, 0] / self.step_mm, c - poly[:, 1] / self.step_mm])
+        cv2.fillPoly(mask, [np.rint(q * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+
+    def harmonics(self, mask: np.ndarray) -> np.ndarray:
+        """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
+        e^{-i k phi}, k = 1..K."""
+        idx = np.flatnonzero(mask)
+        ring = self.ring.ravel()[idx]
+        inside = ring < RINGS
+        ring, z = ring[inside], self.rotor.ravel()[idx][inside]
+        order = np.argsort(ring, kind="stable")
+        ring, z = ring[order], z[order] * 1.0
+        powers = np.cumprod(np.broadcast_to(z, (HARMONICS, z.size)), axis=0)  # e^{-i k phi}, k = 1..K
+        powers *= mask.ravel()[idx][inside][order]
+        out = np.zeros((RINGS, HARMONICS), np.complex128)
+        present = np.flatnonzero(np.bincount(ring, minlength=RINGS))
+        if present.size:
+            starts = np.searchsorted(ring, present)
+            out[present] = np.add.reduceat(powers, starts, axis=1).T
+        return out
+
+    def soft_harmonics(self, outer: np.ndarray, holes: Sequence[np.ndarray]) -> np.ndarray:
+        return self.harmonics(self.draw(outer, holes, soft=True))
+
+
+_K = np.arange(1, HARMONICS + 1)
+_COARSE = np.exp(1j * np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False)))
+
+
+def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> float:
+    """The angle the model is turned by to look like the measured shape (harmonics of both,
+    `_Grid.harmonics`), degrees in [0, 360 / order)."""
+    g = np.sum(measured * np.conj(model), axis=0)  # per k: |.|^2 e^{-i k alpha}
+    corr = (g[:, None] * _COARSE).real.sum(axis=0)
+    beta = 2 * np.pi * int(np.argmax(corr)) / _COARSE_STEPS
+    w = np.abs(g)
+    for _ in range(3):
+        e = np.angle(g * np.exp(1j * _K * beta))  # k (beta - alpha), wrapped
+        beta -= float(np.sum(w * _K * e) / max(np.sum(w * _K**2), 1e-30))
+    period = 360.0 / max(order, 1)
+    return math.degrees(beta) % period
+
+
+def misfit_mm2(a: np.ndarray, b: np.ndarray, step_mm: float) -> float:
+    """Area where two masks differ, beyond an opening of FIT_OPENING_MM (edge noise left out)."""
+    diff = cv2.bitwise_xor(a, b)
+    r = max(1, int(round(FIT_OPENING_MM / step_mm)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return float(np.count_nonzero(cv2.morphologyEx(diff, cv2.MORPH_OPEN, kernel))) * step_mm**2
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    inter = np.count_nonzero(cv2.bitwise_and(a, b))
+    union = np.count_nonzero(cv2.bitwise_or(a, b))
+    return inter / union if union else 0.0
+
+
+def _turn(points: np.ndarray, angle_deg: float) -> np.ndarray:
+    a = math.radians(angle_deg)
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return np.asarray(points, float) @ rot.T
+
+
+_SWEEP_LAYERS = 6  # at most: the bottom face, the top face and copies between them...
+_SWEEP_STEP_MM = 0.4  # ...at most this far apart (the gaps at corners are less than the fit's opening)
+
+
+def predicted_silhouette(
+    grid: _Grid,
+    outer: np.ndarray,
+    holes: Sequence[np.ndarray],
+    centre_mm: np.ndarray,
+    angle_deg: float,
+    height_mm: float,
+    camera_centre: np.ndarray | None,
+) -> np.ndarray:
+    """The mask (grid about `centre_mm`, table axes) of the shadow a prism with this footprint
+    (part frame), placed at `centre_mm` turned by `angle_deg`, casts on the table seen from the
+    camera centre: its bottom face swept to its top face, the holes open where both openings are."""
+    placed = _turn(outer, angle_deg)
+    placed_holes = [_turn(h, angle_deg) for h in holes]
+    if camera_centre is None or height_mm <= 0:
+        return grid.draw(placed, placed_holes)
+    foot = np.asarray(camera_centre[:2], float) - centre_mm
+    grow = float(camera_centre[2]) / (float(camera_centre[2]) - height_mm)
+    top = foot + (placed - foot) * grow
+    sweep = float(np.max(np.hypot(*(top - placed).T)))
+    layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
+    mask = np.zeros((grid.size, grid.size), np.uint8)
+    for t in np.linspace(0.0, 1.0, layers):
+        grid.fill(mask, placed + t * (top - placed))
+    for h in placed_holes:
+        light = grid.draw(h, []) & grid.draw(foot + (h - foot) * grow, [])
+        mask &= 1 - light
+    return mask
+
+
+def sweep_mm(centre_mm: np.ndarray, height_mm: float, camera_centre: np.ndarray | None) -> float:
+    """How far a part's top face is seen beyond its bottom face (0 straight below the camera)."""
+    if camera_centre is None:
+        return 0.0
+    c = np.asarray(camera_centre, float)
+    return float(np.hypot(*(centre_mm - c[:2]))) * height_mm / max(c[2] - height_mm, 1e-9)
+
+
+# ---- the model ---------------------------------------------------------------------------------
+
+
+class _Grip(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    point_mm: tuple[float, float] = Field(description="where the jaws close, part frame")
+    angle_deg: float = Field(description="direction the jaws close along, part frame")
+    width_mm: float = Field(gt=0, description="the part's width between the jaws")
+    opening_mm: float = Field(gt=0, description="jaw opening: width plus clearance")
+
+
+class _ModelFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    schema_: str = Field(alias="schema")
+    version: int
+    name: str
+    height_mm: float = Field(gt=0, le=200)
+    area_mm2: float = Field(gt=0)
+    outline_mm: list[tuple[float, float]] = Field(min_length=3)
+    holes_mm: list[list[tuple[float, float]]]
+    symmetry: int = Field(ge=0, le=8, description="rotational symmetry order; 0 round")
+    mirror_distinct: bool
+    tolerance_mm2: float = Field(gt=0)
+    grip: _Grip
+    examples: int = Field(ge=1)
+    consistency: dict[str, float]
+
+
+@dataclass
+class Match:
+    """A footprint against one model."""
+
+    name: str
+    centre_mm: np.ndarray
+    angle_deg: float  # the part frame's x axis on the table, modulo 360 / symmetry
+    misfit_mm2: float
+    score: float  # intersection over union, 0-1
+    accepted: bool
+
+
+@dataclass
+class Grip:
+    point_mm: tuple[float, float]
+    angle_deg: float
+    width_mm: float
+    opening_mm: float
+
+
+@dataclass
+class ShapeModel:
+    """One taught part type (see the module's docstring)."""
+
+    name: str
+    height_mm: float
+    outline_mm: np.ndarray
+    holes_mm: list[np.ndarray]
+    symmetry: int
+    mirror_distinct: bool
+    tolerance_mm2: float
+    grip: Grip
+    examples: int = 1
+    consistency: dict[str, float] = field(default_factory=dict)
+    area_mm2: float = 0.0
+
+    def __post_init__(self) -> None:
+        fp = Footprint(self.outline_mm, self.holes_mm)
+        self.area_mm2 = fp.area_mm2
+        self.radius_mm = float(np.max(np.hypot(*self.outline_mm.T)))
+        step = grid_step_mm(self.area_mm2)
+        self._grid = _Grid.make(step, self.radius_mm * 1.1 + 3.0)
+        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0)
+        self._harm = self._coarse.soft_harmonics(self.outline_mm, self.holes_mm)
+
+    # -- finding
+    def candidate(self, area_mm2: float, holes: int) -> bool:
+        return holes == len(self.holes_mm) and abs(area_mm2 / self.area_mm2 - 1.0) <= 0.15
+
+    def match(
+        self,
+        fp: Footprint,
+        silhouette: tuple[np.ndarray, list[np.ndarray]] | None = None,
+        camera_centre: np.ndarray | None = None,
+    ) -> Match:
+        """This model against a footprint (the pose) and the silhouette it came from, on the table
+        plane (the fit: the model's predicted silhouette against it; without one, the footprint)."""
+        outer, holes = fp.in_frame(fp.centroid_mm, 0.0)
+        g = self._grid
+        harm = self._coarse.soft_harmonics(outer, holes)
+        angle = 0.0 if self.symmetry == 0 else rotation_deg(harm, self._harm, self.symmetry)
+        if silhouette is None:
+            seen = g.draw(outer, holes)
+            drawn = predicted_silhouette(g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, 0.0, None)
+        else:
+            seen = g.draw(silhouette[0] - fp.centroid_mm, [h - fp.centroid_mm for h in silhouette[1]])
+            drawn = predicted_silhouette(
+                g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, self.height_mm, camera_centre
+            )
+        bad = misfit_mm2(seen, drawn, g.step_mm)
+        size_ok = abs(fp.area_mm2 / self.area_mm2 - 1.0) <= self.area_tolerance
+        return Match(self.name, fp.centroid_mm, angle, bad, iou(seen, drawn), bad <= self.tolerance_mm2 and size_ok)
+
+    @property
+    def area_tolerance(self) -> float:
+        """How far a footprint's area may be from the model's, relative: 5 %, or 3 standard deviations
+        of the examples' areas if more (a part slightly larger all round differs only in thin bands,
+        which the fit's opening does not count)."""
+        return max(AREA_TOLERANCE, 3.0 * self.consistency.get("area_sd_mm2", 0.0) / self.area_mm2)
+
+    def grip_on_table(self, centre_mm: np.ndarray, angle_deg: float) -> tuple[np.ndarray, float]:
+        """Where the jaws close on the table and the direction they close along (0-180 degrees)."""
+        p = centre_mm + _turn(np.array([self.grip.point_mm]), angle_deg)[0]
+        return p, (self.grip.angle_deg + angle_deg) % 180.0
+
+    # -- the file
+    def to_json(self) -> str:
+        data = {
+            "schema": SCHEMA,
+            "version": SCHEMA_VERSION,
+            "name": self.name,
+            "height_mm": round(self.height_mm, 4),
+            "area_mm2": round(self.area_mm2, 4),
+            "outline_mm": np.round(self.outline_mm, 4).tolist(),
+            "holes_mm": [np.round(h, 4).tolist() for h in self.holes_mm],
+            "symmetry": self.symmetry,
+            "mirror_distinct": self.mirror_distinct,
+            "tolerance_mm2": round(self.tolerance_mm2, 4),
+            "grip": {
+                "point_mm": [round(v, 4) for v in self.grip.point_mm],
+                "angle_deg": round(self.grip.angle_deg, 3),
+                "width_mm": round(self.grip.width_mm, 3),
+                "opening_mm": round(self.grip.opening_mm, 3),
+            },
+            "examples": self.examples,
+            "consistency": {k: round(v, 5) for k, v in self.consistency.items()},
+        }
+        return json.dumps(data, indent=1) + "\n"
+
+    @staticmethod
+    def from_json(text: str, where: str) -> ShapeModel:
+        try:
+            d = _ModelFile.model_validate_json(text)
+        except ValidationError as e:
+            problems = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors()[:5])
+            raise ShapeModelError(f"{where}: not a valid shape model: {problems}") from None
+        if d.schema_ != SCHEMA or d.version != SCHEMA_VERSION:
+            raise ShapeModelError(
+                f"{where}: a {d.schema_!r} version {d.version} file, expected {SCHEMA!r} version {SCHEMA_VERSION}",
+                hint="teach the part again with this version (run-cell part teach)",
+            )
+        g = d.grip
+        return ShapeModel(
+            d.name,
+            d.height_mm,
+            np.array(d.outline_mm, float),
+            [np.array(h, float) for h in d.holes_mm],
+            d.symmetry,
+            d.mirror_distinct,
+            d.tolerance_mm2,
+            Grip((g.point_mm[0], g.point_mm[1]), g.angle_deg, g.width_mm, g.opening_mm),
+            d.examples,
+            dict(d.consistency),
+        )
+
+
+def sha256_of(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def load_model(path: Path, sha256: str) -> ShapeModel:
+    """The model file at `path`, refused unless its bytes hash to `sha256` (the recipe's)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise ShapeModelError(f"{path}: cannot read shape model: {e.strerror}", hint="teach the part again") from None
+    got = sha256_of(data)
+    if got != sha256.lower():
+        raise ShapeModelError(
+            f"{path}: shape model changed since the recipe named it (sha256 {got[:12]}..., recipe says {sha256[:12]}...)",
+            hint="teach the part again (run-cell part teach), or restore the file the recipe names",
+        )
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ShapeModelError(f"{path}: shape model is not UTF-8 text") from None
+    return ShapeModel.from_json(text, str(path))
+
+
+def perimeter_mm(polys: Sequence[np.ndarray]) -> float:
+    return float(sum(np.hypot(*(np.roll(p, -1, axis=0) - p).T).sum() for p in polys))
+
+
+def fit_tolerance_mm2(area_mm2: float, perimeter: float) -> float:
+    """How much a found part may differ from its model beyond the fit's opening: 0.4 % of its area
+    or 0.02 mm along its whole outline and holes (corners rounded by the blur, a tall part's
+    sweep approximated), at least 0.8 mm2. A missing hole of 3 mm or a mirrored arm is far more."""
+    return max(0.8, 0.004 * area_mm2, 0.02 * perimeter)
+
+
+def grid_step_mm(area_mm2: float) -> float:
+    """Raster step for a part of this area: about 150 px across, 0.05-0.2 mm."""
+    return float(np.clip(math.sqrt(area_mm2) / 150.0, 0.05, 0.2))
+
+
+# ---- teaching ----------------------------------------------------------------------------------
+
+
+@dataclass
+class Example:
+    """One example part: its silhouette on the table plane and the footprint made of it."""
+
+    silhouette: tuple[np.ndarray, list[np.ndarray]]
+    footprint: Footprint
+    source: str  # "IMG, part 2"
+    camera_centre: np.ndarray | None = None
+    touches_border: bool = False
+
+    @staticmethod
+    def of(
+        silhouette: tuple[np.ndarray, list[np.ndarray]],
+        height_mm: float,
+        camera_centre: np.ndarray | None,
+        source: str,
+        touches_border: bool = False,
+    ) -> Example:
+        fp = footprint_from_table(silhouette[0], silhouette[1], height_mm, camera_centre)
+        return Example(silhouette, fp, source, camera_centre, touches_border)
+
+
+@dataclass
+class TeachReport:
+    model: ShapeModel
+    lines: list[str]
+
+
+def _symmetry(grid: _Grid, outer: np.ndarray, holes: list[np.ndarray], mask: np.ndarray, tol: float) -> int:
+    def same(angle: float) -> bool:
+        turned = grid.draw(_turn(outer, angle), [_turn(h, angle) for h in holes])
+        return misfit_mm2(mask, turned, grid.step_mm) <= tol
+
+    if all(same(a) for a in (13.0, 37.0, 90.0, 151.0)):
+        return 0
+    for n in SYMMETRY_ORDERS:
+        if all(same(360.0 * j / n) for j in range(1, n)):
+            return n
+    return 1
+
+
+def grip_for(outer: np.ndarray, holes: list[np.ndarray], jaw_face_mm: float, clearance_mm: float) -> tuple[Grip, float]:
+    """The narrowest width through the centroid (part frame) that jaws `jaw_face_mm` wide close on:
+    per direction, the part's extent along it within the band the jaw faces cover. Returns the grip
+    and the widest such extent (what any direction needs)."""
+    pts = np.vstack([outer, *holes]) if holes else outer
+    # Dense points along the outline: a long edge crossing the band has no vertex in it.
+    dense = []
+    for poly in [outer, *holes]:
+        q = np.roll(poly, -1, axis=0)
+        n = np.maximum(1, np.ceil(np.hypot(*(q - poly).T) / 0.2)).astype(int)
+        for p0, p1, k in zip(poly, q, n, strict=True):
+            t = np.arange(k)[:, None] / k
+            dense.append(p0 + t * (p1 - p0))
+    pts = np.vstack(dense)
+    best: tuple[float, float, float] | None = None
+    for deg in np.arange(0.0, 180.0, 1.0):
+        a = math.radians(deg)
+        d, side = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+        u, v = pts @ d, pts @ side
+        band = np.abs(v) <= jaw_face_mm / 2
+        if not band.any():
+            continue
+        lo, hi = float(u[band].min()), float(u[band].max())
+        if best is None or hi - lo < best[0]:
+            best = (hi - lo, deg, (lo + hi) / 2)
+    if best is None:
+        raise TeachRefused("no grip: the part has no material about its centroid")
+    width, deg, mid = best
+    a = math.radians(deg)
+    point = (mid * math.cos(a), mid * math.sin(a))
+    return Grip(point, deg, width, width + clearance_mm), width
+
+
+def teach(
+    name: str,
+    examples: Sequence[Example],
+    height_mm: float,
+    *,
+    max_opening_mm: float,
+    jaw_face_mm: float,
+    clearance_mm: float,
+) -> TeachReport:
+    """A model from example footprints, or TeachRefused saying why in words."""
+    if not examples:
+        raise TeachRefused(
+            f"no part found to teach {name!r} from", hint="each image: the part alone on the backlit table"
+        )
+    cut = [e.source for e in examples if e.touches_border]
+    if cut:
+        raise TeachRefused(
+            f"cannot teach {name!r}: the part leaves the image ({', '.join(cut)})",
+            hint="put each example wholly in view, away from the image's edges",
+        )
+    areas = np.array([e.footprint.area_mm2 for e in examples])
+    median = float(np.median(areas))
+    big = [e.source for e, a in zip(examples, areas, strict=True) if a > 1.6 * median]
+    if big:
+        raise TeachRefused(
+            f"cannot teach {name!r}: {', '.join(big)} is {max(areas) / median:.1f} x the others' area: parts touching?",
+            hint="lay the examples apart, a few millimetres at least",
+        )
+    # The model is the example seen most nearly from straight above (the least of it hidden);
+    # every other example must fit it, its predicted silhouette against theirs.
+    sweeps = [sweep_mm(e.footprint.centroid_mm, height_mm, e.camera_centre) for e in examples]
+    ref = int(np.argmin(sweeps))
+    fp = examples[ref].footprint
+    outer, holes = fp.in_frame(fp.centroid_mm, fp.principal_deg if fp.anisotropy >= 0.05 else 0.0)
+    tol = fit_tolerance_mm2(median, perimeter_mm([outer, *holes]))
+    placeholder = Grip((0.0, 0.0), 0.0, 1.0, 1.0)
+    trial = ShapeModel(name, height_mm, outer, holes, 1, True, tol, placeholder)
+    fits = {k: trial.match(e.footprint, e.silhouette, e.camera_centre) for k, e in enumerate(examples) if k != ref}
+    worst = max(fits, key=lambda k: fits[k].misfit_mm2, default=ref)
+    if worst != ref and fits[worst].misfit_mm2 > tol:
+        counts = {len(e.footprint.holes) for e in examples}
+        why = (
+            f"{len(examples[ref].footprint.holes)} against {len(examples[worst].footprint.holes)} holes"
+            if len(counts) > 1
+            else f"they differ by {fits[worst].misfit_mm2:.1f} mm2 (areas {areas[ref]:.1f} and {areas[worst]:.1f} mm2)"
+        )
+        raise TeachRefused(
+            f"cannot teach {name!r}: the examples disagree: {examples[worst].source} is not {examples[ref].source} "
+            f"({why}): two different parts, or a mirror image?",
+            hint="teach each part type from images of that type only",
+        )
+    grid = trial._grid
+    step = grid.step_mm
+    mask = grid.draw(outer, holes)
+    symmetry = _symmetry(grid, outer, holes, mask, 1.5 * tol)
+    flipped = outer * (1, -1), [h * (1, -1) for h in holes]
+    angle = rotation_deg(grid.harmonics(mask), grid.harmonics(grid.draw(*flipped)))
+    turned = grid.draw(_turn(flipped[0], angle), [_turn(h, angle) for h in flipped[1]])
+    mirror_distinct = misfit_mm2(mask, turned, step) > tol
+    grip, _ = grip_for(outer, holes, jaw_face_mm, clearance_mm)
+    if grip.opening_mm > max_opening_mm:
+        raise TeachRefused(
+            f"cannot teach {name!r}: it cannot be gripped: its narrowest width through its centre is "
+            f"{grip.width_mm:.1f} mm, the jaws open {max_opening_mm:g} mm ({clearance_mm:g} mm clearance)",
+            hint="parts.jaw_max_opening_mm is the gripper's opening; a wider part needs another gripper",
+        )
+    n = len(examples)
+    consistency = {
+        "worst_misfit_mm2": max((f.misfit_mm2 for f in fits.values()), default=0.0),
+        "worst_score": min((f.score for f in fits.values()), default=1.0),
+        "area_sd_mm2": float(np.std(areas)),
+    }
+    model = ShapeModel(name, height_mm, outer, holes, symmetry, mirror_distinct, tol, grip, n, consistency)
+    sym = "round (no angle)" if symmetry == 0 else ("none" if symmetry == 1 else f"{symmetry}-fold")
+    lines = [
+        f"{name}: {n} example(s), area {median:.1f} mm2 (sd {consistency['area_sd_mm2']:.2f}), "
+        f"{len(holes)} hole(s), height {height_mm:g} mm",
+        f"consistency: worst misfit {consistency['worst_misfit_mm2']:.2f} mm2 (limit {tol:.2f}), "
+        f"worst overlap {consistency['worst_score']:.4f}",
+        f"symmetry: {sym}; angles are reported modulo {360 // symmetry if symmetry else 360} deg"
+        if symmetry
+        else "symmetry: round; no angle reported",
+        "mirror image: another part (told apart)" if mirror_distinct else "mirror image: the same part",
+        f"grip: jaws close along {grip.angle_deg:.0f} deg (part frame) at ({grip.point_mm[0]:.1f}, "
+        f"{grip.point_mm[1]:.1f}) mm, width {grip.width_mm:.1f} mm, opening {grip.opening_mm:.1f} of "
+        f"{max_opening_mm:g} mm",
+    ]
+    return TeachReport(model, lines)
+
+
+# ---- finding in a frame ------------------------------------------------------------------------
+
+
+def footprint_of_blob(
+    gray: np.ndarray,
+    outline_px: np.ndarray,
+    mapper,
+    fraction: float,
+    min_hole_px: float,
+) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """The blob's silhouette (outer, holes) on the table plane, table mm; None if no edge is seen."""
+    got = fine_outlines(gray, outline_px, fraction, min_hole_px)
+    if got is None:
+        return None
+    outer, holes = got
+    polys = [_thin(outer), *(_thin(h) for h in holes)]
+    mapped = np.asarray(mapper.pixel_to_table_mm(np.vstack(polys))).reshape(-1, 2)
+    out, start = [], 0
+    for p in polys:
+        out.append(mapped[start : start + len(p)])
+        start += len(p)
+    return out[0], out[1:]
+
+
+def _thin(outline_px: np.ndarray) -> np.ndarray:
+    poly = cv2.approxPolyDP(np.asarray(outline_px, dtype=np.float32).reshape(-1, 1, 2), 0.02, True)
+    return poly.reshape(-1, 2).astype(np.float64) if len(poly) >= 3 else np.asarray(outline_px, dtype=np.float64)
+
+
+def best_match(
+    silhouette: tuple[np.ndarray, list[np.ndarray]], models: Sequence[ShapeModel], camera_centre
+) -> tuple[Match | None, Footprint | None, str]:
+    """The best model for a silhouette on the table plane: (match, its footprint, why not) ; the
+    match is None when no model is even a candidate."""
+    outer, holes = silhouette
+    corrected: dict[float, Footprint] = {}
+    best: tuple[Match, Footprint] | None = None
+    far = None if camera_centre is None else far_sides([outer, *holes], np.asarray(camera_centre[:2], float))
+    for m in models:
+        if len(m.holes_mm) != len(holes):
+            continue
+        if m.height_mm not in corrected:
+            corrected[m.height_mm] = footprint_from_table(outer, holes, m.height_mm, camera_centre, far)
+        fp = corrected[m.height_mm]
+        if not m.candidate(fp.area_mm2, len(holes)):
+            continue
+        got = m.match(fp, silhouette, camera_centre)
+        if best is None or (got.misfit_mm2, -got.score) < (best[0].misfit_mm2, -best[0].score):
+            best = (got, fp)
+    if best is None:
+        flat = Footprint(outer, holes)
+        largest = max(models, key=lambda m: m.area_mm2)
+        if flat.area_mm2 > 1.3 * largest.area_mm2:
+            return None, flat, f"larger than any taught type ({flat.area_mm2:.0f} mm2): parts touching?"
+        return None, flat, f"matches no taught type ({flat.area_mm2:.0f} mm2, {len(holes)} hole(s))"
+    assert best is not None
+    match, fp = best
+    if match.accepted:
+        return match, fp, ""
+    return (
+        match,
+        fp,
+        f"matches no taught type (nearest {match.name}: differs by {match.misfit_mm2:.1f} mm2, "
+        f"area {fp.area_mm2:.1f} mm2 against {next(m for m in models if m.name == match.name).area_mm2:.1f}, "
+        f"score {match.score:.3f})",
+    )
