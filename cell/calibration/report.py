@@ -89,6 +89,13 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
             used = result.calibration.camera_center_table_mm
             if used is not None:
                 lines.append(f"camera height used: {used[2]:.1f} mm")
+    cost = result.calibration.statistics.get("camera_height", {}).get("cost")
+    if isinstance(cost, dict) and isinstance(cost.get("worst_mm"), int | float):
+        lines.append(
+            f"what the height's doubt costs: a {cost['part_height_mm']:g} mm high part's centre off by up to "
+            f"{cost['worst_mm']:.3f} mm in the field (height {cost['height_error_mm']:g} mm off, 2 standard "
+            f"deviations; calibration.max_height_cost_mm {cost['max_mm']:g})"
+        )
     doubt = result.calibration.height_doubt()  # the height used, from everything that knew it
     if doubt is not None:
         lines.append(f"  {doubt[0]} (hint: {doubt[1]})")
