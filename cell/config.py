@@ -161,7 +161,7 @@ class CalibrationConfig(Strict):
     max_height_cost_mm: float = Field(
         0.5,
         gt=0,
-        description="a warning when the camera's height is known so poorly (2 standard deviations) that the "
+        description="a warning when the camera's height is known so poorly (3 standard deviations) that the "
         "tallest part's centre could be this far off somewhere in the field (the parts goal: 0.5 mm); the remedy "
         "is a measured camera_height_mm or a raised plate image",
     )
