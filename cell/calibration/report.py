@@ -93,8 +93,8 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
     cost = result.calibration.statistics.get("camera_height", {}).get("cost")
     if isinstance(cost, dict) and isinstance(cost.get("worst_mm"), int | float):
         lines.append(
-            f"what the height's doubt costs: a {cost['part_height_mm']:g} mm high part's centre off by up to "
-            f"{cost['worst_mm']:.3f} mm in the field (height {cost['height_error_mm']:g} mm off, "
+            f"what the height's doubt costs: a {cost['part_height_mm']:.1f} mm high part's centre off by up to "
+            f"{cost['worst_mm']:.3f} mm in the field (height {cost['height_error_mm']:.1f} mm off, "
             f"{HEIGHT_DOUBT_SDS:g} standard deviations; calibration.max_height_cost_mm {cost['max_mm']:g})"
         )
     doubt = result.calibration.height_doubt()  # the height used, from everything that knew it

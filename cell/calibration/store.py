@@ -119,7 +119,7 @@ class Calibration:
             return None
         return (
             f"calibration: the camera's height above the table is known only to +- {sd:.1f} mm ({source}): "
-            f"a {part_height_mm:g} mm high part's centre may be off by up to {cost:.2f} mm (at {at[0]:.0f}, "
+            f"a {part_height_mm:.1f} mm high part's centre may be off by up to {cost:.2f} mm (at {at[0]:.0f}, "
             f"{at[1]:.0f} mm; {HEIGHT_DOUBT_SDS:g} standard deviations), more than "
             f"calibration.max_height_cost_mm {max_cost_mm:g} mm",
             remedy,
