@@ -146,7 +146,7 @@ def assemble(
     cell.plate_image = lambda: _capture(camera)
     if isinstance(arm, RobotServerArm):
         cell.notes.append(f"robot server on {arm.port.removeprefix('tcp://')} (protocol: docs/robots.md)")
-    doubt = calibration.height_doubt()
+    doubt = calibration.height_doubt(config.parts.tallest_centre_height_mm, config.calibration.max_height_cost_mm)
     if doubt is not None:
         cell.notes.append(f"warning: {doubt[0]} (hint: {doubt[1]})")
     return cell

@@ -158,6 +158,13 @@ class CalibrationConfig(Strict):
     camera_height_sd_mm: float = Field(
         5.0, gt=0, description="how well camera_height_mm is known (one standard deviation)"
     )
+    max_height_cost_mm: float = Field(
+        0.5,
+        gt=0,
+        description="a warning when the camera's height is known so poorly (3 standard deviations) that the "
+        "tallest part's centre could be this far off somewhere in the field (the parts goal: 0.5 mm); the remedy "
+        "is a measured camera_height_mm or a raised plate image",
+    )
     max_scale_change_pct: float = Field(
         2.0,
         gt=0,

@@ -120,7 +120,8 @@ def test_a_spacer_of_another_thickness_than_told_is_refused_against_the_measured
 
 def test_the_calibration_says_how_well_it_knows_the_height(images):
     """Stored with the calibration: the height used, how well it is known and from what. A height
-    known worse than 5 % is a doubt the cell reports (run-cell's notes, the service's warning)."""
+    whose doubt would cost the tallest part more than calibration.max_height_cost_mm is a doubt the
+    cell reports (run-cell's notes, the service's warning; tests/test_height_cost.py)."""
     _, config, flat, raised = images
     alone = calibrate(flat, config).calibration
     known = alone.statistics["camera_height"]

@@ -559,7 +559,7 @@ def test_making_safe_on_a_really_full_disk_creates_no_log_file_per_event(tmp_pat
 
 def test_a_calibration_unsure_of_the_camera_height_is_a_warning_until_a_sure_one_is_installed(tmp_path):
     """The part-height correction needs the camera's height: while the active calibration does not
-    know it to 5 %, the service shows a warning alarm (no Reset needed); a calibration that knows it
+    know it well enough for the tallest part (Calibration.height_doubt), the service shows a warning alarm (no Reset needed); a calibration that knows it
     clears the warning."""
     no_feeder = CellConfig().sim.feeder.model_copy(update={"parts_per_minute": 0})
     with running(small_config(tmp_path, feeder=no_feeder)) as service:

@@ -29,7 +29,7 @@ from cell.calibration.models import (
 )
 from cell.calibration.raised import RaisedHeight, height_from_raised_plate
 from cell.calibration.roundness import PitchRatio, measure_pitch_ratio
-from cell.calibration.store import Calibration
+from cell.calibration.store import HEIGHT_DOUBT_SDS, Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig, PlateConfig
 from cell.errors import CalibrationRejected, PlateNotFound
@@ -299,6 +299,7 @@ def calibrate(
     col_row = np.rint(pts.table_mm / (plate.pitch_x_mm, plate.pitch_y_mm)).astype(int)
     pitch_ratio = measure_pitch_ratio(to_gray(image), pts.pixel, col_row, plate)
     t3 = time.perf_counter()
+    height["cost"] = _height_cost(camera, final, (w, h), height, config)
     cal = Calibration(
         model_name=chosen.name,
         model=final,
@@ -334,6 +335,23 @@ def calibrate(
     return CalibrationResult(
         cal, pts, final(pts.pixel), scores, chosen, why, timings, pitch_ratio, plate_height, plate_sd, raised_height
     )
+
+
+def _height_cost(camera: CameraModel, final, size, height: dict[str, Any], config: CellConfig) -> dict[str, Any]:
+    """What the height's doubt costs the tallest configured part (Calibration.height_cost_mm), for
+    the report and the warning: {"worst_mm", "at_table_mm", "part_height_mm", "height_error_mm", "max_mm"}."""
+    part = config.parts.tallest_centre_height_mm
+    sd = height.get("sd_mm")
+    error = HEIGHT_DOUBT_SDS * float(sd) if isinstance(sd, int | float) else None
+    cost: dict[str, Any] = {
+        "part_height_mm": round(part, 3),
+        "height_error_mm": None if error is None else round(error, 3),
+        "max_mm": config.calibration.max_height_cost_mm,
+    }
+    if error is not None:
+        worst, at = Calibration("camera", final, size, camera).height_cost_mm(part, error)
+        cost |= {"worst_mm": round(worst, 4), "at_table_mm": [round(at[0], 1), round(at[1], 1)]}
+    return cost
 
 
 def _with_known_height(

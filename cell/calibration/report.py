@@ -13,6 +13,7 @@ import numpy as np
 
 from cell.atomicfile import ensure_folder, write_bytes_atomic, write_text_atomic
 from cell.calibration.pipeline import CalibrationResult
+from cell.calibration.store import HEIGHT_DOUBT_SDS
 from cell.imageio import write_image_atomic
 from cell.wording import plural
 
@@ -89,6 +90,13 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
             used = result.calibration.camera_center_table_mm
             if used is not None:
                 lines.append(f"camera height used: {used[2]:.1f} mm")
+    cost = result.calibration.statistics.get("camera_height", {}).get("cost")
+    if isinstance(cost, dict) and isinstance(cost.get("worst_mm"), int | float):
+        lines.append(
+            f"what the height's doubt costs: a {cost['part_height_mm']:.1f} mm high part's centre off by up to "
+            f"{cost['worst_mm']:.3f} mm in the field (height {cost['height_error_mm']:.1f} mm off, "
+            f"{HEIGHT_DOUBT_SDS:g} standard deviations; calibration.max_height_cost_mm {cost['max_mm']:g})"
+        )
     doubt = result.calibration.height_doubt()  # the height used, from everything that knew it
     if doubt is not None:
         lines.append(f"  {doubt[0]} (hint: {doubt[1]})")

@@ -23,7 +23,11 @@ from cell.errors import InputError
 SCHEMA = "pick-cell/calibration"
 SCHEMA_VERSION = 1
 MIN_IMAGE_PX, MAX_IMAGE_PX = 16, 20000  # as camera.width_px / height_px allow
-HEIGHT_DOUBT_FRACTION = 0.05  # a camera height known worse than this is reported (part-height correction)
+HEIGHT_DOUBT_SDS = 3.0  # the height's doubt is judged at this many standard deviations (99.7 % of cameras;
+# at 2, the 5 % of cameras whose height is 2-3 sd off passed silently: scripts/bench_height_doubt.py)
+DEFAULT_PART_HEIGHT_MM = 7.8  # parts' default tallest centre plane (PartsConfig.tallest_centre_height_mm)
+DEFAULT_MAX_HEIGHT_COST_MM = 0.5  # calibration.max_height_cost_mm's default: the parts goal
+FIELD_SAMPLES = 64  # points along each side of the image where the cost is judged
 
 
 @dataclass
@@ -58,22 +62,67 @@ class Calibration:
         C = self.camera.center_table_mm
         return C[:2] + (on_table - C[:2]) * (1.0 - height_mm / C[2])
 
-    def height_doubt(self) -> tuple[str, str] | None:
+    def height_cost_mm(self, part_height_mm: float, height_error_mm: float) -> tuple[float, tuple[float, float]]:
+        """The worst error of a part's centre, over the image's field on the table, when the camera's
+        true height is `height_error_mm` off the one this calibration uses (either way), for a part
+        whose centre is mapped on the plane `part_height_mm` above the table; and where on the table.
+
+        The map onto the table plane is the plate's and does not depend on the height; the height
+        enters only where a point seen at table point q is moved along its ray to the part's plane,
+        p = C + (q - C) (1 - h / H), with C the camera's foot. A true height H + d puts the part at
+        C + (q - C) (1 - h / (H + d)): off by |q - C| h |d| / (H (H + d)), largest for the field
+        point farthest from the foot and for d = -|d| (the camera nearer than believed).
+        """
+        if self.camera is None or part_height_mm <= 0 or height_error_mm <= 0:
+            return 0.0, (0.0, 0.0)
+        c = self.camera.center_table_mm
+        height, d = float(c[2]), min(float(height_error_mm), 0.95 * float(c[2]))
+        q = self.model(field_border_px(self.image_size))
+        r = np.hypot(*(np.asarray(q).reshape(-1, 2) - c[:2]).T)
+        k = int(np.argmax(r))
+        worst = float(r[k]) * part_height_mm * d / (height * (height - d))
+        return worst, (float(q[k][0]), float(q[k][1]))
+
+    def height_doubt(
+        self, part_height_mm: float | None = None, max_cost_mm: float | None = None
+    ) -> tuple[str, str] | None:
         """(reason, hint) when the camera's height above the table, which the part-height correction
-        needs, is not known to HEIGHT_DOUBT_FRACTION (a camera seen straight down, calibrated on one
-        flat plate image); None when it is, or when the file does not say (older calibrations)."""
+        needs, is known too poorly for the parts: when a height error of HEIGHT_DOUBT_SDS standard
+        deviations would move the tallest part's centre (its centre plane `part_height_mm` above the
+        table) more than `max_cost_mm` somewhere in the field (height_cost_mm), or the height is
+        not known at all. Both default to what the calibration recorded (calibrate, from the config)
+        or else DEFAULT_PART_HEIGHT_MM and DEFAULT_MAX_HEIGHT_COST_MM. None when the height is known
+        well enough, or when the file does not say (older calibrations)."""
         known = self.statistics.get("camera_height")
         if not isinstance(known, dict) or not isinstance(known.get("height_mm"), int | float):
             return None
+        cost_entry = known.get("cost")
+        recorded: dict = cost_entry if isinstance(cost_entry, dict) else {}
+        if part_height_mm is None:
+            part_height_mm = float(recorded.get("part_height_mm", DEFAULT_PART_HEIGHT_MM))
+        if max_cost_mm is None:
+            max_cost_mm = float(recorded.get("max_mm", DEFAULT_MAX_HEIGHT_COST_MM))
         height, sd = float(known["height_mm"]), known.get("sd_mm")
-        if isinstance(sd, int | float) and sd <= HEIGHT_DOUBT_FRACTION * height:
-            return None
-        how = "not known at all" if not isinstance(sd, int | float) else f"known only to +- {sd:.0f} mm"
-        return (
-            f"calibration: the camera's height above the table is {how} (from {known.get('from', '?')}; "
-            f"{height:.0f} mm used): parts' centres may be off by a millimetre or more",
+        remedy = (
             "measure the height into calibration.camera_height_mm, or recalibrate with an image of the plate "
-            "raised on a spacer (run-cell recalibrate --raised-image FILE --spacer-mm MM; docs/commissioning.md)",
+            "raised on a spacer (run-cell recalibrate --raised-image FILE --spacer-mm MM; docs/calibration.md)"
+        )
+        source = f"from {known.get('from', '?')}; {height:.0f} mm used"
+        if not isinstance(sd, int | float):
+            return (
+                f"calibration: the camera's height above the table is not known at all ({source}): "
+                "parts' centres may be off by a millimetre or more",
+                remedy,
+            )
+        cost, at = self.height_cost_mm(part_height_mm, HEIGHT_DOUBT_SDS * float(sd))
+        if cost <= max_cost_mm:
+            return None
+        return (
+            f"calibration: the camera's height above the table is known only to +- {sd:.1f} mm ({source}): "
+            f"a {part_height_mm:.1f} mm high part's centre may be off by up to {cost:.2f} mm (at {at[0]:.0f}, "
+            f"{at[1]:.0f} mm; {HEIGHT_DOUBT_SDS:g} standard deviations), more than "
+            f"calibration.max_height_cost_mm {max_cost_mm:g} mm",
+            remedy,
         )
 
     @property
@@ -166,6 +215,22 @@ class Calibration:
         except json.JSONDecodeError as e:
             raise InputError(f"{path}: corrupt calibration (not JSON: {e})") from None
         return cls.from_dict(data, str(path))
+
+
+def field_border_px(image_size: tuple[int, int]) -> np.ndarray:
+    """Pixels along the image's four edges (FIELD_SAMPLES each): where the field's farthest points lie."""
+    w, h = image_size
+    t = np.linspace(0.0, 1.0, FIELD_SAMPLES)
+    xs, ys = t * (w - 1), t * (h - 1)
+    zeros = np.zeros_like(t)
+    return np.concatenate(
+        [
+            np.column_stack([xs, zeros]),
+            np.column_stack([xs, zeros + h - 1]),
+            np.column_stack([zeros, ys]),
+            np.column_stack([zeros + w - 1, ys]),
+        ]
+    )
 
 
 def _non_finite(value, where: str) -> str | None:

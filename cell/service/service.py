@@ -544,7 +544,9 @@ class LineService:
     def _warn_of_height(self, calibration: Calibration) -> None:
         """A warning alarm while the active calibration does not know the camera's height well
         enough for the part-height correction (Calibration.height_doubt)."""
-        doubt = calibration.height_doubt()
+        doubt = calibration.height_doubt(
+            self.config.parts.tallest_centre_height_mm, self.config.calibration.max_height_cost_mm
+        )
         if doubt is None:
             self.clear_warning(HEIGHT_WARNING)
         else:

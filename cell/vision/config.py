@@ -119,6 +119,19 @@ class PartsConfig(Strict):
     )
 
     @property
+    def tallest_centre_height_mm(self) -> float:
+        """The highest plane a configured part's centre is mapped on (cell.vision.locate's
+        reference_height_mm at the largest sizes allowed): where a wrong camera height costs most.
+        Nuts: half their thickness; bolts lying: their axis, half the head's across flats."""
+        nut = self.nut.reference_height_mm
+        if nut is None:
+            nut = 0.5 * self.nut.thickness_per_across_flats * self.nut.across_flats_mm[1]
+        bolt = self.bolt.reference_height_mm
+        if bolt is None:
+            bolt = 0.5 * self.bolt.head_across_flats_per_width * self.bolt.head_width_mm[1]
+        return float(max(nut, bolt))
+
+    @property
     def use_height_correction(self) -> bool:
         if self.height_correction is None:
             return self.preset == "default"
