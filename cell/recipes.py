@@ -32,6 +32,7 @@ them; the line service decides when one becomes the active recipe (only in Ready
 from __future__ import annotations
 
 import hashlib
+import logging
 import re
 import tomllib
 from datetime import UTC, datetime
@@ -47,13 +48,14 @@ from cell.core.records import RecipeInfo
 from cell.errors import CellError
 from cell.run_config import ClassPlan
 from cell.vision.config import PartsConfig
-from cell.vision.shapes import ShapeModel, load_model, sha256_of
+from cell.vision.shapes import ShapeModel, ShapeModelError, load_model, sha256_of
 from drivers.config import Strict
 
 PickedClass = Literal["bolt", "nut"]
 RECIPE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 MAX_RECIPE_BYTES = 64 * 1024
 SUFFIX = ".toml"
+log = logging.getLogger(__name__)
 
 
 class RecipeError(CellError):
@@ -331,6 +333,10 @@ class RecipeBook:
 
     def load(self, recipe_id: str) -> Recipe:
         """The recipe, validated, its taught types' model files checked against their hashes."""
+        return self.load_with_shapes(recipe_id)[0]
+
+    def load_with_shapes(self, recipe_id: str) -> tuple[Recipe, tuple[ShapeModel, ...]]:
+        """The recipe, validated, and its taught types' shape models (each checked against its hash)."""
         path = self.path(recipe_id)
         try:
             text = path.read_text(encoding="utf-8")
@@ -339,8 +345,20 @@ class RecipeBook:
         except (OSError, UnicodeDecodeError) as e:
             raise RecipeError(f"{path}: cannot read recipe: {e}") from None
         recipe = parse_recipe(text, str(path))
-        load_shape_models(recipe, self.folder)
-        return recipe
+        return recipe, tuple(load_shape_models(recipe, self.folder))
+
+    def taught_parts(self) -> PartRegistry:
+        """The built-in part classes and the taught types of every valid recipe in the folder (each
+        name once): the counters an interface made at start-up offers, whichever recipe is prepared."""
+        parts = BUILT_IN_PARTS
+        for info in self.list():
+            if info.error:
+                continue
+            try:
+                parts = parts.with_classes(self.load(info.recipe_id).registry())
+            except (RecipeError, ShapeModelError, ValueError) as e:
+                log.warning("recipe %s: its taught types are not counted: %s", info.recipe_id, e)
+        return parts
 
     def add(self, recipe_id: str, text: str) -> RecipeInfo:
         """Validate, then write whole. The same content again is accepted (nothing changes);

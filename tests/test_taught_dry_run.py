@@ -5,7 +5,9 @@ model's grip and clears the table; the run's summary and history name the types.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 import sqlite3
 
 import cv2
@@ -21,7 +23,8 @@ from cell.planning import Planner, TableToRobot, Unreachable
 from cell.recipes import RecipeError, load_recipe_file, parse_recipe
 from cell.run_config import PlanningConfig
 from cell.sim.flatparts import random_types
-from cell.sim.parts import render_scene
+from cell.sim.parts import PartSpec, render_scene
+from cell.sim.world import SimPart
 from cell.vision.types import LocatedPart
 
 W, H = 960, 540
@@ -138,3 +141,53 @@ def test_a_taught_types_moves_are_validated(extra, says):
     text = f'[types.a]\nmodel = "m.json"\nmodel_sha256 = "{"0" * 64}"\nheight_mm = 3.0\n{extra}\n'
     with pytest.raises(RecipeError, match=says):
         parse_recipe(text, "r.toml")
+
+
+def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(recipe, tmp_path):
+    """The service's part registry holds the taught types of the recipes in its folder (so OPC UA,
+    Sparkplug and /metrics have their counters from start-up); a job of the prepared recipe finds
+    them by shape and picks them into their bins, the shift's counters by type."""
+    from cell.commands.serve import open_service
+    from cell.core.commands import Command, RecipeRequest, VisionState
+    from cell.core.values import counter_values
+    from cell.service.opcua import browse_names
+    from cell.sim.world import Bin
+    from cell.telemetry.metrics import class_specs
+    from tests.test_service import small_config, wait_for
+
+    cfg = small_config(tmp_path, perfect_calibration=True)
+    recipes = tmp_path / "recipes"
+    recipes.mkdir()
+    shutil.copy(recipe, recipes / "taught.toml")
+    shutil.copytree(recipe.parent / "models", recipes / "models")
+    cfg.service.machine_vision.recipes_dir = recipes
+    with contextlib.ExitStack() as stack:
+        service = open_service(cfg, True, stack)
+        assert [c.name for c in service.parts] == ["bolt", "nut", *KINDS]
+        assert {"PickedLBrackets", "PickedPlate4hs"} <= set(browse_names(service.parts))
+        assert {"Counters/Picked L Brackets", "Counters/Picked Plate 4hs"} <= {
+            s.name for s in class_specs(service.parts)
+        }
+        world = service.cell.sim.world  # the simulated table: two taught parts and a nut this recipe leaves
+        _, shapes = load_recipe_file(recipe)
+        poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0)]
+        placed = [TYPES[m.name].placed(*pose) for m, pose in zip(shapes, poses, strict=True)]
+        world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate([*placed, PartSpec("nut", "M8", 130.0, 150.0)])]
+        world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
+        world.version += 1
+        service.start()
+        service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
+        service.command(Command.START_SINGLE)
+        wait_for(
+            lambda: (
+                service.snapshot().vision_state == VisionState.READY and service.snapshot().counters.picked_total >= 2
+            ),
+            what="the job to pick both taught parts",
+        )
+        counters = service.snapshot().counters
+        assert dict(counters.picked) == {"l-bracket": 1, "plate-4h": 1}
+        values = counter_values(service.snapshot(), service.parts)
+        assert values["picked_l_brackets"] == 1 and values["picked_plate_4hs"] == 1
+        assert [p.spec.kind for p in world.on_table()] == [
+            "nut"
+        ]  # the shift's feeder empties the bins; the nut: not its
