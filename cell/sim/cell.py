@@ -294,7 +294,12 @@ def sim_cell(
     ]
     bins = [Bin(t.name, where[:2], sim.bin_half_size_mm) for t, where in taught] + bins  # a type's own bin first
     tolerance = JawTolerance(
-        sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm, sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg
+        sim.jaw_across_tolerance_mm,
+        sim.jaw_along_tolerance_mm,
+        sim.bolt_end_margin_mm,
+        sim.bolt_angle_tolerance_deg,
+        config.parts.jaw_face_width_mm,
+        config.parts.jaw_max_opening_mm,
     )
     world = World(parts, truth, bins, tolerance)
     marks = config.drift.marks_mm or sim.reference_marks_mm

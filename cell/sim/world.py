@@ -46,6 +46,7 @@ class JawTolerance:
     bolt_end_margin_mm: float = 2.0
     bolt_angle_deg: float = 5.0
     jaw_face_mm: float = 8.0  # how wide the jaw faces are (a taught part is held across that band)
+    jaw_max_opening_mm: float = 30.0  # how far the jaws open: a part wider than that across them is not held
 
 
 @dataclass(frozen=True)
@@ -169,7 +170,10 @@ class World:
         band = np.abs(v) <= self.tolerance.jaw_face_mm / 2
         if not band.any():
             return False, "no material between the jaw faces"
-        mid = (float(u[band].min()) + float(u[band].max())) / 2
+        lo, hi = float(u[band].min()), float(u[band].max())
+        if hi - lo > self.tolerance.jaw_max_opening_mm:
+            return False, f"{hi - lo:.1f} mm wide across the jaws, which open {self.tolerance.jaw_max_opening_mm:g} mm"
+        mid = (lo + hi) / 2
         if abs(mid) > self.tolerance.across_mm:
             return False, f"{mid:+.2f} mm off centre between the jaws (tolerance {self.tolerance.across_mm:g})"
         return True, ""
