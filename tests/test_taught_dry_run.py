@@ -191,3 +191,25 @@ def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(rec
         assert [p.spec.kind for p in world.on_table()] == [
             "nut"
         ]  # the shift's feeder empties the bins; the nut: not its
+
+
+def test_the_simulated_jaws_hold_a_taught_part_only_along_its_grip(recipe):
+    """The simulated world holds a flat part of any shape where its model's grip says, and refuses
+    jaws turned across it (wider than the jaws open) or off its centre."""
+    from cell.sim.parts import ExtrudedPart
+    from cell.sim.world import JawTolerance, Truth, World
+
+    _, shapes = load_recipe_file(recipe)
+    m = next(s for s in shapes if s.name == "plate-4h")
+    part = ExtrudedPart(m.name, m.outline_mm, tuple(m.holes_mm), m.height_mm).placed(100.0, 80.0, 30.0)
+    grasp, jaw = m.grip_on_table(np.array([100.0, 80.0]), 30.0)
+    z = m.height_mm / 2
+
+    def grip(dx: float, dy: float, turn_deg: float) -> str:
+        world = World([part], Truth(0.0, 0.0, 0.0, 0.0), [], JawTolerance(jaw_max_opening_mm=30.0))
+        return world.grip((grasp[0] + dx, grasp[1] + dy, z), jaw + turn_deg).reason
+
+    assert grip(0.0, 0.0, 0.0).endswith("held")
+    assert "wide across the jaws" in grip(0.0, 0.0, 90.0)
+    off = 3.0 * np.array([np.cos(np.radians(jaw)), np.sin(np.radians(jaw))])
+    assert "off centre between the jaws" in grip(*off, 0.0)
