@@ -143,10 +143,13 @@ def test_a_taught_types_moves_are_validated(extra, says):
         parse_recipe(text, "r.toml")
 
 
-def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(recipe, tmp_path):
+@pytest.mark.parametrize("added_later", [False, True])
+def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(recipe, tmp_path, added_later):
     """The service's part registry holds the taught types of the recipes in its folder (so OPC UA,
     Sparkplug and /metrics have their counters from start-up); a job of the prepared recipe finds
-    them by shape and picks them into their bins, the shift's counters by type."""
+    them by shape and picks them into their bins, the shift's counters by type. A recipe put in the
+    folder after start-up is picked and counted by name too; the interfaces' counters, made at
+    start-up, stay as they were (a Sparkplug birth names every metric it will send)."""
     from cell.commands.serve import open_service
     from cell.core.commands import Command, RecipeRequest, VisionState
     from cell.core.values import counter_values
@@ -158,16 +161,25 @@ def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(rec
     cfg = small_config(tmp_path, perfect_calibration=True)
     recipes = tmp_path / "recipes"
     recipes.mkdir()
-    shutil.copy(recipe, recipes / "taught.toml")
-    shutil.copytree(recipe.parent / "models", recipes / "models")
     cfg.service.machine_vision.recipes_dir = recipes
+
+    def add_recipe() -> None:
+        shutil.copy(recipe, recipes / "taught.toml")
+        shutil.copytree(recipe.parent / "models", recipes / "models")
+
+    if not added_later:
+        add_recipe()
     with contextlib.ExitStack() as stack:
         service = open_service(cfg, True, stack)
-        assert [c.name for c in service.parts] == ["bolt", "nut", *KINDS]
-        assert {"PickedLBrackets", "PickedPlate4hs"} <= set(browse_names(service.parts))
-        assert {"Counters/Picked L Brackets", "Counters/Picked Plate 4hs"} <= {
-            s.name for s in class_specs(service.parts)
-        }
+        if added_later:
+            add_recipe()
+            assert [c.name for c in service.parts] == ["bolt", "nut"]
+        else:
+            assert [c.name for c in service.parts] == ["bolt", "nut", *KINDS]
+            assert {"PickedLBrackets", "PickedPlate4hs"} <= set(browse_names(service.parts))
+            assert {"Counters/Picked L Brackets", "Counters/Picked Plate 4hs"} <= {
+                s.name for s in class_specs(service.parts)
+            }
         world = service.cell.sim.world  # the simulated table: two taught parts and a nut this recipe leaves
         _, shapes = load_recipe_file(recipe)
         poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0)]
@@ -187,7 +199,8 @@ def test_the_line_service_picks_a_prepared_taught_recipe_and_names_its_types(rec
         counters = service.snapshot().counters
         assert dict(counters.picked) == {"l-bracket": 1, "plate-4h": 1}
         values = counter_values(service.snapshot(), service.parts)
-        assert values["picked_l_brackets"] == 1 and values["picked_plate_4hs"] == 1
+        if not added_later:
+            assert values["picked_l_brackets"] == 1 and values["picked_plate_4hs"] == 1
         assert [p.spec.kind for p in world.on_table()] == [
             "nut"
         ]  # the shift's feeder empties the bins; the nut: not its

@@ -407,11 +407,10 @@ class LineService:
         self._recipe_id, self._recipe, shapes = prepared
         self._shapes = tuple(shapes)
         new = [name for name in self._recipe.types if name not in self.parts]
-        if new:  # added after start-up: counted and in the history; OPC UA and Sparkplug offer them after a restart
-            self.parts = self.parts.with_classes(self._recipe.registry())
+        if new:  # added after start-up: picked and recorded by name; the interfaces' counters are made at start-up
             log.warning(
-                "recipe %s: taught types %s were not in the recipes at start-up: counted, but OPC UA and Sparkplug "
-                "name them only after the service restarts",
+                "recipe %s: taught types %s were not in the recipes at start-up: picked and recorded in the history, "
+                "but OPC UA, Sparkplug, /metrics and the screen count them only after the service restarts",
                 self._recipe_id,
                 ", ".join(new),
             )
