@@ -23,11 +23,15 @@ from cell.calibration.drift import DriftWatch
 from cell.calibration.store import Calibration
 from cell.config import CellConfig, load_config
 from cell.core.eventbus import EventBus
+from cell.core.parts import PartRegistry
 from cell.errors import ConfigError
 from cell.locks import device_locks
 from cell.planning import Planner, table_to_robot
+from cell.recipes import Recipe, load_recipe_file
+from cell.run_config import ClassPlan
 from cell.signals import Controls
 from cell.vision.locate import locate
+from cell.vision.shapes import ShapeModel
 from cell.vision.types import LocateResult
 from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig, DeviceKind
@@ -88,6 +92,36 @@ def apply_overrides(config: CellConfig, o: Overrides) -> CellConfig:
     return config
 
 
+@dataclass(frozen=True)
+class RunRecipe:
+    """A recipe a run uses: its handling, its taught types' shape models (the finder of
+    `run-cell locate --recipe`) and the part classes it counts."""
+
+    recipe: Recipe
+    shapes: tuple[ShapeModel, ...] = ()
+    name: str = ""
+
+    @classmethod
+    def load(cls, path: Path) -> RunRecipe:
+        recipe, shapes = load_recipe_file(path)
+        return cls(recipe, tuple(shapes), Path(path).stem)
+
+    @property
+    def taught_plans(self) -> dict[str, ClassPlan]:
+        return self.recipe.taught_plans()
+
+    @property
+    def parts(self) -> PartRegistry:
+        return self.recipe.registry()
+
+    def leave_unpicked(self, result: LocateResult) -> LocateResult:
+        """Parts of a class the recipe does not pick stay on the table, saying so."""
+        for part in result.objects:
+            if part.pick and part.cls not in self.recipe.classes:
+                part.pick, part.reason = False, f"{part.reason}; not picked by recipe {self.name}"
+        return result
+
+
 @dataclass
 class Cell:
     """A cell's devices and how it sees, for one run or one service's life."""
@@ -100,12 +134,16 @@ class Cell:
     sim: SimCell | None = None  # the simulated cell's world, when there is one
     plate_image: Callable[[], np.ndarray] | None = None  # how a plate frame is taken for recalibration
     notes: list[str] = field(default_factory=list)  # what the operator should be told about the set-up
+    recipe: RunRecipe | None = None  # `run-cell --recipe FILE`: its taught types found and picked
 
     def planner(self) -> Planner:
-        return Planner(self.config.planning, table_to_robot(self.config.planning))
+        taught = None if self.recipe is None else self.recipe.taught_plans
+        return Planner(self.config.planning, table_to_robot(self.config.planning), taught)
 
     def locate(self, frame: np.ndarray, calibration: Calibration) -> LocateResult:
-        return locate(frame, calibration, self.config)
+        if self.recipe is None:
+            return locate(frame, calibration, self.config)
+        return self.recipe.leave_unpicked(locate(frame, calibration, self.config, self.recipe.shapes))
 
     def drift_watch(self, calibration: Calibration) -> DriftWatch | None:
         """The reference-mark watch for this calibration: the configured marks, else those printed on
@@ -127,11 +165,15 @@ def assemble(
     *,
     shift: bool = False,
     progress: Callable[[str], None] = lambda line: None,
+    recipe: RunRecipe | None = None,
 ) -> Cell:
     """The cell's devices, opened lazily by the runner (connect); locks and emulators go on
-    `resources`. `shift`: the simulated cell gets its feeder (the line service's dry run)."""
+    `resources`. `shift`: the simulated cell gets its feeder (the line service's dry run).
+    `recipe`: the run's recipe (its taught types found, planned and, simulated, laid out)."""
     if config.camera.source == "sim":
-        return _simulated(config, resources, shift, progress)
+        cell = _simulated(config, resources, shift, progress, recipe)
+        cell.recipe = recipe
+        return cell
     progress(f"loading the calibration {config.calibration.active_path}")
     calibration = Calibration.load(config.calibration.active_path)
     arm_cfg = config.arm
@@ -142,7 +184,7 @@ def assemble(
     arm = make_arm(arm_cfg, config.robot_server)
     if isinstance(arm, RobotServerArm):  # listens for the cell's life, across jobs
         resources.enter_context(arm.serving())
-    cell = Cell(config, camera, arm, calibration, not dry_run)
+    cell = Cell(config, camera, arm, calibration, not dry_run, recipe=recipe)
     cell.plate_image = lambda: _capture(camera)
     if isinstance(arm, RobotServerArm):
         cell.notes.append(f"robot server on {arm.port.removeprefix('tcp://')} (protocol: docs/robots.md)")
@@ -153,11 +195,26 @@ def assemble(
 
 
 def _simulated(
-    config: CellConfig, resources: contextlib.ExitStack, shift: bool, progress: Callable[[str], None]
+    config: CellConfig,
+    resources: contextlib.ExitStack,
+    shift: bool,
+    progress: Callable[[str], None],
+    recipe: RunRecipe | None = None,
 ) -> Cell:
     from cell.sim.cell import sim_arm_kind, sim_cell
     from cell.sim.feeder import FedCamera, Feeder, SimClock
+    from cell.sim.parts import ExtrudedPart
     from cell.sim.render import render_plate
+
+    taught = []
+    if recipe is not None:  # each taught type with a bin, its model extruded, on the simulated table
+        plans = recipe.taught_plans
+        for m in recipe.shapes:
+            if m.name in plans:
+                part = ExtrudedPart(
+                    m.name, np.asarray(m.outline_mm), tuple(np.asarray(h) for h in m.holes_mm), m.height_mm
+                )
+                taught.append((part, plans[m.name].bin_robot_mm))
 
     if sim_arm_kind(config.arm) != "sim" and config.arm.port:
         log.warning(
@@ -166,7 +223,7 @@ def _simulated(
             config.arm.port,
         )
     progress("rendering the simulated plate and calibrating on it")
-    sim = resources.enter_context(sim_cell(config))
+    sim = resources.enter_context(sim_cell(config, taught))
     camera: Camera = sim.camera
     if shift:
         feeder = Feeder(sim.world, config.sim.feeder, SimClock(config.sim.speed_factor))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ import numpy.typing as npt
 
 from cell.calibration.store import write_json_atomic
 from cell.errors import CellError, InputError
-from cell.run_config import PlanningConfig
+from cell.run_config import ClassPlan, PlanningConfig
 from cell.vision.types import LocatedPart
 
 SCHEMA = "pick-cell/robot-frame"
@@ -155,11 +156,14 @@ class Target:
 class Planner:
     """Turns located parts into targets; every point of the move is checked before motion."""
 
-    def __init__(self, cfg: PlanningConfig, frame: TableToRobot):
+    def __init__(self, cfg: PlanningConfig, frame: TableToRobot, taught: Mapping[str, ClassPlan] | None = None):
         self.cfg = cfg
         self.frame = frame
+        self.taught = dict(taught or {})  # a recipe's taught types with a bin: jaws along the model's grip
 
     def target(self, part: LocatedPart) -> Target:
+        if part.cls in self.taught:
+            return self._taught(part)
         if part.cls not in ("bolt", "nut"):
             raise Unreachable(f"class {part.cls!r} is not picked")
         plan = self.cfg.for_class(part.cls)
@@ -168,13 +172,29 @@ class Planner:
             raise Unreachable(
                 f"part at table {tuple(table_xy)} mm, angle {part.angle_deg} deg: not a finite number (calibration?)"
             )
-        rx, ry = self.frame.to_robot(table_xy)[0]
-        z = self.frame.table_z_mm
         angle = None
         if plan.jaw_across_axis:
             if part.angle_deg is None:
                 raise Unreachable("no axis angle to put the jaws across")
             angle = self.frame.angle_to_robot(part.angle_deg + 90.0)
+        return self._checked(part, plan, (float(table_xy[0]), float(table_xy[1])), angle)
+
+    def _taught(self, part: LocatedPart) -> Target:
+        """A taught type: the jaws close at the model's grip point, along its grip direction turned
+        by the angle the part was found at (cell.vision.shapes.ShapeModel.grip_on_table)."""
+        plan = self.taught[part.cls]
+        jaw = part.features.get("jaw_angle_deg")
+        if part.grasp_mm is None or jaw is None:
+            raise Unreachable(f"taught type {part.cls!r} found without its grip (no grasp point or jaw angle)")
+        if not all(math.isfinite(v) for v in (*part.grasp_mm, float(jaw))):
+            raise Unreachable(f"grip at table {part.grasp_mm} mm, jaws {jaw} deg: not a finite number (calibration?)")
+        return self._checked(part, plan, part.grasp_mm, self.frame.angle_to_robot(float(jaw)))
+
+    def _checked(
+        self, part: LocatedPart, plan: ClassPlan, table_xy: tuple[float, float], angle: float | None
+    ) -> Target:
+        rx, ry = self.frame.to_robot(table_xy)[0]
+        z = self.frame.table_z_mm
         t = Target(
             part.id,
             part.cls,
@@ -198,6 +218,9 @@ class Planner:
         for cls in ("bolt", "nut"):
             if why := self.violation(*self.cfg.for_class(cls).bin_robot_mm):
                 out.append(f"planning.{cls}.bin_robot_mm: {why}")
+        for name, plan in self.taught.items():
+            if why := self.violation(*plan.bin_robot_mm):
+                out.append(f"recipe types.{name}.bin_robot_mm: {why}")
         return out
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:

@@ -32,6 +32,7 @@ them; the line service decides when one becomes the active recipe (only in Ready
 from __future__ import annotations
 
 import hashlib
+import logging
 import re
 import tomllib
 from datetime import UTC, datetime
@@ -42,18 +43,19 @@ from pydantic import Field, ValidationError, model_validator
 
 from cell.atomicfile import write_bytes_atomic, write_text_atomic
 from cell.config import CellConfig
-from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN
+from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN, PartClass, PartRegistry
 from cell.core.records import RecipeInfo
 from cell.errors import CellError
 from cell.run_config import ClassPlan
 from cell.vision.config import PartsConfig
-from cell.vision.shapes import ShapeModel, load_model, sha256_of
+from cell.vision.shapes import ShapeModel, ShapeModelError, load_model, sha256_of
 from drivers.config import Strict
 
-PartClass = Literal["bolt", "nut"]
+PickedClass = Literal["bolt", "nut"]
 RECIPE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 MAX_RECIPE_BYTES = 64 * 1024
 SUFFIX = ".toml"
+log = logging.getLogger(__name__)
 
 
 class RecipeError(CellError):
@@ -73,12 +75,42 @@ class TaughtType(Strict):
         pattern=r"^[0-9a-f]{64}$", description="the model file's sha256; a file that does not match is refused"
     )
     height_mm: float = Field(gt=0, le=200, description="the part's height above the table (its thickness lying)")
+    bin_robot_mm: tuple[float, float, float] | None = Field(
+        None,
+        description="where the gripper opens over this type's bin, robot frame; none: found and counted, not picked",
+    )
+    pick_above_table_mm: float | None = Field(
+        None, ge=0, le=100, description="tool point height when the jaws close; none: half the part's height"
+    )
+    approach_above_table_mm: float = Field(40.0, gt=0, le=300, description="height of moves above the table")
 
     @model_validator(mode="after")
     def _relative(self) -> TaughtType:
         if not MODEL_PATH.match(self.model) or ".." in self.model.split("/"):
             raise ValueError(f"model {self.model!r}: a relative path inside the recipe's folder (no '..')")
+        if self.pick_above_table_mm is not None and self.pick_above_table_mm >= self.height_mm:
+            raise ValueError(
+                f"pick_above_table_mm = {self.pick_above_table_mm:g} mm: the jaws would close above the part "
+                f"({self.height_mm:g} mm high); give a height below it"
+            )
+        if self.approach_above_table_mm <= self.height_mm:
+            raise ValueError(
+                f"approach_above_table_mm = {self.approach_above_table_mm:g} mm: not above the part "
+                f"({self.height_mm:g} mm high)"
+            )
         return self
+
+    def plan(self) -> ClassPlan | None:
+        """How the planner picks this type (jaws closed along its taught grip), or None without a bin."""
+        if self.bin_robot_mm is None:
+            return None
+        pick = self.height_mm / 2 if self.pick_above_table_mm is None else self.pick_above_table_mm
+        return ClassPlan(
+            pick_above_table_mm=pick,
+            approach_above_table_mm=self.approach_above_table_mm,
+            jaw_across_axis=False,
+            bin_robot_mm=self.bin_robot_mm,
+        )
 
 
 class Recipe(Strict):
@@ -89,7 +121,7 @@ class Recipe(Strict):
     pick_order: Literal["nearest", "rows", "as-found"] = Field(
         "nearest", description="nearest to the gripper first; rows: table Y then X; as-found: vision's order"
     )
-    pick: dict[PartClass, ClassPlan] = Field(
+    pick: dict[PickedClass, ClassPlan] = Field(
         description="the classes this recipe picks, each with its bin and moves; classes not listed stay on the table"
     )
     parts: PartsConfig = Field(
@@ -122,7 +154,16 @@ class Recipe(Strict):
 
     @property
     def classes(self) -> frozenset[str]:
-        return frozenset(self.pick)
+        """The classes this recipe picks: its [pick] classes and its taught types that have a bin."""
+        return frozenset(self.pick) | frozenset(self.taught_plans())
+
+    def taught_plans(self) -> dict[str, ClassPlan]:
+        """The taught types the cell picks (those with a bin), each with its moves."""
+        return {name: plan for name, t in self.types.items() if (plan := t.plan()) is not None}
+
+    def registry(self) -> PartRegistry:
+        """The built-in part classes and this recipe's taught types after them (counted by name)."""
+        return BUILT_IN_PARTS.with_classes(taught_class(name) for name in self.types)
 
     def apply(self, config: CellConfig) -> CellConfig:
         """`config` with this recipe's handling and vision limits in force (a class the recipe
@@ -131,6 +172,12 @@ class Recipe(Strict):
             update={"pick_order": self.pick_order, **{cls: plan for cls, plan in self.pick.items()}}
         )
         return config.model_copy(update={"planning": planning, "parts": self.parts})
+
+
+def taught_class(name: str) -> PartClass:
+    """A taught type as a part class: its counter is named by its name plus s (PickedBracketLs)."""
+    plural = name if len(name) >= 32 or name.endswith("s") else name + "s"
+    return PartClass(name, plural)
 
 
 def parse_recipe(text: str, where: str) -> Recipe:
@@ -286,6 +333,10 @@ class RecipeBook:
 
     def load(self, recipe_id: str) -> Recipe:
         """The recipe, validated, its taught types' model files checked against their hashes."""
+        return self.load_with_shapes(recipe_id)[0]
+
+    def load_with_shapes(self, recipe_id: str) -> tuple[Recipe, tuple[ShapeModel, ...]]:
+        """The recipe, validated, and its taught types' shape models (each checked against its hash)."""
         path = self.path(recipe_id)
         try:
             text = path.read_text(encoding="utf-8")
@@ -294,8 +345,20 @@ class RecipeBook:
         except (OSError, UnicodeDecodeError) as e:
             raise RecipeError(f"{path}: cannot read recipe: {e}") from None
         recipe = parse_recipe(text, str(path))
-        load_shape_models(recipe, self.folder)
-        return recipe
+        return recipe, tuple(load_shape_models(recipe, self.folder))
+
+    def taught_parts(self) -> PartRegistry:
+        """The built-in part classes and the taught types of every valid recipe in the folder (each
+        name once): the counters an interface made at start-up offers, whichever recipe is prepared."""
+        parts = BUILT_IN_PARTS
+        for info in self.list():
+            if info.error:
+                continue
+            try:
+                parts = parts.with_classes(self.load(info.recipe_id).registry())
+            except (RecipeError, ShapeModelError, ValueError) as e:
+                log.warning("recipe %s: its taught types are not counted: %s", info.recipe_id, e)
+        return parts
 
     def add(self, recipe_id: str, text: str) -> RecipeInfo:
         """Validate, then write whole. The same content again is accepted (nothing changes);

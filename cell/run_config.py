@@ -139,6 +139,13 @@ class SimConfig(Strict):
         "every bolt square to the line from the Dynamixel arm's base (what a 4-axis arm can grip); "
         "paper-fixed-jaws: every bolt across arm.serial.fixed_jaw_angle_deg (what a 3-axis gantry can grip)",
     )
+    taught_parts_per_type: int = Field(
+        3,
+        ge=1,
+        le=20,
+        description="with a recipe of taught types (`run-cell --dry-run --recipe FILE`): how many of each type "
+        "the simulated table holds, laid out at random (sim.seed) in place of the layout above",
+    )
     seed: int = Field(
         0,
         ge=0,

@@ -13,6 +13,7 @@ from typing import get_args
 from cell.assembly import (
     Overrides,
     RunHooks,
+    RunRecipe,
     arm_only,
     assemble,
     attach_consumers,
@@ -60,6 +61,14 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         "configs/sim-grbl.toml or configs/sim-dynamixel.toml)",
     )
     g.add_argument("--port", help="override arm.port")
+    g.add_argument(
+        "--recipe",
+        dest="run_recipe",
+        type=Path,
+        metavar="FILE",
+        help="run a recipe file: its classes, bins and limits, its taught part types found by their shape models "
+        "(with the simulated camera, the table holds sim.taught_parts_per_type of each taught type)",
+    )
     g.add_argument(
         "--offset-x-mm",
         type=finite_float,
@@ -171,6 +180,10 @@ def run_cell(args: argparse.Namespace) -> int:
     controls = getattr(args, "controls", None) or Controls()
     try:
         config = cell_config(args.run_config, args.dry_run, overrides_from(args))
+        recipe = None
+        if getattr(args, "run_recipe", None) is not None:
+            recipe = RunRecipe.load(args.run_recipe)
+            config = recipe.recipe.apply(config)
         if args.dry_run:  # a rehearsal: its own history store, its audit lines marked (never production's)
             config = rehearsal_config(config)
     except REPORTED_ERRORS as e:  # no config to say where logs go: the default (or --log-dir) gets the fault
@@ -191,14 +204,16 @@ def run_cell(args: argparse.Namespace) -> int:
                 f"run.log_dir {stem.parent}: cannot create the operator log: {e.strerror or e}",
                 hint="set run.log_dir (or --log-dir) to a writable folder with free space",
             ) from None
-        return _run_job(args, config, audit, controls)
+        return _run_job(args, config, audit, controls, recipe)
     finally:
         with controls.shielded():
             audit.close()
             stop_logging_to(f"{stem}.log")
 
 
-def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, controls: Controls) -> int:
+def _run_job(
+    args: argparse.Namespace, config: CellConfig, audit: AuditLog, controls: Controls, recipe: RunRecipe | None = None
+) -> int:
     resources = contextlib.ExitStack()
     try:
         try:
@@ -209,7 +224,7 @@ def _run_job(args: argparse.Namespace, config: CellConfig, audit: AuditLog, cont
                     config=config.model_dump(mode="json"),
                 )
             )
-            cell = assemble(config, args.dry_run, resources, progress=say)
+            cell = assemble(config, args.dry_run, resources, progress=say, recipe=recipe)
             bus = EventBus()
             resources.callback(bus.close)  # subscribers deliver what they hold before the command ends
             bus.add_record(audit.record, owner=audit)
@@ -322,5 +337,6 @@ def sim_truth(world) -> dict:
     out: dict[str, dict[str, int]] = {}
     for p in world.parts:
         where = out.setdefault(p.where, {})
-        where[p.spec.kind] = where.get(p.spec.kind, 0) + 1
+        kind = p.spec.name if p.spec.kind == "extruded" else p.spec.kind  # a taught type by its name
+        where[kind] = where.get(kind, 0) + 1
     return out

@@ -74,7 +74,7 @@ from cell.core.events import (
     VisionStateChanged,
     new_job_id,
 )
-from cell.core.parts import BUILT_IN_PARTS, PartRegistry
+from cell.core.parts import PartRegistry
 from cell.core.records import Alarm, CalibrationInfo, LiveFrame, Snapshot
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.memory import release_free_memory
@@ -88,6 +88,7 @@ from cell.signals import Controls
 from cell.statemachine import State
 from cell.summary import Counts
 from cell.vision.locate import locate
+from cell.vision.shapes import ShapeModel
 from cell.vision.types import LocateResult
 from drivers.cameras.base import Camera
 
@@ -179,9 +180,12 @@ class LineService:
         cell.camera.on_warning = lambda key, reason, hint: self.raise_warning(key, reason, hint, "camera")
         cell.camera.on_clear = self.clear_warning
         self.recipes = RecipeBook(self.config.service.machine_vision.recipes_dir)
-        self.parts: PartRegistry = BUILT_IN_PARTS
+        # the part classes counted: the built-in ones and every taught type of the recipes in the folder at
+        # start-up (OPC UA, Sparkplug and /metrics make a counter of each then); a recipe added later brings its own
+        self.parts: PartRegistry = self.recipes.taught_parts()
         self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)
         self._recipe: Recipe | None = None
+        self._shapes: tuple[ShapeModel, ...] = ()  # the prepared recipe's taught types' shape models
         bus.add_record(record.record, owner=record)
         self.history: Any = None  # the history store (cell.history.store), set by open_service when configured
         self.ledger = Ledger((), self._changed, ShiftCalendar(self.config.shifts))
@@ -278,7 +282,7 @@ class LineService:
                 if not isinstance(request, RecipeRequest):
                     raise BadArgument(command, f"{command.value} needs a recipe id", self._vstate)
                 if command is Command.PREPARE_RECIPE:
-                    return (request.recipe_id, self.recipes.load(request.recipe_id))
+                    return (request.recipe_id, *self.recipes.load_with_shapes(request.recipe_id))
                 if command is Command.ADD_RECIPE:
                     parse_recipe(request.content, f"recipe {check_recipe_id(request.recipe_id)!r}")
                     return (request.recipe_id, request.content)
@@ -397,13 +401,23 @@ class LineService:
             self._alarm = None
         self._set_state(V.READY, f"reset by {origin.describe()}")
 
-    def _cmd_prepare_recipe(self, origin: Origin, prepared: tuple[str, Recipe]) -> None:
-        """In Ready only (the table): the next job picks the recipe's classes, with its bins and limits."""
-        self._recipe_id, self._recipe = prepared
+    def _cmd_prepare_recipe(self, origin: Origin, prepared: tuple[str, Recipe, tuple[ShapeModel, ...]]) -> None:
+        """In Ready only (the table): the next job picks the recipe's classes, with its bins and limits,
+        and finds its taught types by their shape models."""
+        self._recipe_id, self._recipe, shapes = prepared
+        self._shapes = tuple(shapes)
+        new = [name for name in self._recipe.types if name not in self.parts]
+        if new:  # added after start-up: picked and recorded by name; the interfaces' counters are made at start-up
+            log.warning(
+                "recipe %s: taught types %s were not in the recipes at start-up: picked and recorded in the history, "
+                "but OPC UA, Sparkplug, /metrics and the screen count them only after the service restarts",
+                self._recipe_id,
+                ", ".join(new),
+            )
         log.info("recipe %s prepared by %s", self._recipe_id, origin.describe())
 
     def _cmd_unprepare_recipe(self, origin: Origin, request: Any) -> None:
-        self._recipe_id, self._recipe = "", None
+        self._recipe_id, self._recipe, self._shapes = "", None, ()
 
     def _cmd_add_recipe(self, origin: Origin, added: tuple[str, str]) -> None:
         self.recipes.add(*added)  # validated before it was recorded; the write is atomic
@@ -687,12 +701,17 @@ class LineService:
             self.record.best_effort = False
             self.record.ensure_writable()  # no job runs without its record
             config = self.job_config()
-            perception = _Perception(self, config, None if self._recipe is None else self._recipe.classes)
+            recipe = self._recipe
+            perception = _Perception(
+                self, config, None if recipe is None else recipe.classes, self._shapes if recipe is not None else ()
+            )
             job.runner = Runner(
                 self.camera,
                 self.cell.arm,
                 perception.locate,
-                Planner(config.planning, table_to_robot(config.planning)),
+                Planner(
+                    config.planning, table_to_robot(config.planning), None if recipe is None else recipe.taught_plans()
+                ),
                 config.run,
                 _JobEvents(self.bus),
                 job.controls,
@@ -837,14 +856,21 @@ class _Perception:
     """Locate and the drift watch for one job, bound per frame to the calibration in use then; parts
     of a class the job's recipe does not pick are left on the table."""
 
-    def __init__(self, service: LineService, config: CellConfig, classes: frozenset[str] | None):
-        self.service, self.config, self.classes = service, config, classes
+    def __init__(
+        self,
+        service: LineService,
+        config: CellConfig,
+        classes: frozenset[str] | None,
+        shapes: tuple[ShapeModel, ...] = (),
+    ):
+        self.service, self.config, self.classes, self.shapes = service, config, classes, shapes
         self.recipe = service._recipe_id
         self.bound: Vision = service._vision
 
     def locate(self, frame: np.ndarray) -> LocateResult:
+        """The finder of `run-cell locate --recipe`: the recipe's taught types, then bolt and nut."""
         self.bound = self.service._vision  # one reference read: the pair swapped together
-        result = locate(frame, self.bound.calibration, self.config)
+        result = locate(frame, self.bound.calibration, self.config, self.shapes)
         if self.classes is not None:
             for part in result.objects:
                 if part.pick and part.cls not in self.classes:

@@ -15,7 +15,7 @@ import itertools
 import json
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +26,8 @@ from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
 from cell.sim.emulated_arm import EmulatedArm, emulated_arm
-from cell.sim.parts import PartSpec, random_scene
+from cell.sim.flatparts import layout as flat_layout
+from cell.sim.parts import ExtrudedPart, PartSpec, random_scene
 from cell.sim.platefit import cached_fit, default_dir
 from cell.sim.render import plate_centres_mm, render_plate
 from cell.sim.rig import default_camera
@@ -87,7 +88,7 @@ _EDGE_STEPS = np.linspace(0, 1, 8, endpoint=False)[:, None, None]
 
 
 @functools.lru_cache(maxsize=256)
-def _dense_outline(p: PartSpec) -> np.ndarray:
+def _dense_outline(p: PartSpec | ExtrudedPart) -> np.ndarray:
     """The top-view outline with 8 samples along each edge (read-only; a part's is kept while it is used)."""
     poly = p.top_view_outline_mm()
     nxt = np.roll(poly, -1, axis=0)
@@ -96,12 +97,12 @@ def _dense_outline(p: PartSpec) -> np.ndarray:
     return dense
 
 
-def outline_gap_mm(a: PartSpec, b: PartSpec) -> float:
+def outline_gap_mm(a: PartSpec | ExtrudedPart, b: PartSpec | ExtrudedPart) -> float:
     """Smallest distance between two top-view outlines (sampled), mm."""
     return nearest_outline_mm(a, [b])
 
 
-def nearest_outline_mm(a: PartSpec, others: list[PartSpec]) -> float:
+def nearest_outline_mm(a: PartSpec | ExtrudedPart, others: Sequence[PartSpec | ExtrudedPart]) -> float:
     """Smallest distance between a's top-view outline and any of the others' (sampled), mm: the
     least of outline_gap_mm(a, q) over them, in one step."""
     pa, pb = _dense_outline(a), np.concatenate([_dense_outline(q) for q in others])
@@ -241,10 +242,25 @@ def plate_calibration(config: CellConfig, model: CameraModel) -> tuple[Calibrati
     return _PLATE_FITS[key]
 
 
+TAUGHT_AREA_MM = (0.0, 0.0, 264.0, 176.0)  # where taught parts are laid out: the plate's area
+TAUGHT_GAP_MM = 8.0  # between their outlines seen from above (room for parallax and the jaws)
+
+
+def taught_layout(types: Sequence[ExtrudedPart], per_type: int, seed: int) -> list[ExtrudedPart]:
+    """`per_type` of each taught type at random positions and turns on the plate's area, apart."""
+    rng = np.random.default_rng(seed)
+    order = [t for t in types for _ in range(per_type)]
+    return flat_layout([order[i] for i in rng.permutation(len(order))], rng, TAUGHT_AREA_MM, TAUGHT_GAP_MM)
+
+
 @contextlib.contextmanager
-def sim_cell(config: CellConfig) -> Iterator[SimCell]:
+def sim_cell(
+    config: CellConfig, taught: Sequence[tuple[ExtrudedPart, tuple[float, float, float]]] = ()
+) -> Iterator[SimCell]:
     """Camera, plate calibration, world and arm of the simulated cell, for a `with` block: an
-    emulated arm's pty and emulator run until the block ends, however it ends."""
+    emulated arm's pty and emulator run until the block ends, however it ends. `taught`: a
+    recipe's taught types (each its extruded stand-in and its bin, robot mm): the table holds
+    sim.taught_parts_per_type of each in place of the configured layout."""
     sim = config.sim
     model = default_camera(config.camera.width_px, config.camera.height_px)
     if sim.perfect_calibration:
@@ -260,21 +276,30 @@ def sim_cell(config: CellConfig) -> Iterator[SimCell]:
         bump = (sim.camera_bumped_at_pick, bumped(model, sim.camera_bumped_mm))
         note += f"; camera to be moved by {sim.camera_bumped_mm} mm before pick {sim.camera_bumped_at_pick}"
     truth = Truth(sim.truth_rotation_deg, sim.truth_offset_x_mm, sim.truth_offset_y_mm, sim.truth_table_z_mm)
-    if sim.layout == "random":
-        parts = random_scene(sim.seed)
+    parts: list[PartSpec | ExtrudedPart]
+    if taught:
+        parts = list(taught_layout([t for t, _ in taught], sim.taught_parts_per_type, sim.seed))
+    elif sim.layout == "random":
+        parts = list(random_scene(sim.seed))
     elif sim.layout == "paper-fixed-jaws":
-        parts = paper_layout(sim.seed, jaws_table_deg=config.arm.serial.fixed_jaw_angle_deg - truth.rotation_deg)
+        parts = list(paper_layout(sim.seed, jaws_table_deg=config.arm.serial.fixed_jaw_angle_deg - truth.rotation_deg))
     elif sim.layout == "paper-square-to-base":
-        parts = paper_layout(sim.seed, truth.robot_to_table(config.arm.dynamixel.geometry.yaw_axis_x_mm, 0.0))
+        parts = list(paper_layout(sim.seed, truth.robot_to_table(config.arm.dynamixel.geometry.yaw_axis_x_mm, 0.0)))
     else:
-        parts = paper_layout(sim.seed)
+        parts = list(paper_layout(sim.seed))
     plan = config.planning
     bins = [
         Bin("bolt", plan.bolt.bin_robot_mm[:2], sim.bin_half_size_mm),
         Bin("nut", plan.nut.bin_robot_mm[:2], sim.bin_half_size_mm),
     ]
+    bins = [Bin(t.name, where[:2], sim.bin_half_size_mm) for t, where in taught] + bins  # a type's own bin first
     tolerance = JawTolerance(
-        sim.jaw_across_tolerance_mm, sim.jaw_along_tolerance_mm, sim.bolt_end_margin_mm, sim.bolt_angle_tolerance_deg
+        sim.jaw_across_tolerance_mm,
+        sim.jaw_along_tolerance_mm,
+        sim.bolt_end_margin_mm,
+        sim.bolt_angle_tolerance_deg,
+        config.parts.jaw_face_width_mm,
+        config.parts.jaw_max_opening_mm,
     )
     world = World(parts, truth, bins, tolerance)
     marks = config.drift.marks_mm or sim.reference_marks_mm

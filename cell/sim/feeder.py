@@ -21,7 +21,7 @@ import numpy as np
 
 from cell.run_config import FeederConfig
 from cell.sim.cell import MIN_GAP_MM, outline_gap_mm
-from cell.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, PartSpec
+from cell.sim.parts import BOLTS_MM, NUTS_MM, WASHERS_MM, ExtrudedPart, PartSpec
 from cell.sim.world import SimPart, World
 from drivers.cameras.base import Camera
 
@@ -109,7 +109,7 @@ class Feeder:
         length = float(self.rng.choice(_BOLT_LENGTHS_MM)) if kind == "bolt" else None
         return PartSpec(kind, size, x, y, angle, length)
 
-    def _fits(self, spec: PartSpec, others: list[PartSpec], vacated: list[tuple[float, float]]) -> bool:
+    def _fits(self, spec: PartSpec, others: list[PartSpec | ExtrudedPart], vacated: list[tuple[float, float]]) -> bool:
         outline = spec.top_view_outline_mm()
         x0, y0, x1, y1 = self.cfg.area_mm
         if outline[:, 0].min() < x0 or outline[:, 0].max() > x1 or outline[:, 1].min() < y0 or outline[:, 1].max() > y1:

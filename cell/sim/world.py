@@ -8,15 +8,20 @@ Jaw tolerances (defaults in SimConfig, for a parallel gripper opened 3 mm wider 
 part): along the closing direction the jaws centre the part as long as each jaw lands
 beside it, not on it: +-1.5 mm. Along the jaw faces a nut or washer must sit under the
 pads' middle: +-1.0 mm. A bolt is held wherever the jaws close on its body, at least
-2 mm from either end, but only with the jaws across the axis within 5 degrees.
+2 mm from either end, but only with the jaws across the axis within 5 degrees. A flat part
+of any shape (a taught type's ExtrudedPart) is held when its material lies between the jaw
+faces and is centred between the jaws within the tolerance across.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-from cell.sim.parts import PartSpec
+import numpy as np
+
+from cell.sim.parts import ExtrudedPart, PartSpec
 
 
 @dataclass(frozen=True)
@@ -40,6 +45,8 @@ class JawTolerance:
     along_mm: float = 1.0
     bolt_end_margin_mm: float = 2.0
     bolt_angle_deg: float = 5.0
+    jaw_face_mm: float = 8.0  # how wide the jaw faces are (a taught part is held across that band)
+    jaw_max_opening_mm: float = 30.0  # how far the jaws open: a part wider than that across them is not held
 
 
 @dataclass(frozen=True)
@@ -52,7 +59,7 @@ class Bin:
 @dataclass
 class SimPart:
     id: int
-    spec: PartSpec
+    spec: PartSpec | ExtrudedPart
     where: str = "table"  # 'table', 'gripper', 'bin:<name>' or 'floor'
 
 
@@ -62,14 +69,20 @@ class GripResult:
     reason: str
 
 
-def _extent_mm(spec: PartSpec) -> float:
+def _extent_mm(spec: PartSpec | ExtrudedPart) -> float:
     """Farthest point of the part's outline from its footprint centre."""
     outline = spec.top_view_outline_mm()
     return max(math.hypot(x - spec.x_mm, y - spec.y_mm) for x, y in outline)
 
 
 class World:
-    def __init__(self, parts: list[PartSpec], truth: Truth, bins: list[Bin], tolerance: JawTolerance = JawTolerance()):
+    def __init__(
+        self,
+        parts: Sequence[PartSpec | ExtrudedPart],
+        truth: Truth,
+        bins: list[Bin],
+        tolerance: JawTolerance = JawTolerance(),
+    ):
         self.parts = [SimPart(i + 1, p) for i, p in enumerate(parts)]
         self.truth = truth
         self.bins = bins
@@ -104,7 +117,9 @@ class World:
         self.version += 1
         return GripResult(nearest, f"part {nearest.id} ({nearest.spec.kind}) held")
 
-    def _holds(self, spec: PartSpec, x: float, y: float, height: float, jaw_deg: float) -> tuple[bool, str]:
+    def _holds(
+        self, spec: PartSpec | ExtrudedPart, x: float, y: float, height: float, jaw_deg: float
+    ) -> tuple[bool, str]:
         if height >= spec.height_mm - 0.5:
             return False, f"jaws at {height:.1f} mm close above the part ({spec.height_mm:.1f} mm high)"
         c = math.cos(math.radians(jaw_deg)), math.sin(math.radians(jaw_deg))
@@ -112,6 +127,8 @@ class World:
         across = ex * c[0] + ey * c[1]  # along the closing direction
         along = -ex * c[1] + ey * c[0]  # along the jaw faces
         tol = self.tolerance
+        if isinstance(spec, ExtrudedPart):
+            return self._holds_extruded(spec, x, y, c)
         if spec.kind == "bolt":
             axis = spec.axis_angle_deg
             assert axis is not None  # a bolt's
@@ -136,6 +153,31 @@ class World:
             return False, f"{along:+.2f} mm off along the jaws (tolerance {tol.along_mm:g})"
         return True, ""
 
+    def _holds_extruded(self, spec: ExtrudedPart, x: float, y: float, c: tuple[float, float]) -> tuple[bool, str]:
+        """A flat part of any shape: the jaws, `jaw_face_mm` wide, closing along `c` about (x, y), hold
+        it when its material lies in their band and is centred between them (within the tolerance
+        across): what they close on is the extent of its outline inside the band."""
+        polys = [spec.top_view_outline_mm(), *(spec.to_table(h) for h in spec.holes_mm)]
+        dense = []
+        for poly in polys:
+            q = np.roll(poly, -1, axis=0)
+            n = np.maximum(1, np.ceil(np.hypot(*(q - poly).T) / 0.2)).astype(int)
+            for p0, p1, k in zip(poly, q, n, strict=True):
+                dense.append(p0 + (np.arange(k)[:, None] / k) * (p1 - p0))
+        pts = np.vstack(dense) - (x, y)
+        u = pts @ np.array(c)
+        v = pts @ np.array((-c[1], c[0]))
+        band = np.abs(v) <= self.tolerance.jaw_face_mm / 2
+        if not band.any():
+            return False, "no material between the jaw faces"
+        lo, hi = float(u[band].min()), float(u[band].max())
+        if hi - lo > self.tolerance.jaw_max_opening_mm:
+            return False, f"{hi - lo:.1f} mm wide across the jaws, which open {self.tolerance.jaw_max_opening_mm:g} mm"
+        mid = (lo + hi) / 2
+        if abs(mid) > self.tolerance.across_mm:
+            return False, f"{mid:+.2f} mm off centre between the jaws (tolerance {self.tolerance.across_mm:g})"
+        return True, ""
+
     def release(self, robot_xyz: tuple[float, float, float]) -> str:
         """Open the jaws: a held part drops into the bin below, else onto the table there."""
         part = self.held()
@@ -152,5 +194,5 @@ class World:
         self.version += 1
         return f"part {part.id} dropped on the table at ({tx:.1f}, {ty:.1f}) mm"
 
-    def table_specs(self) -> list[tuple[int, PartSpec]]:
+    def table_specs(self) -> list[tuple[int, PartSpec | ExtrudedPart]]:
         return [(p.id, p.spec) for p in self.on_table()]
