@@ -75,8 +75,8 @@ def capture_sim(monkeypatch) -> Captured:
     real = cell.sim.cell.sim_cell
 
     @contextlib.contextmanager
-    def keeping(config):
-        with real(config) as sim:
+    def keeping(config, *args, **kwargs):
+        with real(config, *args, **kwargs) as sim:
             got.cell = sim
             yield sim
 
