@@ -314,6 +314,13 @@ def test_the_unit_file_starts_a_production_shift_that_records_and_stops_cleanly(
         "software": {"at": str(software), "entries": entries},
         "writable": [(str(s), str(t)) for s, t in writable],
         "private_tmp": yes(service, "PrivateTmp"),
+        # a checkout in /tmp (a CI's): the venv's entry scripts name their interpreter by the venv's own path,
+        # which the private /tmp covers; there the same venv (bound at software/.venv) is bound again
+        "rebind": [
+            (sys.prefix, str(software / ".venv"))
+            for tmp in ("/tmp", "/var/tmp")
+            if yes(service, "PrivateTmp") and Path(sys.prefix).is_relative_to(tmp)
+        ],
         "hide": hide,
         "nofile": int(one(service, "LimitNOFILE", "0")),
         "cwd": str(cwd),

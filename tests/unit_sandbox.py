@@ -111,6 +111,10 @@ def main() -> None:
     if plan["private_tmp"]:
         for tmp in ("/tmp", "/var/tmp"):
             mount("-t", "tmpfs", "-o", "mode=1777", "tmpfs", tmp)
+    for original, alias in plan.get("rebind", []):  # a venv of a checkout in /tmp: its scripts' #! names it
+        Path(original).mkdir(parents=True, exist_ok=True)
+        mount("--bind", alias, original)
+        mount("-o", "remount,bind,ro", original)
     for hidden in plan["hide"]:  # ProtectHome=yes
         mount("-t", "tmpfs", "-o", "ro,mode=0755", "tmpfs", hidden)
     if plan["nofile"]:
