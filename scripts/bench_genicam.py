@@ -25,6 +25,7 @@ and opens it through the cell's driver (camera.source = "genicam:127.0.0.1"), 19
 from __future__ import annotations
 
 import argparse
+import fcntl
 import os
 import shutil
 import socket
@@ -95,16 +96,23 @@ def main() -> None:
     fake = shutil.which("arv-fake-gv-camera-0.8")
     if fake is None:
         sys.exit("bench_genicam: no arv-fake-gv-camera-0.8 (Debian aravis-tools)")
-    if not gvcp_port_free():
-        sys.exit("bench_genicam: 127.0.0.1:3956 (GVCP) is taken: another fake camera runs (the tests?)")
-    fake_camera = FakeCamera(fake)
+    # the tests' lock on the one fake camera port: held for the whole run, so a test started meanwhile
+    # waits rather than taking 127.0.0.1:3956 while the camera is pulled
+    lock = os.open(Path(tempfile.gettempdir()) / "pick-cell-arv-fake-gv.lock", os.O_RDWR | os.O_CREAT, 0o666)
     try:
-        if args.pulls:
-            pulls(fake_camera, args.pulls)
-        else:
-            run(args)
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not gvcp_port_free():
+            sys.exit("bench_genicam: 127.0.0.1:3956 (GVCP) is taken: another fake camera runs")
+        fake_camera = FakeCamera(fake)
+        try:
+            if args.pulls:
+                pulls(fake_camera, args.pulls)
+            else:
+                run(args)
+        finally:
+            fake_camera.stop()
     finally:
-        fake_camera.stop()
+        os.close(lock)
 
 
 class FakeCamera:
