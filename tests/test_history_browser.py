@@ -50,6 +50,7 @@ def test_history_page_filters_pages_opens_images_and_lists_alarms(tmp_path):
     (tmp_path / "cell.toml").write_text(
         "[camera]\nwidth_px = 960\nheight_px = 540\n[sim]\nreference_marks_mm = []\n"
         "[planning]\noffset_x_mm = -129.0\n[run]\nmax_attempts_total = 8\n[history]\nmin_free_mb = 1\n"
+        "[calibration]\nmax_height_cost_mm = 5.0\n"  # 960 x 540's plate-only height doubt: not this test's alarm
     )
     serve = ServeProcess(tmp_path, "--config", str(tmp_path / "cell.toml"))
     try:
