@@ -114,8 +114,16 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, A
         async def read(name):
             return await (await cell.get_child(f"{ns}:{name}")).read_value()
 
+        earlier_shifts = 0  # the shift's counters start again at a shift change ([shifts], wall clock)
+        last = 0
+
         async def total():
-            return await read("PickedBolts") + await read("PickedNuts")
+            nonlocal earlier_shifts, last
+            now = await read("PickedBolts") + await read("PickedNuts")
+            if now < last:
+                earlier_shifts += last
+            last = now
+            return earlier_shifts + now
 
         out: dict[str, Any] = {"start": proc_figures(pid), "start_kinds": memory_kinds(pid)}
         t0 = time.monotonic()
@@ -160,6 +168,8 @@ async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, A
             for name in ("PickedBolts", "PickedNuts", "Misses", "Retries", "Failed", "Unreachable", "UnknownLeft")
         }
         out["alarm"] = await read("ActiveAlarm")
+        out["picks"] = await total()  # over every shift the run crossed
+        out["earlier_shifts"] = earlier_shifts
         return out
 
 
@@ -298,12 +308,14 @@ def main() -> int:
         if args.count_objects:
             print_object_growth(counts)
     c = r["counters"]
-    picks = c["PickedBolts"] + c["PickedNuts"]
+    picks = r["picks"]
+    if r["earlier_shifts"]:
+        print(f"a shift change during the run: {r['earlier_shifts']} picks counted by the earlier shift(s)")
     picked_lines = sum(1 for e in events if e["kind"] == "verify" and e["result"] == "picked")
     faults = sum(1 for e in events if e["kind"] == "fault")
     s, a, e = r["start"], r["at_100"], r["end"]
     print(
-        f"picks {picks} ({c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
+        f"picks {picks} (this shift's: {c['PickedBolts']} bolts, {c['PickedNuts']} nuts) in {r['wall_s']:.0f} s wall "
         f"({60 * picks / r['wall_s']:.0f} per minute); misses {c['Misses']}, retries {c['Retries']}, "
         f"failed {c['Failed']}, unreachable {c['Unreachable']}, unknown left {c['UnknownLeft']}"
     )
