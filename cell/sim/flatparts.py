@@ -13,10 +13,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 
-import cv2
 import numpy as np
 
-from cell.sim.parts import ExtrudedPart
+from cell.sim.parts import ExtrudedPart, FreeSpace
 
 Poly = np.ndarray
 
@@ -170,29 +169,13 @@ def layout(
 ) -> list[ExtrudedPart]:
     """The parts placed at random positions and angles inside `area_mm`, at least `gap_mm` apart
     seen from above; a part that finds no room is left out."""
-    res = 0.5
     x0, y0, x1, y1 = area_mm
-    grid = np.zeros((int((y1 - y0) / res) + 1, int((x1 - x0) / res) + 1), np.uint8)
-    pad = int(math.ceil(gap_mm / 2 / res))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pad + 1, 2 * pad + 1))
+    space = FreeSpace(area_mm, gap_mm)
     placed: list[ExtrudedPart] = []
     for part in parts:
         for _ in range(tries):
             p = part.placed(float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)), float(rng.uniform(0, 360)))
-            outline = p.top_view_outline_mm()
-            if (
-                outline[:, 0].min() < x0
-                or outline[:, 0].max() > x1
-                or outline[:, 1].min() < y0
-                or outline[:, 1].max() > y1
-            ):
-                continue
-            filled = np.zeros_like(grid)
-            cv2.fillPoly(filled, [np.rint((outline - (x0, y0)) / res).astype(np.int32)], 1)
-            cells = np.asarray(cv2.dilate(filled, kernel), dtype=np.uint8)
-            if np.any(cells & grid):
-                continue
-            grid |= cells
-            placed.append(p)
-            break
+            if space.claim(p.top_view_outline_mm()):
+                placed.append(p)
+                break
     return placed

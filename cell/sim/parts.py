@@ -389,11 +389,8 @@ def random_scene(
     rng = np.random.default_rng(seed)
     total = int(rng.integers(n_parts[0], n_parts[1] + 1))
     kinds = ["washer"] * n_washers + [str(k) for k in rng.choice(["nut", "bolt"], total - n_washers)]
-    res = 0.5  # occupancy grid, mm per cell
     x0, y0, x1, y1 = area_mm
-    grid = np.zeros((int((y1 - y0) / res) + 1, int((x1 - x0) / res) + 1), np.uint8)
-    pad = int(math.ceil(gap_mm / 2 / res))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pad + 1, 2 * pad + 1))
+    space = FreeSpace(area_mm, gap_mm)
     parts: list[PartSpec] = []
     for kind in kinds:
         for _ in range(500):
@@ -411,17 +408,36 @@ def random_scene(
                 float(rng.uniform(0, 360)),
                 length,
             )
-            outline = p.top_view_outline_mm()
-            if outline[:, 0].min() < x0 or outline[:, 0].max() > x1:
+            if not space.claim(p.top_view_outline_mm()):
                 continue
-            if outline[:, 1].min() < y0 or outline[:, 1].max() > y1:
-                continue
-            filled = np.zeros_like(grid)
-            cv2.fillPoly(filled, [np.rint((outline - (x0, y0)) / res).astype(np.int32)], 1)
-            cells = np.asarray(cv2.dilate(filled, kernel), dtype=np.uint8)
-            if np.any(cells & grid):
-                continue
-            grid |= cells
             parts.append(p)
             break
     return parts
+
+
+class FreeSpace:
+    """An occupancy grid of a table area (x0, y0, x1, y1 mm, 0.5 mm a cell) that places outlines at
+    least `gap_mm` apart, each wholly inside the area."""
+
+    RES_MM = 0.5
+
+    def __init__(self, area_mm: tuple[float, float, float, float], gap_mm: float):
+        self.x0, self.y0, self.x1, self.y1 = area_mm
+        res = self.RES_MM
+        self.grid = np.zeros((int((self.y1 - self.y0) / res) + 1, int((self.x1 - self.x0) / res) + 1), np.uint8)
+        pad = int(math.ceil(gap_mm / 2 / res))
+        self.kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pad + 1, 2 * pad + 1))
+
+    def claim(self, outline_mm: np.ndarray) -> bool:
+        """Take the room for this outline (True), or leave the grid as it was: outside the area, or too near another."""
+        if outline_mm[:, 0].min() < self.x0 or outline_mm[:, 0].max() > self.x1:
+            return False
+        if outline_mm[:, 1].min() < self.y0 or outline_mm[:, 1].max() > self.y1:
+            return False
+        filled = np.zeros_like(self.grid)
+        cv2.fillPoly(filled, [np.rint((outline_mm - (self.x0, self.y0)) / self.RES_MM).astype(np.int32)], 1)
+        cells = np.asarray(cv2.dilate(filled, self.kernel), dtype=np.uint8)
+        if np.any(cells & self.grid):
+            return False
+        self.grid |= cells
+        return True
