@@ -28,7 +28,6 @@ import json
 import os
 import select
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -44,6 +43,7 @@ sys.path.insert(0, str(REPO))
 
 from cell.audit import read_events  # noqa: E402
 from cell.history.config import REHEARSAL_DIR  # noqa: E402
+from tests.ports import free_port  # noqa: E402
 
 SHIFT_TOML = """\
 [camera]
@@ -98,12 +98,6 @@ def memory_kinds(pid: int) -> str:
     rows = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:])
     mb = {k: int(rows[k].split()[0]) / 1024 for k in ("Rss", "Anonymous")}
     return f"anonymous {mb['Anonymous']:.1f} MB, file-backed and shared {mb['Rss'] - mb['Anonymous']:.1f} MB"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 async def drive(url: str, pid: int, picks: int, timeout_s: float) -> dict[str, Any]:

@@ -22,7 +22,6 @@ import argparse
 import os
 import select
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -32,16 +31,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tests.ports import free_port  # noqa: E402
+
 IMPORTS = "import cv2, numpy, asyncua, starlette, uvicorn"
 LINE_TIMEOUT_S = 180.0  # a start this slow is a failure, not a figure
 EXIT_TIMEOUT_S = 60.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def venv_tools(venv: Path) -> tuple[Path, Path]:

@@ -73,12 +73,7 @@ from cell.commands.serve import open_service  # noqa: E402
 from cell.config import CellConfig  # noqa: E402
 from cell.core.commands import Command, VisionState  # noqa: E402
 from cell.core.events import PickVerified, StateChanged  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.ports import free_port  # noqa: E402
 
 
 def config(log_dir: Path) -> CellConfig:

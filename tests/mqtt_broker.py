@@ -20,6 +20,7 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from cell.telemetry.sparkplug import decode, parse_topic, payload, value_of
+from tests.ports import free_port
 
 MOSQUITTO = shutil.which("mosquitto") or next(
     (p for p in ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto") if Path(p).exists()), None
@@ -65,12 +66,6 @@ def make_tls(folder: Path, clients: tuple[str, ...]) -> Tls:
         folder / "server.key",
         {c: (folder / f"{c}.pem", folder / f"{c}.key") for c in clients},
     )
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(cond: Callable[[], Any], timeout_s: float = 30.0, what: str = "condition") -> Any:

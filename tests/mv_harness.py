@@ -19,7 +19,7 @@ from cell.service.mv_addressspace import ModelLoad, cache_key, init_server_with_
 from cell.service.opcua_security import GuardedServer, GuardSettings
 from cell.service.results import ResultFilter, ResultStore
 from tests.mv_fake_service import FakeLineService
-from tests.serve_process import free_port
+from tests.ports import free_port
 
 RECIPE_BOLTS = """description = "bolts only, nuts stay"
 products = ["kit-7"]

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from tests.serve_process import free_port
+from tests.ports import free_port
 
 
 def bin_dir() -> Path | None:

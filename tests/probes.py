@@ -18,7 +18,7 @@ import time
 import zlib
 from pathlib import Path
 
-from tests.serve_process import free_port
+from tests.ports import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 READY = re.compile(r"^ready: screen (\S+); opcua (\S+)")

@@ -8,19 +8,14 @@ import os
 import re
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import threading
 from pathlib import Path
 
+from tests.ports import free_port
+
 READY = re.compile(r"^ready: .*screen (https?://\S+?/)")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class ServeProcess:

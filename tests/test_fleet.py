@@ -15,7 +15,8 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from tests.mqtt_broker import Broker, Listener, needs_mosquitto, picks_seen, wait_for
-from tests.serve_process import ServeProcess, free_port
+from tests.ports import free_port
+from tests.serve_process import ServeProcess
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420), needs_mosquitto]
 CELLS = 5

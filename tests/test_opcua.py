@@ -18,7 +18,7 @@ import pytest
 from asyncua import Client, ua
 
 from cell.audit import read_events
-from tests.serve_process import free_port
+from tests.ports import free_port
 
 pytestmark = pytest.mark.timeout(240)  # runs run-cell serve as a subprocess
 

@@ -15,7 +15,7 @@ from asyncua import Client
 from cell.cli import main
 from cell.core.commands import Command, VisionState
 from cell.service.opcua import OpcUaServer
-from tests.serve_process import free_port
+from tests.ports import free_port
 from tests.test_history_service import no_feeder, production
 from tests.test_opcua import COUNTERS, Cell
 from tests.test_service import picked, running, wait_for

@@ -22,6 +22,7 @@ from cell.service.shiftlog import read_shift
 from drivers.arm.base import PickPlan
 from drivers.arm.config import RobotServerConfig
 from drivers.arm.robot_server import Bad, NotNow, RobotServerArm, StateNo
+from tests.ports import free_port
 from tests.test_service import small_config, wait_for
 
 V = VisionState
@@ -315,12 +316,6 @@ def test_docs_robots_md_lists_every_answer_code_and_state_number():
     assert codes("### `(-1,code)`") == {int(c) for c in NotNow}
     assert codes("### `(-2,code)`") == {int(c) for c in Bad}
     assert codes("### STATE numbers") == {int(s) for s in StateNo}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Plc:

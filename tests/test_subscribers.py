@@ -19,7 +19,7 @@ import pytest
 from cell.core.commands import Command, VisionState
 from cell.core.eventbus import EventBus
 from cell.core.events import PickVerified, SnapshotChanged, StateChanged
-from tests.serve_process import free_port
+from tests.ports import free_port
 from tests.test_service import picked, running, small_config, wait_for
 
 pytestmark = pytest.mark.timeout(180)

@@ -39,7 +39,7 @@ import httpx
 import pytest
 from packaging.requirements import Requirement
 
-from tests.serve_process import free_port
+from tests.ports import free_port
 from tests.unit_sandbox import environment, parse_unit, words
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,7 +18,7 @@ from cell.errors import ConfigError
 from cell.web.config import WebConfig
 from cell.web.server import WebServer
 from tests.fake_service import FakeLineService
-from tests.serve_process import free_port
+from tests.ports import free_port
 
 pytestmark = pytest.mark.timeout(60)  # real sockets and threads: never hang the suite
 
