@@ -4,6 +4,8 @@ the same values as from two full pixel grids; nearest_outline_mm is the least ou
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -91,12 +93,14 @@ def test_nearest_outline_is_the_least_pairwise_gap_to_any_of_the_others() -> Non
 
 def test_a_sim_camera_frame_is_the_whole_frame_exposure_of_its_marks_and_parts() -> None:
     """The camera composes small windows in a buffer it keeps: frame after frame (the parts
-    changing between them), the frame the whole-frame coverage would give."""
+    changing between them), the frame the whole-frame coverage would give (without noise: a live
+    camera's noise comes from its pool, next test)."""
     model = CameraModel.looking_down(320, 200, 1.0, (130.0, 90.0))
     marks = np.array([(-6.0, -6.0), (270.0, -6.0), (-6.0, 182.0), (270.0, 182.0)])
     parts = random_scene(3)
     world = World(parts, Truth(0.0, 0.0, 0.0, 0.0), [])
-    camera = SimCamera(world, model, seed=5, marks_mm=marks, mark_diameter_mm=3.0)
+    quiet = Optics(noise_sigma=0.0)
+    camera = SimCamera(world, model, quiet, seed=5, marks_mm=marks, mark_diameter_mm=3.0)
     rng = np.random.default_rng(5)
     camera.connect()
     for _ in range(3):
@@ -107,5 +111,23 @@ def test_a_sim_camera_frame_is_the_whole_frame_exposure_of_its_marks_and_parts()
                 (x0, y0), cov = got
                 window = opacity[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
                 np.maximum(window, cov, out=window)
-        np.testing.assert_array_equal(camera.capture(), _whole_frame_expose(opacity, Optics(), rng, 1.0))
+        np.testing.assert_array_equal(camera.capture(), _whole_frame_expose(opacity, quiet, rng, 1.0))
         world.parts = world.parts[2:]  # parts leave the table between frames
+
+
+def test_a_sim_camera_s_pooled_noise_has_the_optics_level_and_differs_frame_to_frame() -> None:
+    """The live camera's noise (render.SensorNoise): zero mean, the configured sigma in each channel,
+    and a new pattern each frame (consecutive frames' noise uncorrelated)."""
+    model = CameraModel.looking_down(640, 360, 1.0, (130.0, 90.0))
+    world = World([], Truth(0.0, 0.0, 0.0, 0.0), [])
+    optics = Optics(blur_sigma_px=0.0, noise_sigma=3.0)
+    camera = SimCamera(world, model, optics, seed=7)
+    camera.connect()
+    clean = expose(model, np.zeros((360, 640)), Optics(blur_sigma_px=0.0, noise_sigma=0.0))
+    residuals = [camera.capture().astype(np.float64) - clean for _ in range(3)]
+    for r in residuals:
+        assert abs(r.mean()) < 0.05
+        for channel in range(3):
+            assert r[..., channel].std() == pytest.approx(3.0, rel=0.05)
+    for a, b in itertools.pairwise(residuals):
+        assert abs(np.corrcoef(a.ravel(), b.ravel())[0, 1]) < 0.05

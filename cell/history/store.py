@@ -746,7 +746,7 @@ class HistoryStore:
         forwarder's part ends within timeout_s + 1 s whatever the network does (close never waits
         on a lock held across network I/O); the local parts (images, writer) each within timeout_s."""
         if self.images is not None:
-            self.images.close(timeout_s / 2)
+            self.images.close(timeout_s)
         self.wait_idle(timeout_s)
         self._writer.close(timeout_s)  # a write failing now is not tried again
         left = self._rows.pending_rows

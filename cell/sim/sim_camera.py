@@ -1,7 +1,7 @@
 """The simulated camera: the world's table rendered through the camera model at each capture.
 
 Each part's silhouette is rendered once and kept while the part stays put; a capture
-composes the kept silhouettes and exposes them (light fall-off, blur, fresh noise), so a
+composes the kept silhouettes and exposes them (light fall-off, blur, noise from its pool), so a
 frame costs one exposure, not a re-render of every part. The silhouettes and the marks are
 kept as small windows and exposed band by band (render.Scene): a capture allocates its frame
 and a few MB, never a frame-sized float image. `render_s` adds up the time spent, which the
@@ -19,7 +19,7 @@ import numpy as np
 
 from cell.camera_model import CameraModel
 from cell.sim.parts import part_coverage
-from cell.sim.render import Optics, Scene, Window, circles_windows, expose
+from cell.sim.render import Optics, Scene, SensorNoise, Window, circles_windows, expose
 from cell.sim.world import World
 from drivers.cameras.base import Camera
 
@@ -52,6 +52,7 @@ class SimCamera(Camera):
         self.mark_radius_mm = mark_diameter_mm / 2
         self.bump = bump
         self._marks: list[Window] | None = None
+        self._noise: SensorNoise | None = None
 
     def connect(self) -> None:
         self._connected = True
@@ -70,7 +71,9 @@ class SimCamera(Camera):
             self._silhouettes, self._marks = {}, None  # everything is seen from elsewhere now
         if self._marks is None:
             self._marks = circles_windows(self.model, self.marks_mm, self.mark_radius_mm)
-        frame = expose(self.model, self._scene(), self.optics, self.rng)
+        if self._noise is None or self._noise.width_px != self.model.width_px:
+            self._noise = SensorNoise(self.model.width_px, self.optics.noise_sigma, self.rng)
+        frame = expose(self.model, self._scene(), self.optics, self.rng, noise_pool=self._noise)
         self.render_s += time.perf_counter() - t0
         self.frames += 1
         return frame
