@@ -111,16 +111,19 @@ def draw_examples(
     examples: Sequence[Example],
     model: ShapeModel | None,
     parts: PartsConfig,
+    crop: bool = False,
 ) -> np.ndarray:
     """The frame with each example's outline (its silhouette as the camera saw it), its number, and, with a
     model, the jaws where they would close on it (each jaw `jaw_thickness_mm` deep, `jaw_face_width_mm` wide,
-    either side of the grip point at the model's opening, drawn at half the part's height)."""
+    either side of the grip point at the model's opening, drawn at half the part's height). With `crop`, only
+    the part of the frame around the examples (a margin of a fifth of the frame's height about them)."""
     out = np.ascontiguousarray(image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)).copy()
     h, w = out.shape[:2]
     size = (w, h)
     thick = max(1, round(min(w, h) / 400))
     scale = max(0.5, min(w, h) / 900)
     colour = OUTLINE_BGR if model is not None else REFUSED_BGR
+    seen: list[np.ndarray] = []
     for k, example in enumerate(examples, start=1):
         outer, holes = example.silhouette
         for poly in (outer, *holes):
@@ -129,12 +132,20 @@ def draw_examples(
         if model is not None:
             _draw_jaws(out, mapper, example, model, parts, size, thick)
         top = table_to_pixel(mapper, outer, 0.0, size)
+        seen.append(top)
         x, y = int(top[:, 0].max()) + 4 * thick, int(top[:, 1].min())
         label = str(k)
         (tw, th), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, thick + 1)
         x, y = min(max(x, 0), w - tw - 4), min(max(y, th + 4), h - base - 2)
         cv2.rectangle(out, (x - 2, y - th - 2), (x + tw + 2, y + base), colour, -1)
         cv2.putText(out, label, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick + 1, cv2.LINE_AA)
+    if crop and seen:
+        pts = np.vstack(seen)
+        margin = h / 5
+        x0, y0 = (max(0, int(v - margin)) for v in pts.min(axis=0))
+        x1, y1 = int(min(w, pts[:, 0].max() + margin)), int(min(h, pts[:, 1].max() + margin))
+        if x1 - x0 >= 16 and y1 - y0 >= 16:
+            out = out[y0:y1, x0:x1].copy()
     return out
 
 

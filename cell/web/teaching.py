@@ -64,7 +64,6 @@ REFUSAL_STATUS = {
     Refusal.NOT_RECORDED: 503,
 }
 CANCEL = "CancelPartType"  # a session discarded, in the record (AddPartType's role)
-LEARN = "LearnPartType"  # a refused learn, in the record (AddPartType's role)
 
 
 class NoSession(Exception):
@@ -208,7 +207,7 @@ class TeachDesk:
         pictures = []
         for k, f in enumerate(frames):
             found = per_frame[k] if k < len(per_frame) else []
-            drawn = draw_examples(f.image_bgr, f.calibration, found, model, parts)
+            drawn = draw_examples(f.image_bgr, f.calibration, found, model, parts, crop=True)
             pictures.append(_jpeg(drawn, self.web.frame_max_width_px, self.web.jpeg_quality))
         learnt = Learnt(name, height_mm, model, lines, refusal, hint, examples, pictures)
         with self._lock:
