@@ -71,7 +71,7 @@ class NoSession(Exception):
 
 
 class Full(Exception):
-    """The session holds its most frames already."""
+    """The session holds its most frames already, or another learn is being computed."""
 
 
 @dataclass
@@ -113,6 +113,7 @@ class TeachDesk:
     def __init__(self, service: LineServiceAPI, config: CellConfig, web: WebConfig):
         self.service, self.config, self.web = service, config, web
         self._lock = threading.RLock()
+        self._learning = threading.Lock()  # one model computed at a time: a client cannot queue up CPU work
         self.session: Session | None = None
         self._timer: threading.Timer | None = None
 
@@ -184,6 +185,14 @@ class TeachDesk:
         with self._lock:
             s = self.open(session_id)
             frames = list(s.frames)
+        if not self._learning.acquire(blocking=False):
+            raise Full("a model is being learnt from these frames already: wait for it")
+        try:
+            return self._learn(session_id, frames, name, height_mm)
+        finally:
+            self._learning.release()
+
+    def _learn(self, session_id: str, frames: list[PartImage], name: str, height_mm: float) -> Learnt:
         parts = self.config.parts
         per_frame: list[list[Example]] = []
         refusal, hint, model, lines = "", "", None, []
@@ -413,7 +422,7 @@ class TeachRoutes:
             recipe, name = await run_in_threadpool(self.desk.confirm, session_id, recipe_id, origin)
         except CommandRefused as e:
             return _refused(e)
-        except NoSession as e:
+        except (NoSession, Full) as e:
             return _error(409, str(e))
         except REPORTED_ERRORS as e:  # a name, height or recipe id not allowed
             return _error(422, e.args[0] if e.args else str(e), getattr(e, "hint", "") or "")
