@@ -146,6 +146,14 @@ class SimConfig(Strict):
         description="with a recipe of taught types (`run-cell --dry-run --recipe FILE`): how many of each type "
         "the simulated table holds, laid out at random (sim.seed) in place of the layout above",
     )
+    teach_family: str = Field(
+        "",
+        pattern=r"^[a-z0-9-]{0,32}$",
+        description="rehearsing teaching on the screen (docs/operator-screen.md, 'Teach a part type'): the "
+        "simulated table holds sim.taught_parts_per_type parts of this flat part family alone (l-bracket, "
+        "t-bracket, plate-4h, spacer, tab-washer, clip, gear, ...: cell/sim/flatparts.py, drawn with sim.seed), "
+        "in place of the layout above; empty: the layout",
+    )
     seed: int = Field(
         0,
         ge=0,

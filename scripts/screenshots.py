@@ -13,8 +13,9 @@ drift watch raises its real alarm. Writes into --out (default docs/):
     screen-camera-check-1280x720.png the camera check on the live view
     screen-recalibrate-1280x720.png the recalibration report
     screen-picture-1280x720.jpg     its numbered plate at full size
+    screen-teach-1280x720.png       the Teach page: L brackets (sim.teach_family) learnt, outlines and jaws
 
-    .venv/bin/python scripts/screenshots.py [--out docs] [--sizes 1920x1080,1280x720,1024x600]
+    .venv/bin/python scripts/screenshots.py [--out docs] [--sizes 1920x1080,1280x720,1024x600] [--only teach]
 
 Needs the test extras (playwright) and the system Chromium (Debian package `chromium`).
 """
@@ -34,6 +35,7 @@ from tests.browser import launch, why_no_browser  # noqa: E402
 
 SIZES = "1920x1080,1280x720,1024x600"
 BUMPED = "[sim]\ncamera_bumped_mm = [0.8, 0.0]\ncamera_bumped_at_pick = 0\n"
+TEACH = '[sim]\nteach_family = "l-bracket"\ntaught_parts_per_type = 4\n'
 RECIPE = 'description = "bolts only: nuts stay on the table"\n\n[pick.bolt]\npick_above_table_mm = 3.5\nbin_robot_mm = [-200.0, 60.0, 60.0]\n'
 
 
@@ -125,10 +127,26 @@ def bumped(browser, url: str, sizes: list[tuple[int, int]], out: Path) -> None:
         page.close()
 
 
+def teach(browser, url: str, out: Path) -> None:
+    """The Teach page: one frame of the simulated L brackets, learnt, before Confirm."""
+    from cell.sim.cell import teach_family
+
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
+    page.goto(url + "teach")
+    poll(page, "window.teachStats && teachStats.loads > 0")
+    page.fill("#teach-type", "bracket-l")
+    page.fill("#teach-height", f"{teach_family('l-bracket', 0).height_mm:.2f}")
+    page.click("#teach-take")
+    poll(page, "teachStats.learns === 1 && teachStats.picturesShown >= 1", 120)
+    shoot(page, out / "screen-teach-1280x720.png")
+    page.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     ap.add_argument("--sizes", default=SIZES, help=f"comma-separated WxH (default {SIZES})")
+    ap.add_argument("--only", choices=("all", "teach"), default="all", help="teach: the Teach page's picture alone")
     args = ap.parse_args()
     if why := why_no_browser():
         print(f"screenshots: {why}", file=sys.stderr)
@@ -141,6 +159,17 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory(prefix="screenshots-") as tmp, sync_playwright() as p:
         browser = launch(p)
+        work = Path(tmp) / "teach"
+        work.mkdir()
+        (work / "teach.toml").write_text(TEACH)
+        serve = ServeProcess(work, "--config", str(work / "teach.toml"))
+        try:
+            teach(browser, serve.url, args.out)
+        finally:
+            serve.stop()
+        if args.only == "teach":
+            browser.close()
+            return 0
         work = Path(tmp) / "shipped"
         (work / "recipes").mkdir(parents=True)
         (work / "recipes" / "bolts-only.toml").write_text(RECIPE)

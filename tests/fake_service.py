@@ -40,7 +40,7 @@ from cell.core.events import (
     SnapshotChanged,
 )
 from cell.core.parts import BUILT_IN_PARTS
-from cell.core.records import Alarm, CalibrationInfo, Counters, LiveFrame, PickRecord, Snapshot
+from cell.core.records import Alarm, CalibrationInfo, Counters, LiveFrame, PartImage, PickRecord, Snapshot
 from cell.recipes import RecipeBook, RecipeError
 from cell.vision.types import LocatedPart, LocateResult
 
@@ -64,6 +64,24 @@ def plate_image(size=(1920, 1080)) -> np.ndarray:
     image = render_plate(default_camera(*size), CellConfig().plate)
     image.setflags(write=False)
     return image
+
+
+@functools.lru_cache(maxsize=2)
+def part_image(size=(960, 540)):
+    """Three L brackets (cell.sim.flatparts, seed 3) rendered through a camera looking down, and its calibration."""
+    from cell.calibration.models import CameraMap
+    from cell.calibration.store import Calibration
+    from cell.camera_model import CameraModel
+    from cell.sim.flatparts import random_types
+    from cell.sim.parts import render_scene
+
+    w, h = size
+    cam = CameraModel.looking_down(w, h, 0.3 * 960 / w, (144.0, 81.0), tilt_deg=4.0, k1=-0.04)
+    bracket = random_types(seed=3)["l-bracket"]
+    poses = ((60.0, 50.0, 20.0), (200.0, 110.0, 145.0), (120.0, 120.0, 280.0))
+    image = render_scene(cam, [bracket.placed(*p) for p in poses], seed=0)
+    image.setflags(write=False)
+    return image, Calibration("camera", CameraMap(cam), (w, h), cam)
 
 
 def _now() -> datetime:
@@ -177,6 +195,12 @@ class FakeLineService:
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         self._check_recalibration(Command.CAPTURE_PLATE, origin)
         return plate_image(self.plate_size)
+
+    def capture_part_image(self, origin: Origin = SERVICE_ORIGIN) -> PartImage:
+        """Three L brackets seen from above (cell.sim.flatparts), at rest only, with a camera's calibration."""
+        self._check_recalibration(Command.CAPTURE_PART_IMAGE, origin)
+        image, calibration = part_image(self.frame_size)
+        return PartImage(image, calibration, _now())
 
     def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
         """The table as the camera sees it, at rest only (as the service's)."""

@@ -69,6 +69,12 @@ def calls(route: str, report_id: str, png: bytes) -> list[Call]:
             Call(f"/api/recalibration/{report_id}/accept"),
             Call(f"/api/recalibration/{report_id}/reject"),
         ],
+        "/api/teach/capture": [Call("/api/teach/capture", b"{}", "application/json")],
+        "/api/teach/{session_id}/{step}": [
+            Call(f"/api/teach/{report_id}/learn", b'{"name": "bracket", "height_mm": 3.0}', "application/json"),
+            Call(f"/api/teach/{report_id}/confirm", b'{"recipe_id": "bolts-only"}', "application/json"),
+            Call(f"/api/teach/{report_id}/cancel", b"{}", "application/json"),
+        ],
     }
     return table[route]
 
@@ -80,6 +86,8 @@ REFUSED_ROUTES = {
     "/api/recalibration/capture",
     "/api/recalibration/upload",
     "/api/recalibration/{report_id}/{answer}",
+    "/api/teach/capture",
+    "/api/teach/{session_id}/{step}",
 }
 EXEMPT = {  # state-changing routes a viewer may use, and why
     "/api/login": "starts a session: nothing of the cell changes",
@@ -165,6 +173,7 @@ def what_a_viewer_must_not_change(service: Any, app: Any, cfg: CellConfig) -> di
         "recipe": s.recipe,
         "recipe files": sorted(p.name for p in cfg.service.machine_vision.recipes_dir.glob("*")),
         "camera check": app.screen.check.on,
+        "teaching session": app.screen.teach.desk.session,
     }
 
 

@@ -8,12 +8,11 @@ from pathlib import Path
 from cell.calibration.store import Calibration
 from cell.commands.argtypes import finite_float
 from cell.config import load_config
-from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN
 from cell.errors import InputError
 from cell.imageio import read_image
 from cell.recipes import add_taught_type
-from cell.vision.locate import PixelScale, silhouettes
-from cell.vision.shapes import Example, teach
+from cell.vision.locate import PixelScale
+from cell.vision.teaching import check_height_mm, check_type_name, examples_in, teach_examples
 
 
 def register(sub) -> None:
@@ -44,35 +43,20 @@ def register(sub) -> None:
 
 
 def cmd_teach(args: argparse.Namespace) -> int:
-    name = args.name
-    if not NAME_PATTERN.match(name) or name in BUILT_IN_PARTS or name == "unknown":
-        raise InputError(
-            f"part type name {name!r} not allowed",
-            hint="1-32 lower-case letters, digits, - and _, starting with a letter; not bolt, nut or unknown",
-        )
-    if not 0 < args.height_mm <= 200:
-        raise InputError(f"--height-mm {args.height_mm:g}: the part's height, more than 0 and at most 200 mm")
+    name = check_type_name(args.name)
+    try:
+        height_mm = check_height_mm(args.height_mm)
+    except InputError:
+        raise InputError(f"--height-mm {args.height_mm:g}: the part's height, more than 0 and at most 200 mm") from None
     config = load_config(args.config)
     parts = config.parts
     mapper: Calibration | PixelScale
     mapper = Calibration.load(args.calibration) if args.calibration is not None else PixelScale(args.mm_per_px)
-    camera_centre = mapper.camera.center_table_mm if mapper.camera is not None and parts.use_height_correction else None
     examples = []
     for path in args.image:
         image = read_image(path, config.camera.max_image_px, mapper.image_size)
-        found = silhouettes(image, mapper, parts)
-        if not found:
-            raise InputError(f"{path}: no part seen", hint="the part alone on the backlit table, dark against it")
-        for i, (sil, border, _) in enumerate(found, start=1):
-            examples.append(Example.of(sil, args.height_mm, camera_centre, f"{path.name} part {i}", border))
-    report = teach(
-        name,
-        examples,
-        args.height_mm,
-        max_opening_mm=parts.jaw_max_opening_mm,
-        jaw_face_mm=parts.jaw_face_width_mm,
-        clearance_mm=parts.jaw_clearance_mm,
-    )
+        examples += examples_in(image, mapper, parts, height_mm, path.name)
+    report = teach_examples(name, examples, height_mm, parts)
     model_path, sha = add_taught_type(args.recipe, report.model)
     for line in report.lines:
         print(line)

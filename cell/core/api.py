@@ -23,13 +23,12 @@ import numpy as np
 from cell.core.commands import (
     Command,
     CommandResult,
-    JobRequest,
-    RecipeRequest,
+    Request,
 )
 from cell.core.eventbus import Subscription
 from cell.core.events import SERVICE_ORIGIN, Event, Origin
 from cell.core.parts import PartRegistry
-from cell.core.records import CalibrationInfo, LiveFrame, RecipeInfo, Snapshot
+from cell.core.records import CalibrationInfo, LiveFrame, PartImage, RecipeInfo, Snapshot
 
 
 class RecipeCatalog(Protocol):
@@ -45,7 +44,7 @@ class RecipeCatalog(Protocol):
 
 class LineServiceAPI(Protocol):
     """What every interface may call. All methods are thread-safe and return quickly, except
-    `capture_plate_image` and `preview_frame` (a camera frame)."""
+    `capture_plate_image`, `capture_part_image` and `preview_frame` (a camera frame)."""
 
     @property
     def parts(self) -> PartRegistry:
@@ -58,7 +57,7 @@ class LineServiceAPI(Protocol):
         ...
 
     def command(
-        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
+        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: Request | None = None
     ) -> CommandResult:
         """Accept the command or raise CommandRefused; the work happens in the service's own thread."""
         ...
@@ -105,6 +104,12 @@ class LineServiceAPI(Protocol):
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:
         """A frame from the cell's camera for recalibration; only at rest (Ready, Halted, or a job
         paused at a safe point), and Resume and Start wait until it is taken."""
+        ...
+
+    def capture_part_image(self, origin: Origin = SERVICE_ORIGIN) -> PartImage:
+        """A frame of example parts from the cell's camera for teaching a part type, with the calibration in use
+        (CapturePartImage: the engineer's role, the cell idle: no job, paused or not); Start waits until it is
+        taken. Refused: CommandRefused, recorded."""
         ...
 
     def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:

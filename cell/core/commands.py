@@ -5,6 +5,7 @@ its own status: OPC UA, HTTP, MQTT). The outward state follows OPC 40100-1 (Mach
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -54,6 +55,8 @@ class Command(Enum):
     UNPREPARE_RECIPE = "UnprepareRecipe"  # back to the built-in recipe
     ADD_RECIPE = "AddRecipe"
     REMOVE_RECIPE = "RemoveRecipe"
+    CAPTURE_PART_IMAGE = "CapturePartImage"  # a frame of example parts for teaching a part type; the cell idle
+    ADD_PART_TYPE = "AddPartType"  # a taught part type's model added to a recipe file
 
 
 class Refusal(Enum):
@@ -69,6 +72,7 @@ class Refusal(Enum):
 # The command table: the states each command is allowed in (pausing and guards below), and the
 # least role that may send it.
 _AT_REST = frozenset({V.READY, V.HALTED, V.ERROR})  # the arm parked or made safe
+_IDLE = _AT_REST  # no job at all (a paused job is at rest but not idle): where a part type is taught
 
 
 _TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
@@ -86,6 +90,8 @@ _TABLE: dict[Command, tuple[frozenset[VisionState], Role]] = {
     Command.UNPREPARE_RECIPE: (frozenset({V.READY}), Role.ENGINEER),
     Command.ADD_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
     Command.REMOVE_RECIPE: (_AT_REST | RUNNING, Role.ENGINEER),
+    Command.CAPTURE_PART_IMAGE: (_IDLE, Role.ENGINEER),
+    Command.ADD_PART_TYPE: (_IDLE, Role.ENGINEER),
 }
 
 
@@ -241,6 +247,23 @@ class RecipeRequest:
 
     def as_json(self) -> dict[str, Any]:
         return {"recipe_id": self.recipe_id, **({"content_bytes": len(self.content)} if self.content else {})}
+
+
+@dataclass(frozen=True)
+class PartTypeRequest:
+    """AddPartType: a taught type's shape model (its JSON text, as cell.vision.shapes writes it) for a recipe
+    file (created if absent); the type's name is the model's."""
+
+    recipe_id: str
+    name: str
+    model_json: str
+
+    def as_json(self) -> dict[str, Any]:
+        digest = hashlib.sha256(self.model_json.encode("utf-8")).hexdigest()
+        return {"recipe_id": self.recipe_id, "name": self.name, "model_sha256": digest}
+
+
+Request = JobRequest | RecipeRequest | PartTypeRequest  # what a command may carry
 
 
 @dataclass(frozen=True)

@@ -145,6 +145,16 @@ class LiveFrame:
     time_utc: datetime  # when it was taken
 
 
+@dataclass(frozen=True)
+class PartImage:
+    """A camera frame of example parts for teaching a part type, and the calibration in use when it was taken
+    (cell.calibration.store.Calibration: pixels to table mm, the camera's pose for the height correction)."""
+
+    image_bgr: np.ndarray
+    calibration: Any
+    time_utc: datetime
+
+
 class PickRecords:
     """PickRecords from the event stream: each verdict, and a part given up (its last attempt's place).
 

@@ -48,8 +48,10 @@ from cell.core.commands import (
     InvalidState,
     JobRequest,
     NotRecorded,
+    PartTypeRequest,
     RecipeRequest,
     Refusal,
+    Request,
     Rest,
     ShuttingDown,
     VisionState,
@@ -75,11 +77,11 @@ from cell.core.events import (
     new_job_id,
 )
 from cell.core.parts import PartRegistry
-from cell.core.records import Alarm, CalibrationInfo, LiveFrame, Snapshot
+from cell.core.records import Alarm, CalibrationInfo, LiveFrame, PartImage, Snapshot
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
-from cell.recipes import Recipe, RecipeBook, RecipeError, check_recipe_id, parse_recipe
+from cell.recipes import Recipe, RecipeBook, RecipeError, add_taught_type, check_recipe_id, parse_recipe
 from cell.runner import Runner, make_parked_arm_safe
 from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_since
@@ -88,7 +90,8 @@ from cell.signals import Controls
 from cell.statemachine import State
 from cell.summary import Counts
 from cell.vision.locate import locate
-from cell.vision.shapes import ShapeModel
+from cell.vision.shapes import ShapeModel, ShapeModelError
+from cell.vision.teaching import check_type_name
 from cell.vision.types import LocateResult
 from drivers.cameras.base import Camera
 
@@ -167,6 +170,7 @@ class LineService:
         self._holds: dict[int, str] = {}
         self._hold_ids = itertools.count(1)
         self._still_ops = 0  # plate captures in progress: the cell must stay at rest
+        self._teach_ops = 0  # frames of example parts being taken for teaching: no job may start meanwhile
         self._vision = Vision(cell.calibration, calibration_info(cell.calibration), cell.drift_watch(cell.calibration))
         self._accepting = True
         self._closing_reason = ""
@@ -245,7 +249,7 @@ class LineService:
 
     # ---- LineServiceAPI: commands --------------------------------------------------------
     def command(
-        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: JobRequest | RecipeRequest | None = None
+        self, command: Command, origin: Origin = SERVICE_ORIGIN, request: Request | None = None
     ) -> CommandResult:
         with self._lock:
             try:
@@ -292,6 +296,8 @@ class LineService:
                     )
                 self.recipes.info(request.recipe_id)
                 return request.recipe_id
+            if command is Command.ADD_PART_TYPE:
+                return self._part_type(request)
             if command in (Command.START_SINGLE, Command.START_CONTINUOUS) and isinstance(request, JobRequest):
                 wanted = request.recipe_id
                 if wanted and wanted != self._recipe_id:
@@ -304,6 +310,30 @@ class LineService:
         except RecipeError as e:
             raise BadArgument(command, str(e), self._vstate) from None
         return None
+
+    def _part_type(self, request: Any) -> tuple[str, ShapeModel]:
+        """AddPartType's arguments: a recipe id (never a path), a valid type name, its model's JSON; the recipe,
+        when it exists, valid (a broken recipe is not made worse): BadArgument saying which, before the record."""
+        command = Command.ADD_PART_TYPE
+        if not isinstance(request, PartTypeRequest):
+            raise BadArgument(command, f"{command.value} needs a recipe id and a shape model", self._vstate)
+        try:
+            check_type_name(request.name)
+            model = ShapeModel.from_json(request.model_json, f"the shape model of {request.name!r}")
+        except CellError as e:
+            raise BadArgument(command, str(e), self._vstate) from None
+        if model.name != request.name:
+            raise BadArgument(
+                command, f"a shape model of {model.name!r}, but the type is named {request.name!r}", self._vstate
+            )
+        path = self.recipes.path(request.recipe_id)  # RecipeError: not a recipe id
+        if path.exists():
+            try:
+                text = path.read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as e:
+                raise RecipeError(f"{path}: cannot read recipe: {e}") from None
+            parse_recipe(text, str(path))
+        return request.recipe_id, model
 
     def _accept(self, command: Command, origin: Origin, request: Any, payload: Any = None) -> CommandResult:
         try:
@@ -425,6 +455,19 @@ class LineService:
     def _cmd_remove_recipe(self, origin: Origin, recipe_id: str) -> None:
         self.recipes.remove(recipe_id)
 
+    def _cmd_add_part_type(self, origin: Origin, added: tuple[str, ShapeModel]) -> None:
+        """The model file beside the recipe and `[types.NAME]` in it, both written whole or not at all (as
+        `run-cell part teach`); no job runs (the table), so a prepared recipe is loaded again at once."""
+        recipe_id, model = added
+        try:
+            self.recipes.folder.mkdir(parents=True, exist_ok=True)
+            path, sha = add_taught_type(self.recipes.path(recipe_id), model)
+        except (OSError, ShapeModelError) as e:
+            raise RecipeError(f"recipe {recipe_id!r}: the part type {model.name!r} was not written: {e}") from None
+        log.info("part type %s (model %s, sha256 %s) added to recipe %s", model.name, path.name, sha[:12], recipe_id)
+        if recipe_id == self._recipe_id:
+            self._cmd_prepare_recipe(origin, (recipe_id, *self.recipes.load_with_shapes(recipe_id)))
+
     def job_config(self) -> CellConfig:
         """The config a job starts with: the cell's, with the prepared recipe's handling and limits."""
         return self.config if self._recipe is None else self._recipe.apply(self.config)
@@ -519,6 +562,37 @@ class LineService:
         finally:
             with self._lock:
                 self._still_ops -= 1
+
+    def capture_part_image(self, origin: Origin = SERVICE_ORIGIN) -> PartImage:
+        """CapturePartImage (the role, no job), recorded; then a frame under the device lock, Start held meanwhile."""
+        with self._lock:
+            try:
+                self._check(Command.CAPTURE_PART_IMAGE, origin)
+                if self._job is not None:  # a Halt's safe stop still running between jobs
+                    raise InvalidState(
+                        Command.CAPTURE_PART_IMAGE,
+                        f"{Command.CAPTURE_PART_IMAGE.value} is not allowed now: the cell is coming to rest (wait)",
+                        self._vstate,
+                    )
+            except CommandRefused as e:
+                self._record_command(Command.CAPTURE_PART_IMAGE, origin, None, refused=e)
+                raise
+            self._record_command(Command.CAPTURE_PART_IMAGE, origin, None)
+            self._teach_ops += 1  # Start waits until the frame is taken
+            calibration = self._vision.calibration
+        try:
+            with self._device_lock:
+                camera = self.cell.camera
+                if camera.is_connected:
+                    image = camera.capture()
+                else:
+                    with camera:
+                        image = camera.capture()
+        finally:
+            with self._lock:
+                self._teach_ops -= 1
+            self._changed("hold")
+        return PartImage(image, calibration, datetime.now(UTC))
 
     def preview_frame(self, origin: Origin = SERVICE_ORIGIN) -> LiveFrame | None:
         """A camera frame for a live view while the cell is at rest (Ready, Halted, Error or paused), else
@@ -801,6 +875,8 @@ class LineService:
     def _hold_reason(self) -> str:
         if self._still_ops:
             return "a plate image is being captured for recalibration"
+        if self._teach_ops:
+            return "a frame of example parts is being captured for teaching (wait for it)"
         if broken := self._history_broken():
             return broken
         return next(iter(self._holds.values()), "")

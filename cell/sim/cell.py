@@ -25,8 +25,10 @@ from cell.calibration.pipeline import calibrate
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
 from cell.config import CellConfig
+from cell.errors import ConfigError
 from cell.sim.emulated_arm import EmulatedArm, emulated_arm
 from cell.sim.flatparts import layout as flat_layout
+from cell.sim.flatparts import random_types
 from cell.sim.parts import ExtrudedPart, PartSpec, random_scene
 from cell.sim.platefit import cached_fit, default_dir
 from cell.sim.render import plate_centres_mm, render_plate
@@ -253,6 +255,14 @@ def taught_layout(types: Sequence[ExtrudedPart], per_type: int, seed: int) -> li
     return flat_layout([order[i] for i in rng.permutation(len(order))], rng, TAUGHT_AREA_MM, TAUGHT_GAP_MM)
 
 
+def teach_family(name: str, seed: int) -> ExtrudedPart:
+    """The flat part of family `name` (cell.sim.flatparts.random_types(seed)) to rehearse teaching with."""
+    types = random_types(seed)
+    if name not in types:
+        raise ConfigError(f"sim.teach_family {name!r}: no such flat part family", hint=f"one of {', '.join(types)}")
+    return types[name]
+
+
 @contextlib.contextmanager
 def sim_cell(
     config: CellConfig, taught: Sequence[tuple[ExtrudedPart, tuple[float, float, float]]] = ()
@@ -279,6 +289,8 @@ def sim_cell(
     parts: list[PartSpec | ExtrudedPart]
     if taught:
         parts = list(taught_layout([t for t, _ in taught], sim.taught_parts_per_type, sim.seed))
+    elif sim.teach_family:
+        parts = list(taught_layout([teach_family(sim.teach_family, sim.seed)], sim.taught_parts_per_type, sim.seed))
     elif sim.layout == "random":
         parts = list(random_scene(sim.seed))
     elif sim.layout == "paper-fixed-jaws":

@@ -35,6 +35,7 @@ from cell.web.hub import EncodedFrame, Hub, Screen
 from cell.web.metrics import CellMetrics, metrics_refused, metrics_response
 from cell.web.recalibration import Busy, NotInstalled, RecalibrationDesk, Report
 from cell.web.shield import set_on_disconnect
+from cell.web.teaching import TeachRoutes
 from cell.web.views import COMMANDS, snapshot_json
 from cell.web.words import calibration_words
 
@@ -144,6 +145,7 @@ class ScreenApp:
         self._sent_state: tuple[tuple[object, ...], str] | None = None
         self._sent_frame: tuple[EncodedFrame, str] | None = None
         self.history = HistoryRoutes(self._view_refused, service, config)  # the History page and alarm list
+        self.teach = TeachRoutes(service, config, web, self._view_refused, self._controller, self._read_body)
 
     # ---- checks ----------------------------------------------------------------------
     @staticmethod
@@ -531,6 +533,7 @@ class ScreenApp:
             Route("/api/recalibration/{report_id}/{answer}", self.recal_answer, methods=["POST"]),
             Route("/api/calibration/{kind}", self.calibration_picture),
             *self.history.routes(),
+            *self.teach.routes(),
             Route("/metrics", self.metrics_page),
         ]
 
@@ -553,6 +556,7 @@ def build_app(service: LineServiceAPI, config: CellConfig, web: WebConfig, acces
             screen.metrics.close()
             screen.hub.close()
             screen.desk.close()  # an open report's hold and timeout end with the screen
+            screen.teach.desk.close()  # and a teaching session with its timeout
 
     app = Starlette(routes=screen.routes(), lifespan=lifespan)
     return Guard(app, screen)

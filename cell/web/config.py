@@ -91,6 +91,16 @@ class WebConfig(Strict):
         description="a recalibration report holds Start and Resume while it waits for its answer; unanswered "
         "this long, it is rejected by itself (recorded) and the hold released",
     )
+    teach_timeout_s: float = Field(
+        600.0,
+        gt=0,
+        le=86400,
+        description="the Teach page's session (its frames and the model learnt from them) is discarded when "
+        "nothing was done with it this long",
+    )
+    teach_max_frames: int = Field(
+        5, ge=1, le=20, description="frames one teaching session holds at most (each a full camera frame in memory)"
+    )
 
     @model_validator(mode="after")
     def _certificate_with_key(self) -> WebConfig:

@@ -1,0 +1,262 @@
+"""The screen's Teach page (issue 30): frames of example parts from the cell's camera, the model learnt
+with the same code as `run-cell part teach`, its outlines and jaws on the picture, Confirm through the
+command table (AddPartType) into a recipe file, Cancel; roles, CSRF, refusals in words, bounded sessions.
+
+The real line service in-process over the simulated cell at 960 x 540 whose table holds L brackets alone
+(sim.teach_family), the screen's Starlette app with users (a viewer, an operator, an engineer)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from starlette.testclient import TestClient
+
+from cell.access.throttle import LoginThrottle
+from cell.access.users import Authenticator, UserEntry, hash_password, write_users
+from cell.commands.serve import open_service
+from cell.config import CellConfig
+from cell.core.commands import VisionState
+from cell.core.events import Role
+from cell.recipes import load_recipe_file
+from cell.service.config import LoginConfig
+from cell.sim.cell import teach_family
+from cell.vision.locate import locate
+from cell.web.app import build_app
+from cell.web.auth import Access
+from cell.web.config import WebConfig
+
+pytestmark = [pytest.mark.timeout(120)]
+
+BASE = "http://127.0.0.1:8080"
+USERS = {
+    "vera": ("vera-pass-1", Role.VIEWER),
+    "otto": ("otto-pass-1", Role.OPERATOR),
+    "erik": ("erik-pass-1", Role.ENGINEER),
+}
+FAMILY = "l-bracket"
+HEIGHT_MM = teach_family(FAMILY, 0).height_mm
+
+
+def teach_config(tmp_path: Path) -> CellConfig:
+    cfg = CellConfig()
+    cfg.camera.width_px, cfg.camera.height_px = 960, 540
+    cfg.sim.reference_marks_mm = []
+    cfg.sim.teach_family = FAMILY
+    cfg.sim.taught_parts_per_type = 3
+    cfg.run.log_dir = tmp_path / "logs"
+    cfg.service.capture_interval_s = 0.2
+    cfg.calibration.active_path = tmp_path / "calibration" / "active.json"
+    cfg.calibration.backup_dir = tmp_path / "calibration" / "backups"
+    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
+    return cfg
+
+
+@contextlib.contextmanager
+def served(tmp_path: Path, web: WebConfig | None = None, **parts: Any) -> Iterator[tuple[Any, Any, CellConfig]]:
+    cfg = teach_config(tmp_path)
+    for key, value in parts.items():
+        setattr(cfg.parts, key, value)
+    write_users(tmp_path / "users.json", [UserEntry(n, r, hash_password(p, 1000)) for n, (p, r) in USERS.items()])
+    cfg.service.users_file = tmp_path / "users.json"
+    users = Authenticator(cfg.service)
+    web = web or WebConfig()
+    with contextlib.ExitStack() as stack:
+        service = open_service(cfg, True, stack)
+        service.start()
+        access = Access(
+            "127.0.0.1",
+            web,
+            authenticate=users.authenticate,
+            throttle=LoginThrottle(LoginConfig()),
+            credential=users.credential,
+        )
+        yield service, build_app(service, cfg, web, access), cfg
+
+
+def logged_in(app: Any, user: str) -> TestClient:
+    client = TestClient(app, base_url=BASE)
+    reply = client.post("/api/login", json={"user": user, "password": USERS[user][0]})
+    assert reply.status_code == 200, reply.text
+    client.headers["x-csrf-token"] = reply.json()["csrf"]
+    return client
+
+
+def audit(cfg: CellConfig) -> list[dict[str, Any]]:
+    lines: list[dict[str, Any]] = []
+    for path in sorted(cfg.run.log_dir.glob("cell-*.jsonl")):
+        lines += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [e for e in lines if e.get("kind") == "command"]
+
+
+def wait_for(condition, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def learn(client: TestClient, session: str, name: str = "bracket", height_mm: float = HEIGHT_MM):
+    return client.post(f"/api/teach/{session}/learn", json={"name": name, "height_mm": height_mm})
+
+
+def test_capture_learn_confirm_writes_the_recipe_and_locate_finds_the_type(tmp_path):
+    with served(tmp_path) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer:
+            first = engineer.post("/api/teach/capture", json={})
+            assert first.status_code == 200, first.text
+            session = first.json()["session"]
+            second = engineer.post("/api/teach/capture", json={})
+            assert second.json()["session"] == session and second.json()["frames"] == 2
+
+            learnt = learn(engineer, session)
+            assert learnt.status_code == 200, learnt.text
+            body = learnt.json()
+            assert body["ok"] and body["examples_count"] == 6  # three brackets on each frame
+            assert body["symmetry"] == 1 and body["symmetry_words"] == "none" and body["mirror_distinct"]
+            assert body["consistency"]["worst_misfit_mm2"] <= body["tolerance_mm2"]
+            assert body["lines"][0].startswith("bracket: 6 example(s)")  # the CLI's own words
+            assert all(e["score"] > 0.9 for e in body["examples"]) and len(body["examples"]) == 6
+
+            picture = engineer.get(body["pictures"][0])
+            assert picture.status_code == 200 and picture.headers["content-type"] == "image/jpeg"
+            drawn = cv2.imdecode(np.frombuffer(picture.content, np.uint8), cv2.IMREAD_COLOR)
+            # the jaws (blue, BGR 255 80 0) and the outlines (purple, BGR 170 60 150) are drawn on the frame
+            blue = np.all(np.abs(drawn.astype(int) - (255, 80, 0)) < 40, axis=2).sum()
+            purple = np.all(np.abs(drawn.astype(int) - (170, 60, 150)) < 40, axis=2).sum()
+            assert blue > 100 and purple > 100, (blue, purple)
+
+            state = engineer.get("/api/teach").json()
+            assert state["session"] == session and state["learnt"]["ok"] and state["frames"] == 2
+
+            confirmed = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "brackets"})
+            assert confirmed.status_code == 200, confirmed.text
+            assert engineer.get("/api/teach").json()["session"] is None  # the session ends with its answer
+
+        recipe, shapes = load_recipe_file(cfg.service.machine_vision.recipes_dir / "brackets.toml")
+        assert list(recipe.types) == ["bracket"] and recipe.types["bracket"].height_mm == pytest.approx(
+            HEIGHT_MM, abs=1e-3
+        )
+        frame = service.capture_part_image()
+        found = locate(frame.image_bgr, frame.calibration, cfg, shapes)
+        assert [p.cls for p in found.objects] == ["bracket"] * 3, [p.reason for p in found.objects]
+
+        accepted = [(e["command"], e["origin"]["user"]) for e in audit(cfg) if e["accepted"]]
+        assert accepted.count(("CapturePartImage", "erik")) == 2 and ("AddPartType", "erik") in accepted
+        added = next(e for e in audit(cfg) if e["command"] == "AddPartType")
+        assert added["arguments"]["recipe_id"] == "brackets" and added["arguments"]["name"] == "bracket"
+
+
+def test_viewers_and_operators_are_refused_and_csrf_is_required(tmp_path):
+    with served(tmp_path) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer, logged_in(app, "vera") as viewer, logged_in(app, "otto") as operator:
+            for client, role in ((viewer, "viewer"), (operator, "operator")):
+                refused = client.post("/api/teach/capture", json={})
+                assert refused.status_code == 403, refused.text
+                assert (
+                    f"CapturePartImage needs the engineer role; {client is viewer and 'vera' or 'otto'} is {role}"
+                    in (refused.json()["error"])
+                )
+            assert app.screen.teach.desk.session is None  # nothing captured, nothing held
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            assert learn(engineer, session).status_code == 200
+            for client in (viewer, operator):
+                for step, body in (
+                    ("learn", {"name": "x", "height_mm": 3}),
+                    ("confirm", {"recipe_id": "r"}),
+                    ("cancel", {}),
+                ):
+                    reply = client.post(f"/api/teach/{session}/{step}", json=body)
+                    assert reply.status_code == 403 and "AddPartType needs the engineer role" in reply.json()["error"]
+            no_token = TestClient(app, base_url=BASE, cookies=engineer.cookies)
+            assert no_token.post("/api/teach/capture", json={}).status_code == 403
+            assert no_token.post(f"/api/teach/{session}/confirm", json={"recipe_id": "r"}).status_code == 403
+            cross = engineer.post(
+                f"/api/teach/{session}/confirm", json={"recipe_id": "r"}, headers={"origin": "http://evil.example"}
+            )
+            assert cross.status_code == 403
+            assert not (cfg.service.machine_vision.recipes_dir / "r.toml").exists()
+            assert app.screen.teach.desk.session.id == session  # still the engineer's
+        refusals = [(e["command"], e["origin"]["user"]) for e in audit(cfg) if not e["accepted"]]
+        assert ("CapturePartImage", "vera") in refusals and ("AddPartType", "otto") in refusals
+
+
+def test_refusals_in_words_names_and_recipe_ids_never_paths(tmp_path):
+    with served(tmp_path) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer:
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            for name in ("../../etc/passwd", "Bracket", "bolt", "unknown", "a" * 40, ""):
+                bad = learn(engineer, session, name)
+                assert bad.status_code == 422 and "part type name" in bad.json()["error"], (name, bad.text)
+            bad = learn(engineer, session, height_mm=0)
+            assert bad.status_code == 422 and "more than 0 and at most 200 mm" in bad.json()["error"]
+            assert learn(engineer, session).status_code == 200
+            for recipe_id in ("../escape", "/tmp/x", "a/b", ""):
+                bad = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": recipe_id})
+                assert bad.status_code == 422 and "recipe id" in bad.json()["error"], (recipe_id, bad.text)
+            assert not list(tmp_path.glob("**/*.toml")) and not (tmp_path.parent / "escape.toml").exists()
+
+            # a broken recipe is not made worse: refused before anything is written
+            book = cfg.service.machine_vision.recipes_dir
+            book.mkdir(parents=True, exist_ok=True)
+            (book / "broken.toml").write_text("this is = not [ a recipe")
+            broken = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "broken"})
+            assert broken.status_code == 422 and "not valid TOML" in broken.json()["error"]
+            assert not (book / "models").exists()
+
+            # a job running: no frame is taken, in words
+            assert engineer.post("/api/command/StartContinuous").status_code == 200
+            wait_for(lambda: service.snapshot().vision_state is VisionState.CONTINUOUS_EXECUTION, "no job started")
+            busy = engineer.post("/api/teach/capture", json={})
+            assert busy.status_code == 409
+            assert busy.json()["say"].startswith("CapturePartImage is not allowed in ContinuousExecution")
+            late = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "brackets"})
+            assert (
+                late.status_code == 409 and "AddPartType is not allowed in ContinuousExecution" in late.json()["error"]
+            )
+            assert engineer.post("/api/command/Abort").status_code == 200
+            wait_for(lambda: service.snapshot().vision_state is VisionState.READY, "the job did not end")
+
+            cancelled = engineer.post(f"/api/teach/{session}/cancel", json={})
+            assert cancelled.status_code == 200 and app.screen.teach.desk.session is None
+            gone = learn(engineer, session)
+            assert gone.status_code == 409 and "no such teaching session" in gone.json()["error"]
+        assert any(e["command"] == "CancelPartType" and e["accepted"] for e in audit(cfg))
+
+
+def test_examples_that_cannot_be_gripped_are_refused_in_words_with_the_outlines_drawn(tmp_path):
+    with served(tmp_path, jaw_max_opening_mm=6.0) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer:
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            refused = learn(engineer, session)
+            assert refused.status_code == 422, refused.text
+            body = refused.json()
+            assert body["say"].startswith("Cannot teach 'bracket': it cannot be gripped: its narrowest width")
+            assert "jaw_max_opening_mm" in body["do"] and body["ok"] is False
+            assert engineer.get(body["pictures"][0]).status_code == 200  # the outlines, without jaws
+            assert engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "r"}).status_code == 409
+            assert not cfg.service.machine_vision.recipes_dir.exists()
+
+
+def test_sessions_are_bounded_and_expire(tmp_path):
+    with served(tmp_path, WebConfig(teach_max_frames=2, teach_timeout_s=1.0)) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer:
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            assert engineer.post("/api/teach/capture", json={}).status_code == 200
+            full = engineer.post("/api/teach/capture", json={})
+            assert full.status_code == 409 and "the most it takes" in full.json()["error"]
+            assert len(app.screen.teach.desk.session.frames) == 2
+            assert (
+                sum(e["command"] == "CapturePartImage" for e in audit(cfg)) == 2
+            )  # the third never reached the camera
+            wait_for(lambda: app.screen.teach.desk.session is None, "the session was not discarded after its timeout")
+            gone = engineer.post(f"/api/teach/{session}/cancel", json={})
+            assert gone.status_code == 409 and "no such teaching session" in gone.json()["error"]
+            assert engineer.get(f"/api/teach/{session}/frame/1.jpg").status_code == 404
