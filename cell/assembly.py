@@ -114,6 +114,10 @@ class RunRecipe:
     def parts(self) -> PartRegistry:
         return self.recipe.registry()
 
+    def unbinned_words(self) -> str | None:
+        """The recipe's taught types without a bin, in words (they are found and left on the table), or None."""
+        return self.recipe.unbinned_words(self.name)
+
     def leave_unpicked(self, result: LocateResult) -> LocateResult:
         """Parts of a class the recipe does not pick stay on the table, saying so."""
         for part in result.objects:
@@ -137,8 +141,10 @@ class Cell:
     recipe: RunRecipe | None = None  # `run-cell --recipe FILE`: its taught types found and picked
 
     def planner(self) -> Planner:
-        taught = None if self.recipe is None else self.recipe.taught_plans
-        return Planner(self.config.planning, table_to_robot(self.config.planning), taught)
+        if self.recipe is None:
+            return Planner(self.config.planning, table_to_robot(self.config.planning))
+        plans, numbers = self.recipe.taught_plans, self.recipe.recipe.class_numbers()
+        return Planner(self.config.planning, table_to_robot(self.config.planning), plans, numbers)
 
     def locate(self, frame: np.ndarray, calibration: Calibration) -> LocateResult:
         if self.recipe is None:
@@ -206,15 +212,12 @@ def _simulated(
     from cell.sim.parts import ExtrudedPart
     from cell.sim.render import render_plate
 
-    taught = []
-    if recipe is not None:  # each taught type with a bin, its model extruded, on the simulated table
+    taught: list[tuple[ExtrudedPart, tuple[float, float, float] | None]] = []
+    if recipe is not None:  # each taught type, its model extruded, on the simulated table (those without a bin stay)
         plans = recipe.taught_plans
         for m in recipe.shapes:
-            if m.name in plans:
-                part = ExtrudedPart(
-                    m.name, np.asarray(m.outline_mm), tuple(np.asarray(h) for h in m.holes_mm), m.height_mm
-                )
-                taught.append((part, plans[m.name].bin_robot_mm))
+            part = ExtrudedPart(m.name, np.asarray(m.outline_mm), tuple(np.asarray(h) for h in m.holes_mm), m.height_mm)
+            taught.append((part, plans[m.name].bin_robot_mm if m.name in plans else None))
 
     if sim_arm_kind(config.arm) != "sim" and config.arm.port:
         log.warning(

@@ -19,10 +19,11 @@ import numpy.typing as npt
 
 from cell.calibration.store import write_json_atomic
 from cell.errors import CellError, InputError
-from cell.run_config import ClassPlan, PlanningConfig
+from cell.run_config import ClassPlan, PlanningConfig, RobotWorkspace
 from cell.vision.types import LocatedPart
 
 SCHEMA = "pick-cell/robot-frame"
+BUILT_IN_CLASS_NO = {"bolt": 1, "nut": 2}  # the class_no a robot program is told (docs/robots.md)
 
 
 class TeachRejected(CellError):
@@ -138,6 +139,7 @@ class Target:
     jaw_angle_deg: float | None
     bin_robot_mm: tuple[float, float, float]
     pixel: tuple[float, float] = (math.nan, math.nan)  # where the part was seen in the frame
+    class_no: int = 0  # the number a robot program switches on (the recipe's; 0: none)
 
     def pick_points(self) -> list[tuple[float, float, float]]:
         """Above the part, then down to it: the moves that turn the jaws to jaw_angle_deg."""
@@ -156,10 +158,18 @@ class Target:
 class Planner:
     """Turns located parts into targets; every point of the move is checked before motion."""
 
-    def __init__(self, cfg: PlanningConfig, frame: TableToRobot, taught: Mapping[str, ClassPlan] | None = None):
+    def __init__(
+        self,
+        cfg: PlanningConfig,
+        frame: TableToRobot,
+        taught: Mapping[str, ClassPlan] | None = None,
+        class_numbers: Mapping[str, int] | None = None,
+    ):
         self.cfg = cfg
         self.frame = frame
         self.taught = dict(taught or {})  # a recipe's taught types with a bin: jaws along the model's grip
+        # each class's class_no (a recipe's Recipe.class_numbers()); without a recipe: bolt 1, nut 2
+        self.class_numbers = dict(BUILT_IN_CLASS_NO if class_numbers is None else class_numbers)
 
     def target(self, part: LocatedPart) -> Target:
         if part.cls in self.taught:
@@ -204,6 +214,7 @@ class Planner:
             angle,
             plan.bin_robot_mm,
             (float(part.pixel[0]), float(part.pixel[1])),
+            self.class_numbers.get(part.cls, 0),
         )
         if not all(math.isfinite(v) for v in (*t.robot_mm, t.approach_z_mm, *(() if angle is None else (angle,)))):
             raise Unreachable(f"target {t.robot_mm} mm, jaws {angle} deg: not a finite number (calibration?)")
@@ -225,15 +236,7 @@ class Planner:
 
     def violation(self, x_mm: float, y_mm: float, z_mm: float) -> str | None:
         """Why the point lies outside the configured workspace or reach, or None."""
-        ws = self.cfg.workspace
-        for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
-            lo, hi = getattr(ws, f"{axis}_min_mm"), getattr(ws, f"{axis}_max_mm")
-            if not (math.isfinite(v) and lo <= v <= hi):
-                return f"robot {axis} = {v:.1f} mm is outside the workspace [{lo:g}, {hi:g}] mm"
-        r = math.hypot(x_mm, y_mm)
-        if not ws.reach_min_mm <= r <= ws.reach_max_mm:
-            return f"radius {r:.1f} mm is outside the reach [{ws.reach_min_mm:g}, {ws.reach_max_mm:g}] mm"
-        return None
+        return workspace_violation(self.cfg.workspace, x_mm, y_mm, z_mm)
 
     def order(self, parts: list[LocatedPart], gripper_robot_xy: tuple[float, float] | None) -> list[LocatedPart]:
         """Candidates in the configured pick order."""
@@ -245,3 +248,15 @@ class Planner:
         robot = self.frame.to_robot([p.table_mm for p in parts])
         dist = np.hypot(*(robot - here).T)
         return [parts[i] for i in np.argsort(dist, kind="stable")]
+
+
+def workspace_violation(ws: RobotWorkspace, x_mm: float, y_mm: float, z_mm: float) -> str | None:
+    """Why the point lies outside the workspace box or the reach ring, or None."""
+    for axis, v in zip("xyz", (x_mm, y_mm, z_mm), strict=True):
+        lo, hi = getattr(ws, f"{axis}_min_mm"), getattr(ws, f"{axis}_max_mm")
+        if not (math.isfinite(v) and lo <= v <= hi):
+            return f"robot {axis} = {v:.1f} mm is outside the workspace [{lo:g}, {hi:g}] mm"
+    r = math.hypot(x_mm, y_mm)
+    if not ws.reach_min_mm <= r <= ws.reach_max_mm:
+        return f"radius {r:.1f} mm is outside the reach [{ws.reach_min_mm:g}, {ws.reach_max_mm:g}] mm"
+    return None

@@ -23,6 +23,8 @@ exactly as a config file is: unknown keys, units out of range, NaN are errors na
     model = "models/bracket-l-1f2e3d4c5b6a.json"
     model_sha256 = "1f2e3d4c5b6a..."   # the model file's sha256: a file that does not match is refused
     height_mm = 3.0
+    class_no = 3                   # what a robot program is told (docs/robots.md); default: numbered from 3
+    bin_robot_mm = [200.0, 160.0, 60.0]   # none: found, counted and left on the table
 
 The recipe's id is its file name without `.toml`. `RecipeBook` lists, loads, validates,
 adds (written whole or not at all; a bad recipe is refused with what and where) and removes
@@ -33,8 +35,10 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import re
 import tomllib
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
@@ -45,8 +49,9 @@ from cell.atomicfile import write_bytes_atomic, write_text_atomic
 from cell.config import CellConfig
 from cell.core.parts import BUILT_IN_PARTS, NAME_PATTERN, PartClass, PartRegistry
 from cell.core.records import RecipeInfo
-from cell.errors import CellError
-from cell.run_config import ClassPlan
+from cell.errors import CellError, InputError
+from cell.planning import BUILT_IN_CLASS_NO, workspace_violation
+from cell.run_config import ClassPlan, PlanningConfig
 from cell.vision.config import PartsConfig
 from cell.vision.shapes import ShapeModel, ShapeModelError, load_model, sha256_of
 from drivers.config import Strict
@@ -54,6 +59,8 @@ from drivers.config import Strict
 PickedClass = Literal["bolt", "nut"]
 RECIPE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 MAX_RECIPE_BYTES = 64 * 1024
+TAUGHT_CLASS_NO_BASE = 3  # taught types without a class_no are numbered from here, in the recipe's order
+MAX_CLASS_NO = 32767  # a robot's signed 16-bit register holds it (docs/robots.md, Modbus CLASS_NO)
 SUFFIX = ".toml"
 log = logging.getLogger(__name__)
 
@@ -83,6 +90,13 @@ class TaughtType(Strict):
         None, ge=0, le=100, description="tool point height when the jaws close; none: half the part's height"
     )
     approach_above_table_mm: float = Field(40.0, gt=0, le=300, description="height of moves above the table")
+    class_no: int | None = Field(
+        None,
+        ge=TAUGHT_CLASS_NO_BASE,
+        le=MAX_CLASS_NO,
+        description="the number a robot program is told for this type (docs/robots.md); none: numbered from "
+        f"{TAUGHT_CLASS_NO_BASE} in the recipe's order (bolt is 1, nut 2); robot_server.class_numbers overrides it",
+    )
 
     @model_validator(mode="after")
     def _relative(self) -> TaughtType:
@@ -150,7 +164,47 @@ class Recipe(Strict):
                     f"types.{name}: a taught type's name is 1-32 lower-case letters, digits, - and _, starting with a "
                     "letter, and not bolt, nut or unknown"
                 )
+        given: dict[int, str] = {}
+        for name, t in self.types.items():
+            if t.class_no is not None and t.class_no in given:
+                raise ValueError(
+                    f"types.{name}.class_no = {t.class_no}: {given[t.class_no]!r} has that number already; "
+                    "give each type its own"
+                )
+            if t.class_no is not None:
+                given[t.class_no] = name
         return self
+
+    def class_numbers(self) -> dict[str, int]:
+        """The class_no a robot program is told for each class (docs/robots.md): bolt 1, nut 2, each taught
+        type its `class_no`, else the next number from TAUGHT_CLASS_NO_BASE not given to another, in order."""
+        out = dict(BUILT_IN_CLASS_NO)
+        taken = {t.class_no for t in self.types.values() if t.class_no is not None}
+        n = TAUGHT_CLASS_NO_BASE
+        for name, t in self.types.items():
+            if t.class_no is not None:
+                out[name] = t.class_no
+                continue
+            while n in taken:
+                n += 1
+            out[name], n = n, n + 1
+        return out
+
+    def unbinned(self) -> list[str]:
+        """The taught types without a bin: found and counted, left on the table."""
+        return [name for name, t in self.types.items() if t.bin_robot_mm is None]
+
+    def unbinned_words(self, recipe: str) -> str | None:
+        """What an operator is told once about the taught types without a bin, or None when all have one."""
+        names = self.unbinned()
+        if not names:
+            return None
+        which = ", ".join(names)
+        verb = "has" if len(names) == 1 else "have"
+        return (
+            f"recipe {recipe}: {which} {verb} no bin: found and counted but left on the table "
+            f"(give types.NAME.bin_robot_mm, or teach again with --bin-robot-mm X Y Z or --bin-of TYPE)"
+        )
 
     @property
     def classes(self) -> frozenset[str]:
@@ -235,41 +289,144 @@ def _section_range(lines: list[str], name: str) -> tuple[int, int] | None:
     return start, end
 
 
-def add_taught_type(path: Path, model: ShapeModel) -> tuple[Path, str]:
+@dataclass(frozen=True)
+class TaughtAdded:
+    """What `add_taught_type` wrote: the model file, its hash, the type's bin and class_no, and the recipe's
+    taught types left without a bin (this one among them when it has none)."""
+
+    model_path: Path
+    sha256: str
+    bin_robot_mm: tuple[float, float, float] | None
+    class_no: int
+    unbinned: tuple[str, ...]
+
+    def lines(self, name: str, recipe: str) -> list[str]:
+        """What the teacher is told: where the type goes (or that it stays), its class_no."""
+        if self.bin_robot_mm is None:
+            where = f"{name}: no bin: found and counted, left on the table"
+        else:
+            where = f"{name}: into the bin at robot ({', '.join(f'{v:g}' for v in self.bin_robot_mm)}) mm"
+        out = [f"{where}; the robot is told class_no {self.class_no}"]
+        others = [n for n in self.unbinned if n != name]
+        if others:
+            verb = "has" if len(others) == 1 else "have"
+            out.append(f"recipe {recipe}: {', '.join(others)} {verb} no bin either: left on the table")
+        return out
+
+
+def check_bin(where: str, bin_robot_mm: object, planning: PlanningConfig) -> tuple[float, float, float]:
+    """A bin as three finite numbers (robot mm) inside the configured workspace and reach, or InputError."""
+    try:
+        x, y, z = (float(v) for v in bin_robot_mm)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: give the bin as three numbers X Y Z (robot mm)") from None
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        raise InputError(f"{where} ({bin_robot_mm}): every coordinate a finite number of mm")
+    if why := workspace_violation(planning.workspace, x, y, z):
+        raise InputError(
+            f"{where} ({x:g}, {y:g}, {z:g}) mm: {why}",
+            hint="a bin the arm reaches (planning.workspace in the cell config), or none to teach now and place later",
+        )
+    return x, y, z
+
+
+def bin_of(recipe: Recipe | None, planning: PlanningConfig, of: str) -> tuple[float, float, float]:
+    """The bin another class of the recipe goes to (a taught type's, or bolt's and nut's: the recipe's
+    [pick.CLASS], else the config's planning.CLASS), or InputError naming those that have one."""
+    if of in BUILT_IN_CLASS_NO:
+        plan = recipe.pick.get(of) if recipe is not None else None  # type: ignore[call-overload]
+        return (plan or planning.for_class(of)).bin_robot_mm
+    types = {} if recipe is None else recipe.types
+    t = types.get(of)
+    if t is not None and t.bin_robot_mm is not None:
+        return t.bin_robot_mm
+    have = [*BUILT_IN_CLASS_NO, *(n for n, x in types.items() if x.bin_robot_mm is not None)]
+    said = f"{of!r} has no bin itself" if t is not None else f"the recipe has no type {of!r}"
+    raise InputError(f"--bin-of {of}: {said}", hint=f"the types with a bin: {', '.join(have)}")
+
+
+def bins_of(recipe: Recipe | None, planning: PlanningConfig) -> dict[str, tuple[float, float, float]]:
+    """Every class of the recipe that has a bin, with it (what a new type may share)."""
+    out = {cls: bin_of(recipe, planning, cls) for cls in BUILT_IN_CLASS_NO}
+    for name, t in ({} if recipe is None else recipe.types).items():
+        if t.bin_robot_mm is not None:
+            out[name] = t.bin_robot_mm
+    return out
+
+
+def read_recipe_if_any(path: Path) -> Recipe | None:
+    """The recipe file, validated, or None when there is none yet (RecipeError when it cannot be used)."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise RecipeError(f"{path}: cannot read recipe: {e}") from None
+    return parse_recipe(text, str(path))
+
+
+def _toml_float(v: float) -> str:
+    return repr(round(float(v), 4))
+
+
+def add_taught_type(
+    path: Path, model: ShapeModel, bin_robot_mm: tuple[float, float, float] | None = None, bin_note: str = ""
+) -> TaughtAdded:
     """Write the model file beside the recipe (models/NAME-<sha>.json) and name it in the recipe
     (`[types.NAME]`, replacing a former teaching of that name; the recipe created if absent). Both
-    written whole or not at all, the recipe validated first. Returns the model's path and sha256."""
+    written whole or not at all, the recipe validated first. A type taught again keeps its class_no, bin
+    and moves unless a bin is given; a new one gets the next free class_no, written down so it stays."""
     path = Path(path)
     data = model.to_json().encode("utf-8")
     sha = sha256_of(data)
     relative = f"models/{model.name}-{sha[:12]}.json"
+    recipe = read_recipe_if_any(path)  # a broken recipe is not made worse
+    before = None if recipe is None else recipe.types.get(model.name)
+    numbers = {} if recipe is None else recipe.class_numbers()
+    if before is not None:  # what the robot has been told for it stays
+        class_no = numbers[model.name]
+    else:
+        taken = set(numbers.values())
+        class_no = next(n for n in range(TAUGHT_CLASS_NO_BASE, MAX_CLASS_NO + 1) if n not in taken)
     section = [
         f"[types.{model.name}]",
         f'model = "{relative}"',
         f'model_sha256 = "{sha}"',
         f"height_mm = {round(model.height_mm, 4)!r}",  # as the model file has it
+        f"class_no = {class_no}",
     ]
-    if path.exists():
+    where = bin_robot_mm if bin_robot_mm is not None else (None if before is None else before.bin_robot_mm)
+    if where is not None:
+        note = f"  # {bin_note}" if bin_note and bin_robot_mm is not None else ""
+        section.append(f"bin_robot_mm = [{', '.join(_toml_float(v) for v in where)}]{note}")
+    if before is not None:  # its moves, where they still hold at the height taught now
+        for key in ("pick_above_table_mm", "approach_above_table_mm"):
+            value = getattr(before, key)
+            if key in before.model_fields_set and value is not None:
+                section.append(f"{key} = {_toml_float(value)}")
         try:
-            text = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as e:
-            raise RecipeError(f"{path}: cannot read recipe: {e}") from None
-        parse_recipe(text, str(path))  # a broken recipe is not made worse
+            TaughtType.model_validate(tomllib.loads("\n".join(section[1:])))
+        except (ValidationError, tomllib.TOMLDecodeError) as e:
+            log.warning("types.%s: its moves are dropped, they do not hold at the new height: %s", model.name, e)
+            section = [line for line in section if not line.startswith(("pick_above", "approach_above"))]
+    if recipe is not None:
+        text = path.read_text(encoding="utf-8")
         lines = text.splitlines()
-        where = _section_range(lines, model.name)
-        if where is None:
+        at = _section_range(lines, model.name)
+        if at is None:
             lines = [*lines, "", *section] if lines else section
         else:
-            lines = [*lines[: where[0]], *section, "", *lines[where[1] :]]
+            lines = [*lines[: at[0]], *section, "", *lines[at[1] :]]
         new = "\n".join(lines).rstrip("\n") + "\n"
     else:
         new = 'description = "taught part types"\n\n' + "\n".join(section) + "\n"
-    parse_recipe(new, str(path))
+    written = parse_recipe(new, str(path))
     target = path.parent / relative
     target.parent.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(target, data)
     write_text_atomic(path, new)
-    return target, sha
+    return TaughtAdded(target, sha, where, class_no, tuple(written.unbinned()))
 
 
 def _errors(err: ValidationError) -> str:

@@ -569,7 +569,7 @@ class Runner:
         t, track = self._attempt()
         x, y, z = t.robot_mm
         plan = PickPlan(pick_id(self.job_id, self.summary.attempts), t.cls, t.robot_mm, t.approach_z_mm,
-                        t.jaw_angle_deg, t.bin_robot_mm)  # fmt: skip
+                        t.jaw_angle_deg, t.bin_robot_mm, t.class_no)  # fmt: skip
         self.arm.announce(plan, lambda: self.controls.stop.is_set() or self.controls.finish.is_set())
         self._arm("move_to", x, y, t.approach_z_mm, t.jaw_angle_deg)
         self._arm("move_to", x, y, z, t.jaw_angle_deg)

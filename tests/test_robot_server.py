@@ -24,6 +24,7 @@ from drivers.arm.config import RobotServerConfig
 from drivers.arm.robot_server import Bad, NotNow, RobotServerArm, StateNo
 from tests.ports import free_port
 from tests.test_service import small_config, wait_for
+from tests.test_taught_dry_run import BINS, KINDS, TYPES, images, recipe  # noqa: F401 (fixtures)
 
 V = VisionState
 pytestmark = pytest.mark.timeout(120)
@@ -123,6 +124,49 @@ def test_a_client_written_as_the_urscript_program_clears_the_dry_run_table(tmp_p
     for kind in ("given", "picked", "placed"):
         assert sorted(e["pick_no"] for e in reports if e["report"] == kind) == sorted(placed)
     assert all(e["accepted"] for e in reports)
+
+
+def test_a_taught_type_is_told_its_recipe_class_no_unless_class_numbers_overrides_it(tmp_path, recipe):  # noqa: F811
+    """The prepared recipe's class_no reaches the robot (the planner's number, passed down in the pick): the
+    L bracket its recipe's 3, written when it was taught; the plate 40, as robot_server.class_numbers says,
+    over its recipe's 4. Each into its own bin."""
+    import shutil
+
+    from cell.core.commands import RecipeRequest
+    from cell.recipes import load_recipe_file
+    from cell.sim.world import Bin, SimPart
+
+    loaded, shapes = load_recipe_file(recipe)
+    assert loaded.class_numbers() == {"bolt": 1, "nut": 2, "l-bracket": 3, "plate-4h": 4}
+    cfg = robot_config(tmp_path, class_numbers={"bolt": 1, "nut": 2, "plate-4h": 40})
+    cfg.sim.perfect_calibration = True
+    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
+    (tmp_path / "recipes").mkdir()
+    shutil.copy(recipe, tmp_path / "recipes" / "taught.toml")
+    shutil.copytree(recipe.parent / "models", tmp_path / "recipes" / "models")
+    with serving(cfg) as (service, address):
+        world = service.cell.sim.world  # two of each taught type on the table, nothing else
+        poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0), (120.0, 140.0, 100.0), (230.0, 40.0, 300.0)]
+        placed = [TYPES[shapes[k % 2].name].placed(*pose) for k, pose in enumerate(poses)]
+        world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate(placed)]
+        world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
+        world.version += 1
+        service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
+        service.command(Command.START_SINGLE)
+        robot = UrClient(address)
+        told = []
+        while (answer := robot.ask("NEXT"))[0] != -1:
+            if answer[0] == 0:
+                continue
+            _, _, _, _, _, class_no, pick_no, bin_x, bin_y, bin_z = answer
+            told.append((int(class_no), (bin_x, bin_y, bin_z)))
+            assert robot.ask(f"PICKED {pick_no:.0f}") == [1]
+            assert robot.ask(f"PLACED {pick_no:.0f}") == [1]
+        robot.close()
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready after the job")
+        picked = dict(service.snapshot().counters.picked)
+    assert picked == {"l-bracket": 2, "plate-4h": 2}
+    assert sorted(told) == sorted([(3, BINS["l-bracket"])] * 2 + [(40, BINS["plate-4h"])] * 2)
 
 
 def test_a_robot_that_vanishes_mid_pick_faults_the_cell_with_the_pick_unknown(tmp_path):

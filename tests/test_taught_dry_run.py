@@ -1,5 +1,5 @@
 """A taught recipe end to end: two part types taught from rendered images into a recipe with their
-bins, then `run-cell --dry-run --recipe FILE` lays those parts out on the simulated table (each
+bins (`run-cell part teach --bin-robot-mm X Y Z`, no file edited by hand), then `run-cell --dry-run --recipe FILE` lays those parts out on the simulated table (each
 rendered from its model, extruded with its holes), finds them by shape, plans the jaws along each
 model's grip and clears the table; the run's summary and history name the types."""
 
@@ -47,25 +47,36 @@ mark_diameter_mm = 3.0  # the table's marks seen at this small camera size
 """
 
 
+POSES = [((60.0, 50.0, 20.0), (200.0, 110.0, 145.0)), ((230.0, 40.0, 280.0), (80.0, 120.0, 75.0))]
+
+
 @pytest.fixture(scope="module")
-def recipe(tmp_path_factory):
-    """Both types taught from two rendered images each, then given their bins."""
-    d = tmp_path_factory.mktemp("taught-run")
+def images(tmp_path_factory):
+    """Two rendered images of each type (two parts each) and the camera's calibration."""
+    d = tmp_path_factory.mktemp("taught-images")
     cam = CameraModel.looking_down(W, H, 0.3, (144.0, 81.0), tilt_deg=4.0, k1=-0.04)
     Calibration("camera", CameraMap(cam), (W, H), cam).save(d / "cal.json")
-    poses = [((60.0, 50.0, 20.0), (200.0, 110.0, 145.0)), ((230.0, 40.0, 280.0), (80.0, 120.0, 75.0))]
+    for name in KINDS:
+        for k, pose in enumerate(POSES):
+            cv2.imwrite(str(d / f"{name}-{k}.png"), render_scene(cam, [TYPES[name].placed(*p) for p in pose], seed=k))
+    return d
+
+
+def teach_argv(images, name: str, recipe, *extra: str) -> list[str]:
+    argv = ["part", "teach", name, "--calibration", str(images / "cal.json")]
+    argv += ["--height-mm", str(TYPES[name].height_mm), "--recipe", str(recipe), *extra]
+    for k in range(len(POSES)):
+        argv += ["--image", str(images / f"{name}-{k}.png")]
+    return argv
+
+
+@pytest.fixture(scope="module")
+def recipe(images, tmp_path_factory):
+    """Both types taught from two rendered images each, each with its bin on the command line."""
+    d = tmp_path_factory.mktemp("taught-run")
     path = d / "taught.toml"
     for name in KINDS:
-        part = TYPES[name]
-        argv = ["part", "teach", name, "--calibration", str(d / "cal.json"), "--height-mm", str(part.height_mm)]
-        for k, pose in enumerate(poses):
-            cv2.imwrite(str(d / f"{name}-{k}.png"), render_scene(cam, [part.placed(*p) for p in pose], seed=k))
-            argv += ["--image", str(d / f"{name}-{k}.png")]
-        assert main([*argv, "--recipe", str(path)]) == 0
-    text = path.read_text(encoding="utf-8")
-    for name, where in BINS.items():
-        text = text.replace(f"[types.{name}]\n", f"[types.{name}]\nbin_robot_mm = {list(where)}\n")
-    path.write_text(text, encoding="utf-8")
+        assert main(teach_argv(images, name, path, "--bin-robot-mm", *(str(v) for v in BINS[name]))) == 0
     (d / "sim.toml").write_text(SIM_CONFIG, encoding="utf-8")
     return path
 
@@ -98,6 +109,8 @@ def test_a_dry_run_with_a_taught_recipe_clears_the_table(recipe, tmp_path, capsy
 def test_the_recipe_names_its_types_bins_and_the_planner_checks_them(recipe):
     loaded, shapes = load_recipe_file(recipe)
     assert loaded.classes == frozenset(KINDS)
+    assert {n: t.bin_robot_mm for n, t in loaded.types.items()} == BINS  # written by part teach
+    assert loaded.class_numbers() == {"bolt": 1, "nut": 2, "l-bracket": 3, "plate-4h": 4}
     parts = loaded.registry()
     assert [c.opcua_name for c in parts][len(BUILT_IN_PARTS) :] == ["PickedLBrackets", "PickedPlate4hs"]
     plans = loaded.taught_plans()
@@ -226,3 +239,56 @@ def test_the_simulated_jaws_hold_a_taught_part_only_along_its_grip(recipe):
     assert "wide across the jaws" in grip(0.0, 0.0, 90.0)
     off = 3.0 * np.array([np.cos(np.radians(jaw)), np.sin(np.radians(jaw))])
     assert "off centre between the jaws" in grip(*off, 0.0)
+
+
+def test_a_type_taught_without_a_bin_is_named_in_words_and_left_on_the_table(images, tmp_path, capsys):
+    """Teach now, place later: a type with no bin is written (the recipe valid), the teacher is told it stays on
+    the table, and the dry run says so once before the job; its parts are found, counted and left, while a type
+    sharing the nut's bin (--bin-of nut) is cleared into it. The job itself is not faulted for it."""
+    path = tmp_path / "later.toml"
+    assert main(teach_argv(images, "l-bracket", path)) == 0
+    out = capsys.readouterr().out
+    assert "l-bracket: no bin: found and counted, left on the table; the robot is told class_no 3" in out, out
+    assert main(teach_argv(images, "plate-4h", path, "--bin-of", "nut")) == 0
+    out = capsys.readouterr().out
+    assert "plate-4h: into the bin at robot (200, 60, 60) mm; the robot is told class_no 4" in out, out
+    assert "recipe later: l-bracket has no bin either: left on the table" in out, out
+    loaded, _ = load_recipe_file(path)
+    assert loaded.unbinned() == ["l-bracket"] and loaded.types["plate-4h"].bin_robot_mm == (200.0, 60.0, 60.0)
+    (tmp_path / "sim.toml").write_text(SIM_CONFIG, encoding="utf-8")
+    code = main(["--config", str(tmp_path / "sim.toml"), "--dry-run", "--recipe", str(path)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    said = "recipe later: l-bracket has no bin: found and counted but left on the table"
+    assert out.count(said) == 1, out
+    truth = next(line for line in out.splitlines() if line.startswith("simulated truth:"))
+    assert "table: 3 l-bracket" in truth and "3 plate-4h" in truth and "table: 3 plate-4h" not in truth, truth
+
+
+def test_a_bin_outside_the_workspace_or_of_an_unknown_type_is_refused_in_words(images, tmp_path, capsys):
+    path = tmp_path / "r.toml"
+    assert main(teach_argv(images, "l-bracket", path, "--bin-robot-mm", "900", "0", "60")) != 0
+    err = capsys.readouterr().err
+    assert "--bin-robot-mm (900, 0, 60) mm: robot x = 900.0 mm is outside the workspace" in err, err
+    assert not path.exists()  # nothing written
+    assert main(teach_argv(images, "l-bracket", path, "--bin-of", "washer")) != 0
+    err = capsys.readouterr().err
+    assert "--bin-of washer: the recipe has no type 'washer'" in err and "bolt, nut" in err, err
+    assert main(teach_argv(images, "l-bracket", path)) == 0  # no bin: allowed
+    assert main(teach_argv(images, "plate-4h", path, "--bin-of", "l-bracket")) != 0
+    assert "--bin-of l-bracket: 'l-bracket' has no bin itself" in capsys.readouterr().err
+
+
+def test_teaching_a_type_again_keeps_its_bin_and_class_no(images, tmp_path, capsys):
+    path = tmp_path / "again.toml"
+    assert main(teach_argv(images, "plate-4h", path, "--bin-robot-mm", "200", "160", "60")) == 0
+    assert main(teach_argv(images, "l-bracket", path, "--bin-robot-mm", "200", "60", "60")) == 0
+    text = path.read_text(encoding="utf-8")
+    path.write_text(text.replace("[types.plate-4h]\n", "[types.plate-4h]\napproach_above_table_mm = 50.0\n"))
+    assert main(teach_argv(images, "plate-4h", path)) == 0  # no bin given: the one it had stays
+    capsys.readouterr()
+    loaded, _ = load_recipe_file(path)
+    plate = loaded.types["plate-4h"]
+    assert (plate.bin_robot_mm, plate.class_no, plate.approach_above_table_mm) == ((200.0, 160.0, 60.0), 3, 50.0)
+    assert loaded.class_numbers()["l-bracket"] == 4
+    assert list(loaded.types) == ["plate-4h", "l-bracket"]  # in place, not appended

@@ -73,9 +73,13 @@ def test_capture_see_the_outlines_and_confirm_in_a_browser(tmp_path):
                 )
                 assert size[0] > 100 and size[1] > 300, size  # the frame about the examples, shown large
                 page.fill("#teach-recipe", "brackets")
+                wait(page, "document.querySelectorAll('#teach-bin-of option').length === 2")  # bolt's, nut's
+                page.select_option("#teach-bin-of", "nut")  # the nut's bin, chosen from the list
+                assert page.is_checked("#teach-bin-shared")
                 page.click("#teach-ok")
                 wait(page, "teachStats.confirmed !== null")
                 assert page.inner_text("#message") == 'Added "bracket" to recipe brackets.'
+                assert page.inner_text("#teach-said").startswith("bracket: into the bin at robot (200, 60, 60) mm")
                 assert page.is_disabled("#teach-ok") and page.is_hidden("#teach-result")
                 assert errors == []
                 context.close()
@@ -83,3 +87,4 @@ def test_capture_see_the_outlines_and_confirm_in_a_browser(tmp_path):
                 browser.close()
     recipe, shapes = load_recipe_file(cfg.service.machine_vision.recipes_dir / "brackets.toml")
     assert list(recipe.types) == ["bracket"] and [m.name for m in shapes] == ["bracket"]
+    assert recipe.types["bracket"].bin_robot_mm == cfg.planning.nut.bin_robot_mm

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,7 +24,7 @@ from cell.access.throttle import LoginThrottle
 from cell.access.users import Authenticator, UserEntry, hash_password, write_users
 from cell.commands.serve import open_service
 from cell.config import CellConfig
-from cell.core.commands import VisionState
+from cell.core.commands import Command, RecipeRequest, VisionState
 from cell.core.events import Role
 from cell.recipes import load_recipe_file
 from cell.service.config import LoginConfig
@@ -43,6 +44,7 @@ USERS = {
 }
 FAMILY = "l-bracket"
 HEIGHT_MM = teach_family(FAMILY, 0).height_mm
+NO_BIN_HINT = " (give types.NAME.bin_robot_mm, or teach again with --bin-robot-mm X Y Z or --bin-of TYPE)"
 
 
 def teach_config(tmp_path: Path) -> CellConfig:
@@ -136,22 +138,80 @@ def test_capture_learn_confirm_writes_the_recipe_and_locate_finds_the_type(tmp_p
             state = engineer.get("/api/teach").json()
             assert state["session"] == session and state["learnt"]["ok"] and state["frames"] == 2
 
-            confirmed = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "brackets"})
+            bins = engineer.get("/api/teach/bins", params={"recipe_id": "brackets"})  # a new recipe: bolt's, nut's
+            assert bins.status_code == 200 and [b["class"] for b in bins.json()["bins"]] == ["bolt", "nut"]
+            for where, says in (
+                ({"bin_robot_mm": [900, 0, 60]}, "bin_robot_mm (900, 0, 60) mm: robot x = 900.0 mm is outside"),
+                ({"bin_of": "washer"}, "the recipe has no type 'washer'"),
+            ):
+                bad = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "brackets", **where})
+                assert bad.status_code == 422 and says in bad.json()["error"], bad.text
+            assert (
+                engineer.post(
+                    f"/api/teach/{session}/confirm", json={"recipe_id": "brackets", "bin_robot_mm": [1, "x", 3]}
+                ).status_code
+                == 400
+            )
+            assert not (cfg.service.machine_vision.recipes_dir / "brackets.toml").exists()  # nothing written
+            confirmed = engineer.post(
+                f"/api/teach/{session}/confirm", json={"recipe_id": "brackets", "bin_robot_mm": [200, 160.5, 60]}
+            )
             assert confirmed.status_code == 200, confirmed.text
+            assert confirmed.json()["said"] == [
+                "bracket: into the bin at robot (200, 160.5, 60) mm; the robot is told class_no 3"
+            ]
             assert engineer.get("/api/teach").json()["session"] is None  # the session ends with its answer
+            bins = engineer.get("/api/teach/bins", params={"recipe_id": "brackets"}).json()["bins"]
+            assert {"class": "bracket", "bin_robot_mm": [200.0, 160.5, 60.0]} in bins
 
         recipe, shapes = load_recipe_file(cfg.service.machine_vision.recipes_dir / "brackets.toml")
         assert list(recipe.types) == ["bracket"] and recipe.types["bracket"].height_mm == pytest.approx(
             HEIGHT_MM, abs=1e-3
         )
+        assert recipe.types["bracket"].bin_robot_mm == (200.0, 160.5, 60.0) and recipe.classes == {"bracket"}
         frame = service.capture_part_image()
         found = locate(frame.image_bgr, frame.calibration, cfg, shapes)
         assert [p.cls for p in found.objects] == ["bracket"] * 3, [p.reason for p in found.objects]
 
         accepted = [(e["command"], e["origin"]["user"]) for e in audit(cfg) if e["accepted"]]
         assert accepted.count(("CapturePartImage", "erik")) == 2 and ("AddPartType", "erik") in accepted
-        added = next(e for e in audit(cfg) if e["command"] == "AddPartType")
+        added = next(e for e in audit(cfg) if e["command"] == "AddPartType" and e["accepted"])
         assert added["arguments"]["recipe_id"] == "brackets" and added["arguments"]["name"] == "bracket"
+        assert added["arguments"]["bin_robot_mm"] == [200.0, 160.5, 60.0]
+        refused = [e["message"] for e in audit(cfg) if e["command"] == "AddPartType" and not e["accepted"]]
+        assert len(refused) == 2 and "outside the workspace" in refused[0]  # the bad bins, recorded as refused
+
+
+def test_a_type_confirmed_without_a_bin_or_with_another_types_bin_is_told_in_words(tmp_path, caplog):
+    """Teach now, place later: confirmed without a bin, the page is told the type stays on the table; confirmed
+    again with the nut's bin (a class chosen from the list), it goes there. A prepared recipe with a type
+    without a bin says so in the service's log."""
+    with served(tmp_path) as (service, app, cfg):
+        with logged_in(app, "erik") as engineer:
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            assert learn(engineer, session).status_code == 200
+            confirmed = engineer.post(
+                f"/api/teach/{session}/confirm", json={"recipe_id": "later", "bin_robot_mm": None}
+            )
+            assert confirmed.status_code == 200, confirmed.text
+            assert confirmed.json()["said"] == [
+                "bracket: no bin: found and counted, left on the table; the robot is told class_no 3"
+            ]
+            book = cfg.service.machine_vision.recipes_dir
+            assert load_recipe_file(book / "later.toml")[0].unbinned() == ["bracket"]
+            with caplog.at_level(logging.WARNING, logger="cell.service.service"):
+                service.command(Command.PREPARE_RECIPE, request=RecipeRequest("later"))
+            said = "recipe later: bracket has no bin: found and counted but left on the table"
+            assert [r.getMessage() for r in caplog.records].count(said + NO_BIN_HINT) == 1, caplog.text
+            session = engineer.post("/api/teach/capture", json={}).json()["session"]
+            assert learn(engineer, session).status_code == 200
+            nut = next(b for b in engineer.get("/api/teach/bins?recipe_id=later").json()["bins"] if b["class"] == "nut")
+            again = engineer.post(f"/api/teach/{session}/confirm", json={"recipe_id": "later", "bin_of": "nut"})
+            assert again.status_code == 200, again.text
+            assert again.json()["said"][0].startswith(f"bracket: into the bin at robot ({nut['bin_robot_mm'][0]:g}")
+            recipe = load_recipe_file(book / "later.toml")[0]
+            assert list(recipe.types["bracket"].bin_robot_mm) == nut["bin_robot_mm"] and not recipe.unbinned()
+            assert "# the bin of nut" in (book / "later.toml").read_text()
 
 
 def test_viewers_and_operators_are_refused_and_csrf_is_required(tmp_path):

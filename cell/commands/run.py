@@ -231,6 +231,9 @@ def _run_job(
             attach_consumers(config, bus, resources, RunHooks(controls), rehearsal=args.dry_run)
             for note in cell.notes:
                 say(note)
+            if recipe is not None and (words := recipe.unbinned_words()):  # said once, before the job
+                log.info("%s", words)
+                say(words)
             say(
                 f"pid {os.getpid()}: Ctrl-C, SIGTERM or SIGHUP stop safely; "
                 f"`kill -USR1 {os.getpid()}` pauses and resumes"

@@ -252,15 +252,22 @@ class RecipeRequest:
 @dataclass(frozen=True)
 class PartTypeRequest:
     """AddPartType: a taught type's shape model (its JSON text, as cell.vision.shapes writes it) for a recipe
-    file (created if absent); the type's name is the model's."""
+    file (created if absent); the type's name is the model's; its bin given, another class's, or none."""
 
     recipe_id: str
     name: str
     model_json: str
+    bin_robot_mm: tuple[float, float, float] | None = None  # where it goes (robot mm); none: left on the table
+    bin_of: str = ""  # or the bin of another class of the recipe (bolt, nut, a taught type)
 
     def as_json(self) -> dict[str, Any]:
         digest = hashlib.sha256(self.model_json.encode("utf-8")).hexdigest()
-        return {"recipe_id": self.recipe_id, "name": self.name, "model_sha256": digest}
+        out: dict[str, Any] = {"recipe_id": self.recipe_id, "name": self.name, "model_sha256": digest}
+        if self.bin_robot_mm is not None:
+            out["bin_robot_mm"] = list(self.bin_robot_mm)
+        if self.bin_of:
+            out["bin_of"] = self.bin_of
+        return out
 
 
 Request = JobRequest | RecipeRequest | PartTypeRequest  # what a command may carry
@@ -270,3 +277,4 @@ Request = JobRequest | RecipeRequest | PartTypeRequest  # what a command may car
 class CommandResult:
     command: Command
     job_id: str | None = None  # a start command's new job
+    said: tuple[str, ...] = ()  # what the command tells whoever sent it (AddPartType: the bin, the class_no)

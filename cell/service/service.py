@@ -81,7 +81,17 @@ from cell.core.records import Alarm, CalibrationInfo, LiveFrame, PartImage, Snap
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.memory import release_free_memory
 from cell.planning import Planner, table_to_robot
-from cell.recipes import Recipe, RecipeBook, RecipeError, add_taught_type, check_recipe_id, parse_recipe
+from cell.recipes import (
+    Recipe,
+    RecipeBook,
+    RecipeError,
+    add_taught_type,
+    bin_of,
+    check_bin,
+    check_recipe_id,
+    parse_recipe,
+    read_recipe_if_any,
+)
 from cell.runner import Runner, make_parked_arm_safe
 from cell.service.ledger import Ledger
 from cell.service.shiftlog import ShiftLog, iter_since
@@ -311,7 +321,7 @@ class LineService:
             raise BadArgument(command, str(e), self._vstate) from None
         return None
 
-    def _part_type(self, request: Any) -> tuple[str, ShapeModel]:
+    def _part_type(self, request: Any) -> tuple[str, ShapeModel, tuple[float, float, float] | None, str]:
         """AddPartType's arguments: a recipe id (never a path), a valid type name, its model's JSON; the recipe,
         when it exists, valid (a broken recipe is not made worse): BadArgument saying which, before the record."""
         command = Command.ADD_PART_TYPE
@@ -327,13 +337,22 @@ class LineService:
                 command, f"a shape model of {model.name!r}, but the type is named {request.name!r}", self._vstate
             )
         path = self.recipes.path(request.recipe_id)  # RecipeError: not a recipe id
-        if path.exists():
-            try:
-                text = path.read_text(encoding="utf-8")
-            except (OSError, UnicodeDecodeError) as e:
-                raise RecipeError(f"{path}: cannot read recipe: {e}") from None
-            parse_recipe(text, str(path))
-        return request.recipe_id, model
+        recipe = read_recipe_if_any(path)  # a broken recipe is not made worse
+        where, note = None, ""
+        try:
+            if request.bin_robot_mm is not None and request.bin_of:
+                raise BadArgument(command, "give the bin's coordinates or another class's bin, not both", self._vstate)
+            if request.bin_robot_mm is not None:
+                where = check_bin("bin_robot_mm", request.bin_robot_mm, self.config.planning)
+            elif request.bin_of:
+                found = bin_of(recipe, self.config.planning, request.bin_of)
+                where, note = (
+                    check_bin(f"the bin of {request.bin_of}", found, self.config.planning),
+                    f"the bin of {request.bin_of}",
+                )
+        except CellError as e:
+            raise BadArgument(command, str(e) + (f" ({e.hint})" if e.hint else ""), self._vstate) from None
+        return request.recipe_id, model, where, note
 
     def _accept(self, command: Command, origin: Origin, request: Any, payload: Any = None) -> CommandResult:
         try:
@@ -346,10 +365,12 @@ class LineService:
         if handler is None:
             raise BadArgument(command, f"{command.value} is not handled by this service", self._vstate)
         try:
-            job_id = handler(origin, request if payload is None else payload)
+            out = handler(origin, request if payload is None else payload)
         except RecipeError as e:  # the recipe file could not be written or removed after all
             raise BadArgument(command, str(e), self._vstate) from None
-        return CommandResult(command, job_id)
+        if isinstance(out, tuple):  # what the command says back (AddPartType: the bin, the class_no)
+            return CommandResult(command, None, out)
+        return CommandResult(command, out)
 
     def _record_command(
         self, command: Command, origin: Origin, request: Any, refused: CommandRefused | None = None
@@ -444,6 +465,8 @@ class LineService:
                 self._recipe_id,
                 ", ".join(new),
             )
+        if words := self._recipe.unbinned_words(self._recipe_id):  # said once, when the recipe is prepared
+            log.warning("%s", words)
         log.info("recipe %s prepared by %s", self._recipe_id, origin.describe())
 
     def _cmd_unprepare_recipe(self, origin: Origin, request: Any) -> None:
@@ -455,18 +478,28 @@ class LineService:
     def _cmd_remove_recipe(self, origin: Origin, recipe_id: str) -> None:
         self.recipes.remove(recipe_id)
 
-    def _cmd_add_part_type(self, origin: Origin, added: tuple[str, ShapeModel]) -> None:
+    def _cmd_add_part_type(
+        self, origin: Origin, added: tuple[str, ShapeModel, tuple[float, float, float] | None, str]
+    ) -> tuple[str, ...]:
         """The model file beside the recipe and `[types.NAME]` in it, both written whole or not at all (as
         `run-cell part teach`); no job runs (the table), so a prepared recipe is loaded again at once."""
-        recipe_id, model = added
+        recipe_id, model, where, note = added
         try:
             self.recipes.folder.mkdir(parents=True, exist_ok=True)
-            path, sha = add_taught_type(self.recipes.path(recipe_id), model)
+            done = add_taught_type(self.recipes.path(recipe_id), model, where, note)
         except (OSError, ShapeModelError) as e:
             raise RecipeError(f"recipe {recipe_id!r}: the part type {model.name!r} was not written: {e}") from None
-        log.info("part type %s (model %s, sha256 %s) added to recipe %s", model.name, path.name, sha[:12], recipe_id)
+        log.info(
+            "part type %s (model %s, sha256 %s) added to recipe %s: %s",
+            model.name,
+            done.model_path.name,
+            done.sha256[:12],
+            recipe_id,
+            "; ".join(said := done.lines(model.name, recipe_id)),
+        )
         if recipe_id == self._recipe_id:
             self._cmd_prepare_recipe(origin, (recipe_id, *self.recipes.load_with_shapes(recipe_id)))
+        return tuple(said)
 
     def job_config(self) -> CellConfig:
         """The config a job starts with: the cell's, with the prepared recipe's handling and limits."""
@@ -784,7 +817,10 @@ class LineService:
                 self.cell.arm,
                 perception.locate,
                 Planner(
-                    config.planning, table_to_robot(config.planning), None if recipe is None else recipe.taught_plans()
+                    config.planning,
+                    table_to_robot(config.planning),
+                    None if recipe is None else recipe.taught_plans(),
+                    None if recipe is None else recipe.class_numbers(),
                 ),
                 config.run,
                 _JobEvents(self.bus),

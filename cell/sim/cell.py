@@ -265,12 +265,13 @@ def teach_family(name: str, seed: int) -> ExtrudedPart:
 
 @contextlib.contextmanager
 def sim_cell(
-    config: CellConfig, taught: Sequence[tuple[ExtrudedPart, tuple[float, float, float]]] = ()
+    config: CellConfig, taught: Sequence[tuple[ExtrudedPart, tuple[float, float, float] | None]] = ()
 ) -> Iterator[SimCell]:
     """Camera, plate calibration, world and arm of the simulated cell, for a `with` block: an
     emulated arm's pty and emulator run until the block ends, however it ends. `taught`: a
-    recipe's taught types (each its extruded stand-in and its bin, robot mm): the table holds
-    sim.taught_parts_per_type of each in place of the configured layout."""
+    recipe's taught types (each its extruded stand-in and its bin, robot mm, or None: a type the
+    recipe leaves on the table): the table holds sim.taught_parts_per_type of each in place of the
+    configured layout."""
     sim = config.sim
     model = default_camera(config.camera.width_px, config.camera.height_px)
     if sim.perfect_calibration:
@@ -304,7 +305,8 @@ def sim_cell(
         Bin("bolt", plan.bolt.bin_robot_mm[:2], sim.bin_half_size_mm),
         Bin("nut", plan.nut.bin_robot_mm[:2], sim.bin_half_size_mm),
     ]
-    bins = [Bin(t.name, where[:2], sim.bin_half_size_mm) for t, where in taught] + bins  # a type's own bin first
+    own = [Bin(t.name, where[:2], sim.bin_half_size_mm) for t, where in taught if where is not None]
+    bins = own + bins  # a type's own bin first
     tolerance = JawTolerance(
         sim.jaw_across_tolerance_mm,
         sim.jaw_along_tolerance_mm,

@@ -37,7 +37,7 @@ from cell.core.commands import Command, CommandRefused, PartTypeRequest, Refusal
 from cell.core.events import Origin
 from cell.core.records import PartImage
 from cell.errors import REPORTED_ERRORS, CellError
-from cell.recipes import check_recipe_id
+from cell.recipes import RecipeError, bins_of, check_recipe_id, read_recipe_if_any
 from cell.vision.shapes import Example, ShapeModel, TeachRefused
 from cell.vision.teaching import (
     check_height_mm,
@@ -227,9 +227,16 @@ class TeachDesk:
         log.info("teaching %s from %d frame(s): %s", name, len(frames), refusal or "learnt")
         return learnt
 
-    def confirm(self, session_id: str, recipe_id: str, origin: Origin) -> tuple[str, str]:
+    def confirm(
+        self,
+        session_id: str,
+        recipe_id: str,
+        origin: Origin,
+        bin_robot_mm: tuple[float, float, float] | None = None,
+        bin_of: str = "",
+    ) -> tuple[str, str, tuple[str, ...]]:
         """AddPartType through the command table (role, the cell idle, recorded; the files written whole or not at
-        all); then the session is closed. Returns (recipe id, type name)."""
+        all; the bin checked there); then the session is closed. Returns (recipe id, type name, what it said)."""
         self.service.authorize(Command.ADD_PART_TYPE, origin, state=False)  # the role first; refused: recorded
         with self._lock:
             s = self.open(session_id)
@@ -237,13 +244,23 @@ class TeachDesk:
         if learnt is None or learnt.model is None:
             raise NoSession("nothing learnt to confirm: give the name and height, and teach from the frames first")
         check_recipe_id(recipe_id)
-        request = PartTypeRequest(recipe_id, learnt.name, learnt.model.to_json())
-        self.service.command(Command.ADD_PART_TYPE, origin, request)  # CommandRefused: nothing written
+        request = PartTypeRequest(recipe_id, learnt.name, learnt.model.to_json(), bin_robot_mm, bin_of)
+        result = self.service.command(Command.ADD_PART_TYPE, origin, request)  # CommandRefused: nothing written
         with self._lock:
             if self.session is s:
                 self._touch(None)
         log.info("part type %s added to recipe %s by %s", learnt.name, recipe_id, origin.describe())
-        return recipe_id, learnt.name
+        return recipe_id, learnt.name, result.said
+
+    def bins(self, recipe_id: str) -> dict[str, tuple[float, float, float]]:
+        """The classes of a recipe that have a bin (bolt and nut: the recipe's, else the config's), each with it:
+        what a new type may share. A recipe not there yet: bolt's and nut's. RecipeError when it cannot be read."""
+        check_recipe_id(recipe_id)
+        try:
+            path = self.service.recipes.info(recipe_id).path
+        except RecipeError:  # not there yet: confirming creates it
+            return bins_of(None, self.config.planning)
+        return bins_of(read_recipe_if_any(path), self.config.planning)
 
     def cancel(self, session_id: str, origin: Origin) -> None:
         """The session discarded: AddPartType's role first (a refusal changes nothing), then recorded."""
@@ -344,6 +361,7 @@ class TeachRoutes:
             *(Route(path, self.static_file) for path in STATIC),
             Route("/api/teach", self.state),
             Route("/api/teach/capture", self.capture, methods=["POST"]),
+            Route("/api/teach/bins", self.bins),
             Route("/api/teach/{session_id}/frame/{n:int}.jpg", self.picture),
             Route("/api/teach/{session_id}/{step}", self.step, methods=["POST"]),
         ]
@@ -373,6 +391,18 @@ class TeachRoutes:
         except REPORTED_ERRORS as e:  # the camera failed
             return _error(503, f"no frame from the camera: {e}", getattr(e, "hint", "") or "")
         return JSONResponse(session_json(s, self._active_recipe()))
+
+    async def bins(self, request: Request) -> Response:
+        """The bins a new type of recipe `recipe_id` may share: {"bins": [{"class", "bin_robot_mm"}]}."""
+        if refused := self.view_refused(request):
+            return refused
+        recipe_id = request.query_params.get("recipe_id", "")
+        try:
+            found = await run_in_threadpool(self.desk.bins, recipe_id)
+        except REPORTED_ERRORS as e:
+            return _error(422, e.args[0] if e.args else str(e), getattr(e, "hint", "") or "")
+        rows = [{"class": cls, "bin_robot_mm": list(where)} for cls, where in found.items()]
+        return JSONResponse({"recipe_id": recipe_id, "bins": rows})
 
     async def picture(self, request: Request) -> Response:
         if refused := self.view_refused(request):
@@ -416,14 +446,30 @@ class TeachRoutes:
                 if learnt.model is None:
                     return _error(422, learnt.refusal, learnt.hint, **reply)
                 return JSONResponse(reply)
-            recipe_id = sent.get("recipe_id")
-            if not isinstance(recipe_id, str):
-                return _error(400, 'send JSON {"recipe_id": "..."}')
-            recipe, name = await run_in_threadpool(self.desk.confirm, session_id, recipe_id, origin)
+            recipe_id, where, of = sent.get("recipe_id"), sent.get("bin_robot_mm"), sent.get("bin_of") or ""
+            if (
+                not isinstance(recipe_id, str)
+                or not isinstance(of, str)
+                or not (where is None or _three_numbers(where))
+            ):
+                return _error(
+                    400,
+                    'send JSON {"recipe_id": "...", "bin_robot_mm": [x, y, z] or null, "bin_of": "..." or ""}',
+                )
+            bin_mm = None if where is None else (float(where[0]), float(where[1]), float(where[2]))
+            recipe, name, said = await run_in_threadpool(self.desk.confirm, session_id, recipe_id, origin, bin_mm, of)
         except CommandRefused as e:
             return _refused(e)
         except (NoSession, Full) as e:
             return _error(409, str(e))
         except REPORTED_ERRORS as e:  # a name, height or recipe id not allowed
             return _error(422, e.args[0] if e.args else str(e), getattr(e, "hint", "") or "")
-        return JSONResponse({"ok": True, "recipe_id": recipe, "name": name})
+        return JSONResponse({"ok": True, "recipe_id": recipe, "name": name, "said": list(said)})
+
+
+def _three_numbers(value: object) -> bool:
+    return (
+        isinstance(value, list)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    )

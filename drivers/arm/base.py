@@ -40,6 +40,7 @@ class PickPlan:
     approach_z_mm: float
     angle_deg: float | None
     bin_mm: tuple[float, float, float]
+    class_no: int = 0  # the number the cell gives the part's class (its recipe's); 0: none
 
 
 class Arm(Device):

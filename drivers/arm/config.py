@@ -318,7 +318,8 @@ class RobotServerConfig(Strict):
     )
     class_numbers: dict[str, int] = Field(
         {"bolt": 1, "nut": 2},
-        description="the class_no the robot is told for each part class; a class not listed is 0",
+        description="the class_no the robot is told for each part class, over the recipe's: a class not listed gets "
+        "its recipe's number (bolt 1, nut 2, a taught type its types.NAME.class_no), else 0",
     )
 
     @field_validator("allow")

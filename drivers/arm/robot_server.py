@@ -162,7 +162,7 @@ class PickBoard:
     def offer(self, plan: PickPlan) -> Pick:
         with self._cond:
             self._retire()
-            pick = Pick(next(self._numbers), plan, self.cfg.class_numbers.get(plan.cls, 0))
+            pick = Pick(next(self._numbers), plan, self.cfg.class_numbers.get(plan.cls, plan.class_no))
             self._current = pick
             self._cond.notify_all()
             return pick

@@ -83,12 +83,47 @@ function renderLearnt(l) {
   render();
 }
 
+// The bins a new type may share: the recipe's bolt and nut (or the config's) and its taught types with one.
+async function loadBins() {
+  const recipe = $("teach-recipe").value.trim();
+  const select = $("teach-bin-of");
+  if (!recipe) return;
+  let r;
+  try {
+    r = await call(`/api/teach/bins?recipe_id=${encodeURIComponent(recipe)}`);
+  } catch (e) {
+    $("teach-said").textContent = `No bins listed: ${refusedWords(e)}`;
+    return;
+  }
+  const kept = select.value;  // the list is replaced whole, once the answer is in: a choice is never lost
+  select.replaceChildren(...r.bins.map((b) => {
+    const option = document.createElement("option");
+    option.value = b.class;
+    option.textContent = `${b.class} (${b.bin_robot_mm.map((v) => v.toFixed(1)).join(", ")})`;
+    return option;
+  }));
+  if (kept && r.bins.some((b) => b.class === kept)) select.value = kept;
+}
+
+// What Confirm sends about the bin: none, another class's, or coordinates.
+function binChoice() {
+  const kind = document.querySelector('input[name="teach-bin-kind"]:checked').value;
+  if (kind === "of") return $("teach-bin-of").value ? { bin_of: $("teach-bin-of").value } : null;
+  if (kind === "at") {
+    const xyz = ["x", "y", "z"].map((a) => $(`teach-bin-${a}`).value.trim());
+    if (xyz.some((v) => v === "" || !Number.isFinite(Number(v)))) return null;
+    return { bin_robot_mm: xyz.map(Number) };
+  }
+  return {};
+}
+
 async function load() {
   const s = await call("/api/session");
   canControl = s.can_control;
   csrf = s.csrf;
   session = await call("/api/teach");
   if (!$("teach-recipe").value) $("teach-recipe").value = session.active_recipe || "taught-parts";
+  await loadBins();
   renderLearnt(session.learnt);
   window.teachStats.loads += 1;
   render();
@@ -130,13 +165,21 @@ async function learn(event) {
 }
 
 async function confirmType() {
+  const bin = binChoice();
+  if (bin === null) {
+    showMessage("Refused: give the bin's X, Y and Z in robot mm, or choose the class whose bin it shares.", true);
+    return;
+  }
   $("teach-ok").disabled = true;
   try {
-    const r = await call(`/api/teach/${session.session}/confirm`, { recipe_id: $("teach-recipe").value.trim() });
+    const r = await call(`/api/teach/${session.session}/confirm`, { recipe_id: $("teach-recipe").value.trim(), ...bin });
     window.teachStats.confirmed = r;
     showMessage(`Added "${r.name}" to recipe ${r.recipe_id}.`);
+    $("teach-said").textContent = (r.said || []).join(" ");
+    $("teach-said").classList.toggle("bad", (r.said || []).some((line) => line.includes("no bin")));
     session = { session: null };
     renderLearnt(null);
+    await loadBins();
   } catch (e) {
     showMessage(`Refused: ${refusedWords(e)}`, true);
   }
@@ -160,5 +203,8 @@ document.addEventListener("DOMContentLoaded", () => {
   $("teach-form").addEventListener("submit", learn);
   $("teach-ok").addEventListener("click", confirmType);
   $("teach-cancel").addEventListener("click", cancel);
+  $("teach-recipe").addEventListener("change", loadBins);
+  $("teach-bin-of").addEventListener("change", () => { $("teach-bin-shared").checked = true; });
+  for (const a of ["x", "y", "z"]) $(`teach-bin-${a}`).addEventListener("input", () => { $("teach-bin-at").checked = true; });
   load().catch((e) => showMessage(`Cannot load: ${refusedWords(e)}`, true));
 });
