@@ -248,34 +248,43 @@ class _Grid:
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
         """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
         e^{-i k phi}, k = 1..K."""
-        idx = np.flatnonzero(mask)
-        ring = self.ring.ravel()[idx]
-        inside = ring < RINGS
-        ring, z = ring[inside], self.rotor.ravel()[idx][inside]
-        order = np.argsort(ring, kind="stable")
-        ring, z = ring[order], z[order] * 1.0
-        powers = np.cumprod(np.broadcast_to(z, (HARMONICS, z.size)), axis=0)  # e^{-i k phi}, k = 1..K
-        powers *= mask.ravel()[idx][inside][order]
-        out = np.zeros((RINGS, HARMONICS), np.complex128)
-        present = np.flatnonzero(np.bincount(ring, minlength=RINGS))
-        if present.size:
-            starts = np.searchsorted(ring, present)
-            out[present] = np.add.reduceat(powers, starts, axis=1).T
-        return out
+        order, starts, powers = self._powers()
+        w = mask.ravel()[order].astype(np.float64)
+        out = np.empty((2 * HARMONICS, RINGS))
+        ends = [*starts[1:], len(order)]
+        for r in range(RINGS):
+            out[:, r] = powers[:, starts[r] : ends[r]] @ w[starts[r] : ends[r]]
+        return (out[:HARMONICS] + 1j * out[HARMONICS:]).T
+
+    def _powers(self) -> tuple[np.ndarray, list[int], np.ndarray]:
+        """The pixels inside the rings ordered by ring, where each ring starts, and per pixel the
+        real and imaginary parts of e^{-i k phi}, k = 1..K ((2K, N), in that order): made once per
+        grid (a model's), so that a footprint's harmonics are a product per ring."""
+        cached = self.__dict__.get("_powers_cache")
+        if cached is None:
+            ring = self.ring.ravel()
+            order = np.flatnonzero(ring < RINGS)
+            order = order[np.argsort(ring[order], kind="stable")]
+            starts = [int(v) for v in np.searchsorted(ring[order], np.arange(RINGS))]
+            z = np.power.outer(self.rotor.ravel()[order], _K).T  # (K, N)
+            cached = (order, starts, np.ascontiguousarray(np.vstack([z.real, z.imag])))
+            object.__setattr__(self, "_powers_cache", cached)
+        return cached
 
     def soft_harmonics(self, outer: np.ndarray, holes: Sequence[np.ndarray]) -> np.ndarray:
         return self.harmonics(self.draw(outer, holes, soft=True))
 
 
 _K = np.arange(1, HARMONICS + 1)
-_COARSE = np.exp(1j * np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False)))
+_COARSE_PHASE = np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False))
+_COARSE_COS, _COARSE_SIN = np.cos(_COARSE_PHASE), np.sin(_COARSE_PHASE)
 
 
 def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> float:
     """The angle the model is turned by to look like the measured shape (harmonics of both,
     `_Grid.harmonics`), degrees in [0, 360 / order)."""
     g = np.sum(measured * np.conj(model), axis=0)  # per k: |.|^2 e^{-i k alpha}
-    corr = (g[:, None] * _COARSE).real.sum(axis=0)
+    corr = g.real @ _COARSE_COS - g.imag @ _COARSE_SIN  # Re(g e^{i k beta}) summed over k, per beta
     beta = 2 * np.pi * int(np.argmax(corr)) / _COARSE_STEPS
     w = np.abs(g)
     for _ in range(3):
@@ -728,17 +737,35 @@ def footprint_of_blob(
     min_hole_px: float,
 ) -> tuple[np.ndarray, list[np.ndarray]] | None:
     """The blob's silhouette (outer, holes) on the table plane, table mm; None if no edge is seen."""
-    got = fine_outlines(gray, outline_px, fraction, min_hole_px)
-    if got is None:
-        return None
-    outer, holes = got
-    polys = [_thin(outer), *(_thin(h) for h in holes)]
-    mapped = np.asarray(mapper.pixel_to_table_mm(np.vstack(polys))).reshape(-1, 2)
-    out, start = [], 0
-    for p in polys:
-        out.append(mapped[start : start + len(p)])
-        start += len(p)
-    return out[0], out[1:]
+    return footprints_of_blobs(gray, [outline_px], mapper, fraction, [min_hole_px])[0]
+
+
+def footprints_of_blobs(
+    gray: np.ndarray,
+    outlines_px: Sequence[np.ndarray],
+    mapper,
+    fraction: float,
+    min_hole_px: Sequence[float],
+) -> list[tuple[np.ndarray, list[np.ndarray]] | None]:
+    """footprint_of_blob for many blobs, their outlines mapped onto the table in one call (a
+    calibration's mapping costs mostly per call)."""
+    polys_of: list[list[np.ndarray] | None] = []
+    for outline_px, min_hole in zip(outlines_px, min_hole_px, strict=True):
+        got = fine_outlines(gray, outline_px, fraction, min_hole)
+        polys_of.append(None if got is None else [_thin(got[0]), *(_thin(h) for h in got[1])])
+    given = [p for polys in polys_of if polys is not None for p in polys]
+    if not given:
+        return [None] * len(polys_of)
+    mapped = np.asarray(mapper.pixel_to_table_mm(np.vstack(given))).reshape(-1, 2)
+    pieces = iter(np.split(mapped, np.cumsum([len(p) for p in given])[:-1]))
+    out: list[tuple[np.ndarray, list[np.ndarray]] | None] = []
+    for polys in polys_of:
+        if polys is None:
+            out.append(None)
+            continue
+        mine = [next(pieces) for _ in polys]
+        out.append((mine[0], mine[1:]))
+    return out
 
 
 def _thin(outline_px: np.ndarray) -> np.ndarray:
