@@ -39,6 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cell.errors import CellError
+from cell.vision.subpixel import median_level
 
 SCHEMA = "pick-cell.shape-model"
 SCHEMA_VERSION = 1
@@ -77,8 +78,7 @@ class Footprint:
     anisotropy: float = 0.0  # (l1 - l2) / (l1 + l2) of the second moments: 0 round inertia
 
     def __post_init__(self) -> None:
-        m = _moments(self.outer) - sum((_moments(h) for h in self.holes), np.zeros(6))
-        a, sx, sy, sxx, syy, sxy = m
+        a, sx, sy, sxx, syy, sxy = net_moments([self.outer, *self.holes])
         if a <= 0:
             self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
             return
@@ -94,6 +94,40 @@ class Footprint:
         a = math.radians(angle_deg)
         rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
         return (self.outer - centre) @ rot.T, [(h - centre) @ rot.T for h in self.holes]
+
+
+def net_moments(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """_moments of the first polygon less those of the others (its holes), all in one pass."""
+    if len(polys) == 1:
+        return _moments(polys[0])
+    pts = np.concatenate(polys)
+    x, y = pts[:, 0], pts[:, 1]
+    nxt = _next_index(polys)
+    xn, yn = x[nxt], y[nxt]
+    c = x * yn - xn * y
+    terms = np.stack(
+        [
+            c / 2,
+            (x + xn) * c / 6,
+            (y + yn) * c / 6,
+            (x * x + x * xn + xn * xn) * c / 12,
+            (y * y + y * yn + yn * yn) * c / 12,
+            (x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c / 24,
+        ]
+    )
+    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
+    per = np.add.reduceat(terms, starts, axis=1)  # (6, polygons)
+    per *= np.where(per[0] < 0, -1.0, 1.0)  # each orientation-free
+    return per[:, 0] - per[:, 1:].sum(axis=1)
+
+
+def _next_index(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """For the polygons stacked, the index of each point's successor along its own polygon."""
+    n = np.array([len(p) for p in polys])
+    ends = np.cumsum(n)
+    nxt = np.arange(1, ends[-1] + 1)
+    nxt[ends - 1] = ends - n
+    return nxt
 
 
 def _moments(poly: np.ndarray) -> np.ndarray:
@@ -126,7 +160,7 @@ def fine_outlines(
     paper = roi[cv2.dilate(part, np.ones((5, 5), np.uint8)) == 0]
     if paper.size < 16:
         return None
-    level = fraction * float(np.median(paper))
+    level = fraction * median_level(paper)
     k = int(np.clip(round(_SAMPLES_ACROSS / max(w, h, 1)), 1, _UPSAMPLE))
     up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR) if k > 1 else roi
     dark = (up < level).astype(np.uint8)
@@ -167,11 +201,21 @@ def _normals(poly: np.ndarray) -> np.ndarray:
 def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
     """Per point of the outer outline (first) and the holes: whether its side faces away from the
     camera's foot (what is seen there is the part's top edge)."""
-    out = []
-    for k, poly in enumerate(polys):
-        n = _normals(poly) * (1.0 if k == 0 else -1.0)  # from the material into the air
-        out.append(np.einsum("ij,ij->i", n, foot - poly) < 0)
-    return out
+    pts = np.concatenate(polys)
+    nxt = _next_index(polys)
+    prv = np.empty_like(nxt)
+    prv[nxt] = np.arange(len(nxt))
+    d = pts[nxt] - pts[prv]
+    n = np.column_stack([d[:, 1], -d[:, 0]])  # the right-hand normal (its length does not matter here)
+    x, y = pts[:, 0], pts[:, 1]
+    turn = x * pts[nxt, 1] - pts[nxt, 0] * y
+    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
+    # Clockwise: the right-hand normal points in; a hole's normal from the material into the air is
+    # the one pointing into the hole.
+    sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
+    sign[1:] *= -1.0
+    facing = np.einsum("ij,ij->i", n, foot - pts) * np.repeat(sign, [len(p) for p in polys])
+    return np.split(facing < 0, starts[1:])
 
 
 def footprint_from_table(
@@ -210,9 +254,10 @@ class _Grid:
     size: int
     ring: np.ndarray  # int, per pixel (RINGS: outside the largest ring)
     rotor: np.ndarray  # complex e^{-i phi} per pixel
+    tabled: bool = False  # the harmonics from a table of every pixel's powers (a model's matching grid)
 
     @staticmethod
-    def make(step_mm: float, radius_mm: float) -> _Grid:
+    def make(step_mm: float, radius_mm: float, tabled: bool = False) -> _Grid:
         size = int(2 * math.ceil(radius_mm / step_mm) + 8)
         c = (size - 1) / 2
         yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
@@ -220,7 +265,7 @@ class _Grid:
         r = np.hypot(x, y)
         ring = np.minimum((r / radius_mm * RINGS).astype(np.int64), RINGS)
         rotor = np.exp(-1j * np.arctan2(y, x))
-        return _Grid(step_mm, size, ring, rotor)
+        return _Grid(step_mm, size, ring, rotor, tabled)
 
     def draw(self, outer: np.ndarray, holes: Sequence[np.ndarray], soft: bool = False) -> np.ndarray:
         """uint8 mask of a footprint given in the grid's frame (origin at the centre, mm): 0/1, or
@@ -228,9 +273,10 @@ class _Grid:
         c = (self.size - 1) / 2
         shift = 4
 
+        flip = np.array([self.step_mm, -self.step_mm])
+
         def px(p: np.ndarray) -> np.ndarray:
-            q = np.column_stack([c + p[:, 0] / self.step_mm, c - p[:, 1] / self.step_mm])
-            return np.rint(q * (1 << shift)).astype(np.int32)
+            return np.rint((p / flip + c) * (1 << shift)).astype(np.int32)
 
         m = np.zeros((self.size, self.size), np.uint8)
         on, line = (255, cv2.LINE_AA) if soft else (1, cv2.LINE_8)
@@ -239,15 +285,24 @@ class _Grid:
             cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
         return m
 
+    def draw_all(self, polys: Sequence[np.ndarray]) -> np.ndarray:
+        """0/1 mask of polygons that do not overlap (the grid's frame, mm), as draw() draws each."""
+        m = np.zeros((self.size, self.size), np.uint8)
+        for p in polys:
+            self.fill(m, p)
+        return m
+
     def fill(self, mask: np.ndarray, poly: np.ndarray) -> None:
         """Paint a polygon (the grid's frame, mm) into a 0/1 mask."""
         c = (self.size - 1) / 2
-        q = np.column_stack([c + poly[:, 0] / self.step_mm, c - poly[:, 1] / self.step_mm])
+        q = poly / np.array([self.step_mm, -self.step_mm]) + c
         cv2.fillPoly(mask, [np.rint(q * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
 
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
         """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
         e^{-i k phi}, k = 1..K."""
+        if not self.tabled:
+            return self._harmonics_direct(mask)
         order, starts, powers = self._powers()
         w = mask.ravel()[order].astype(np.float64)
         out = np.empty((2 * HARMONICS, RINGS))
@@ -255,6 +310,23 @@ class _Grid:
         for r in range(RINGS):
             out[:, r] = powers[:, starts[r] : ends[r]] @ w[starts[r] : ends[r]]
         return (out[:HARMONICS] + 1j * out[HARMONICS:]).T
+
+    def _harmonics_direct(self, mask: np.ndarray) -> np.ndarray:
+        """harmonics() without the table (a grid used a few times: teaching's)."""
+        idx = np.flatnonzero(mask)
+        ring = self.ring.ravel()[idx]
+        inside = ring < RINGS
+        ring, z = ring[inside], self.rotor.ravel()[idx][inside]
+        order = np.argsort(ring, kind="stable")
+        ring, z = ring[order], z[order] * 1.0
+        powers = np.cumprod(np.broadcast_to(z, (HARMONICS, z.size)), axis=0)  # e^{-i k phi}, k = 1..K
+        powers *= mask.ravel()[idx][inside][order]
+        out = np.zeros((RINGS, HARMONICS), np.complex128)
+        present = np.flatnonzero(np.bincount(ring, minlength=RINGS))
+        if present.size:
+            starts = np.searchsorted(ring, present)
+            out[present] = np.add.reduceat(powers, starts, axis=1).T
+        return out
 
     def _powers(self) -> tuple[np.ndarray, list[int], np.ndarray]:
         """The pixels inside the rings ordered by ring, where each ring starts, and per pixel the
@@ -298,8 +370,13 @@ def misfit_mm2(a: np.ndarray, b: np.ndarray, step_mm: float) -> float:
     """Area where two masks differ, beyond an opening of FIT_OPENING_MM (edge noise left out)."""
     diff = cv2.bitwise_xor(a, b)
     r = max(1, int(round(FIT_OPENING_MM / step_mm)))
+    # Only about the differences (the opening of a region keeps within r of it: the same count).
+    x, y, w, h = cv2.boundingRect(diff)
+    if w == 0 or h == 0:
+        return 0.0
+    roi = diff[max(y - r, 0) : y + h + r, max(x - r, 0) : x + w + r]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return float(np.count_nonzero(cv2.morphologyEx(diff, cv2.MORPH_OPEN, kernel))) * step_mm**2
+    return float(np.count_nonzero(cv2.morphologyEx(roi, cv2.MORPH_OPEN, kernel))) * step_mm**2
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -342,10 +419,13 @@ def predicted_silhouette(
     mask = np.zeros((grid.size, grid.size), np.uint8)
     for t in np.linspace(0.0, 1.0, layers):
         grid.fill(mask, placed + t * (top - placed))
-    for h in placed_holes:
-        light = grid.draw(h, []) & grid.draw(foot + (h - foot) * grow, [])
-        mask &= 1 - light
-    return mask
+    if not placed_holes:
+        return mask
+    # The light passes where a hole's bottom and top openings overlap (the holes lie apart by more
+    # than the sweep, so each hole's bottom meets only its own top).
+    bottoms = grid.draw_all(placed_holes)
+    tops = grid.draw_all([foot + (h - foot) * grow for h in placed_holes])
+    return cv2.subtract(mask, cv2.bitwise_and(bottoms, tops))
 
 
 def sweep_mm(centre_mm: np.ndarray, height_mm: float, camera_centre: np.ndarray | None) -> float:
@@ -426,7 +506,9 @@ class ShapeModel:
         self.radius_mm = float(np.max(np.hypot(*self.outline_mm.T)))
         step = grid_step_mm(self.area_mm2)
         self._grid = _Grid.make(step, self.radius_mm * 1.1 + 3.0)
-        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0)
+        # The matching grid's powers are tabled on the first match (a few MB): a taught type is
+        # matched against many blobs, its harmonics then a product per ring.
+        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0, tabled=True)
         self._harm = self._coarse.soft_harmonics(self.outline_mm, self.holes_mm)
 
     # -- finding
