@@ -74,20 +74,33 @@ class Footprint:
     holes: list[np.ndarray]
     area_mm2: float = 0.0
     centroid_mm: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    principal_deg: float = 0.0
-    anisotropy: float = 0.0  # (l1 - l2) / (l1 + l2) of the second moments: 0 round inertia
 
     def __post_init__(self) -> None:
-        a, sx, sy, sxx, syy, sxy = net_moments([self.outer, *self.holes])
+        a, sx, sy = net_moments([self.outer, *self.holes], second=False)
         if a <= 0:
             self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
             return
-        cx, cy = sx / a, sy / a
-        mxx, myy, mxy = sxx / a - cx * cx, syy / a - cy * cy, sxy / a - cx * cy
         self.area_mm2 = float(a)
-        self.centroid_mm = np.array([cx, cy])
-        self.principal_deg = math.degrees(0.5 * math.atan2(2 * mxy, mxx - myy))
-        self.anisotropy = float(math.hypot(mxx - myy, 2 * mxy) / max(mxx + myy, 1e-12))
+        self.centroid_mm = np.array([sx / a, sy / a])
+
+    def _inertia(self) -> tuple[float, float, float]:
+        """Second moments about the centroid per unit area (mxx, myy, mxy): made when asked (teaching)."""
+        a, sx, sy, sxx, syy, sxy = net_moments([self.outer, *self.holes])
+        if a <= 0:
+            return 0.0, 0.0, 0.0
+        cx, cy = sx / a, sy / a
+        return sxx / a - cx * cx, syy / a - cy * cy, sxy / a - cx * cy
+
+    @property
+    def principal_deg(self) -> float:
+        mxx, myy, mxy = self._inertia()
+        return math.degrees(0.5 * math.atan2(2 * mxy, mxx - myy))
+
+    @property
+    def anisotropy(self) -> float:
+        """(l1 - l2) / (l1 + l2) of the second moments: 0 round inertia."""
+        mxx, myy, mxy = self._inertia()
+        return float(math.hypot(mxx - myy, 2 * mxy) / max(mxx + myy, 1e-12))
 
     def in_frame(self, centre: np.ndarray, angle_deg: float) -> tuple[np.ndarray, list[np.ndarray]]:
         """The outline and holes moved to `centre` and turned by -angle (into a part's frame)."""
@@ -96,27 +109,25 @@ class Footprint:
         return (self.outer - centre) @ rot.T, [(h - centre) @ rot.T for h in self.holes]
 
 
-def net_moments(polys: Sequence[np.ndarray]) -> np.ndarray:
-    """_moments of the first polygon less those of the others (its holes), all in one pass."""
+def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
+    """_moments of the first polygon less those of the others (its holes), all in one pass; without
+    `second`, the area and first moments alone."""
     if len(polys) == 1:
-        return _moments(polys[0])
+        return _moments(polys[0]) if second else _moments(polys[0])[:3]
     pts = np.concatenate(polys)
     x, y = pts[:, 0], pts[:, 1]
     nxt = _next_index(polys)
     xn, yn = x[nxt], y[nxt]
     c = x * yn - xn * y
-    terms = np.stack(
-        [
-            c / 2,
-            (x + xn) * c / 6,
-            (y + yn) * c / 6,
+    rows = [c / 2, (x + xn) * c / 6, (y + yn) * c / 6]
+    if second:
+        rows += [
             (x * x + x * xn + xn * xn) * c / 12,
             (y * y + y * yn + yn * yn) * c / 12,
             (x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c / 24,
         ]
-    )
     starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
-    per = np.add.reduceat(terms, starts, axis=1)  # (6, polygons)
+    per = np.add.reduceat(np.stack(rows), starts, axis=1)  # (terms, polygons)
     per *= np.where(per[0] < 0, -1.0, 1.0)  # each orientation-free
     return per[:, 0] - per[:, 1:].sum(axis=1)
 
@@ -163,11 +174,12 @@ def fine_outlines(
     level = fraction * median_level(paper)
     k = int(np.clip(round(_SAMPLES_ACROSS / max(w, h, 1)), 1, _UPSAMPLE))
     up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR) if k > 1 else roi
-    dark = (up < level).astype(np.uint8)
+    # 1 where up < level: for whole levels, up <= ceil(level) - 1.
+    _, dark = cv2.threshold(up, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
     # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
     keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
     keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
-    dark &= keep > 0
+    cv2.bitwise_and(dark, keep, dst=dark)
     contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if not contours or hierarchy is None:
         return None
@@ -187,35 +199,28 @@ def fine_outlines(
     return px(contours[best]), holes
 
 
-def _normals(poly: np.ndarray) -> np.ndarray:
-    """Unit normal at each vertex pointing out of the polygon's interior (either orientation)."""
-    nxt, prv = np.concatenate((poly[1:], poly[:1])), np.concatenate((poly[-1:], poly[:-1]))
-    d = nxt - prv
-    n = np.column_stack([d[:, 1], -d[:, 0]])
-    x, y = poly[:, 0], poly[:, 1]
-    if (x * nxt[:, 1] - nxt[:, 0] * y).sum() < 0:  # clockwise: the right-hand normal points in
-        n = -n
-    return n / np.maximum(np.hypot(n[:, 0], n[:, 1]), 1e-12)[:, None]
-
-
 def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
     """Per point of the outer outline (first) and the holes: whether its side faces away from the
     camera's foot (what is seen there is the part's top edge)."""
-    pts = np.concatenate(polys)
+    return np.split(_far_stacked(np.concatenate(polys), polys, foot), np.cumsum([len(p) for p in polys[:-1]]))
+
+
+def _far_stacked(pts: np.ndarray, polys: Sequence[np.ndarray], foot: np.ndarray) -> np.ndarray:
+    """far_sides for the polygons stacked (`pts`), as one array."""
+    n = [len(p) for p in polys]
     nxt = _next_index(polys)
-    prv = np.empty_like(nxt)
-    prv[nxt] = np.arange(len(nxt))
-    d = pts[nxt] - pts[prv]
-    n = np.column_stack([d[:, 1], -d[:, 0]])  # the right-hand normal (its length does not matter here)
+    prv = np.arange(-1, len(pts) - 1)
+    starts = nxt[np.cumsum(n) - 1]
+    prv[starts] = np.cumsum(n) - 1
     x, y = pts[:, 0], pts[:, 1]
-    turn = x * pts[nxt, 1] - pts[nxt, 0] * y
-    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
+    dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
     # Clockwise: the right-hand normal points in; a hole's normal from the material into the air is
     # the one pointing into the hole.
+    turn = x * y[nxt] - x[nxt] * y
     sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
     sign[1:] *= -1.0
-    facing = np.einsum("ij,ij->i", n, foot - pts) * np.repeat(sign, [len(p) for p in polys])
-    return np.split(facing < 0, starts[1:])
+    facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
+    return facing < 0
 
 
 def footprint_from_table(
@@ -234,12 +239,11 @@ def footprint_from_table(
         return Footprint(polys[0], polys[1:])
     foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
     shrink = 1.0 - height_mm / cam_h
-    far = far_sides(polys, foot) if far is None else far
-    out = []
-    for poly, f in zip(polys, far, strict=True):
-        moved = poly.copy()
-        moved[f] = foot + (poly[f] - foot) * shrink
-        out.append(moved)
+    pts = np.concatenate(polys)
+    f = _far_stacked(pts, polys, foot) if far is None else np.concatenate(far)
+    moved = pts.copy()
+    moved[f] = foot + (pts[f] - foot) * shrink
+    out = np.split(moved, np.cumsum([len(p) for p in polys[:-1]]))
     return Footprint(out[0], out[1:])
 
 
@@ -285,18 +289,14 @@ class _Grid:
             cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
         return m
 
-    def draw_all(self, polys: Sequence[np.ndarray]) -> np.ndarray:
-        """0/1 mask of polygons that do not overlap (the grid's frame, mm), as draw() draws each."""
-        m = np.zeros((self.size, self.size), np.uint8)
-        for p in polys:
-            self.fill(m, p)
-        return m
+    def fixed(self, poly: np.ndarray) -> np.ndarray:
+        """A polygon (the grid's frame, mm) in the grid's pixels, fixed point (4 bits), as fill() paints it."""
+        c = (self.size - 1) / 2
+        return np.rint((poly / np.array([self.step_mm, -self.step_mm]) + c) * 16).astype(np.int32)
 
     def fill(self, mask: np.ndarray, poly: np.ndarray) -> None:
         """Paint a polygon (the grid's frame, mm) into a 0/1 mask."""
-        c = (self.size - 1) / 2
-        q = poly / np.array([self.step_mm, -self.step_mm]) + c
-        cv2.fillPoly(mask, [np.rint(q * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+        cv2.fillPoly(mask, [self.fixed(poly)], 1, cv2.LINE_8, 4)
 
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
         """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
@@ -368,21 +368,22 @@ def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> flo
 
 def misfit_mm2(a: np.ndarray, b: np.ndarray, step_mm: float) -> float:
     """Area where two masks differ, beyond an opening of FIT_OPENING_MM (edge noise left out)."""
+    return fit(a, b, step_mm)[0]
+
+
+def fit(a: np.ndarray, b: np.ndarray, step_mm: float) -> tuple[float, float]:
+    """misfit_mm2 of two 0/1 masks and their overlap (intersection over union), from one difference."""
     diff = cv2.bitwise_xor(a, b)
     r = max(1, int(round(FIT_OPENING_MM / step_mm)))
+    na, nb, nd = cv2.countNonZero(a), cv2.countNonZero(b), cv2.countNonZero(diff)
+    overlap = (na + nb - nd) / (na + nb + nd) if na + nb + nd else 0.0  # twice the intersection over twice the union
     # Only about the differences (the opening of a region keeps within r of it: the same count).
     x, y, w, h = cv2.boundingRect(diff)
     if w == 0 or h == 0:
-        return 0.0
+        return 0.0, overlap
     roi = diff[max(y - r, 0) : y + h + r, max(x - r, 0) : x + w + r]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return float(np.count_nonzero(cv2.morphologyEx(roi, cv2.MORPH_OPEN, kernel))) * step_mm**2
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    inter = np.count_nonzero(cv2.bitwise_and(a, b))
-    union = np.count_nonzero(cv2.bitwise_or(a, b))
-    return inter / union if union else 0.0
+    return float(np.count_nonzero(cv2.morphologyEx(roi, cv2.MORPH_OPEN, kernel))) * step_mm**2, overlap
 
 
 def _turn(points: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -407,25 +408,39 @@ def predicted_silhouette(
     """The mask (grid about `centre_mm`, table axes) of the shadow a prism with this footprint
     (part frame), placed at `centre_mm` turned by `angle_deg`, casts on the table seen from the
     camera centre: its bottom face swept to its top face, the holes open where both openings are."""
-    placed = _turn(outer, angle_deg)
-    placed_holes = [_turn(h, angle_deg) for h in holes]
     if camera_centre is None or height_mm <= 0:
-        return grid.draw(placed, placed_holes)
+        return grid.draw(_turn(outer, angle_deg), [_turn(h, angle_deg) for h in holes])
+    # Every point at once: the outline's first, then the holes'.
+    n = len(outer)
+    placed = _turn(np.concatenate([outer, *holes]) if holes else outer, angle_deg)
     foot = np.asarray(camera_centre[:2], float) - centre_mm
     grow = float(camera_centre[2]) / (float(camera_centre[2]) - height_mm)
     top = foot + (placed - foot) * grow
-    sweep = float(np.max(np.hypot(*(top - placed).T)))
+    up = top[:n] - placed[:n]
+    sweep = float(np.sqrt(np.max(np.einsum("ij,ij->i", up, up))))
     layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
     mask = np.zeros((grid.size, grid.size), np.uint8)
-    for t in np.linspace(0.0, 1.0, layers):
-        grid.fill(mask, placed + t * (top - placed))
-    if not placed_holes:
+    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    for q in grid.fixed(placed[:n] + steps * up):
+        cv2.fillPoly(mask, [q], 1, cv2.LINE_8, 4)
+    if not holes:
         return mask
     # The light passes where a hole's bottom and top openings overlap (the holes lie apart by more
-    # than the sweep, so each hole's bottom meets only its own top).
-    bottoms = grid.draw_all(placed_holes)
-    tops = grid.draw_all([foot + (h - foot) * grow for h in placed_holes])
-    return cv2.subtract(mask, cv2.bitwise_and(bottoms, tops))
+    # than the sweep, so each hole's bottom meets only its own top); drawn in the holes' box alone.
+    bottoms, tops = grid.fixed(placed[n:]), grid.fixed(top[n:])
+    x0, y0 = np.maximum(np.minimum(bottoms.min(axis=0), tops.min(axis=0)) // 16 - 1, 0)
+    x1, y1 = np.minimum(np.maximum(bottoms.max(axis=0), tops.max(axis=0)) // 16 + 2, grid.size)
+    cuts = np.cumsum([len(h) for h in holes[:-1]])
+    corner = np.array([16 * x0, 16 * y0], np.int32)
+    light = []
+    for fixed in (bottoms, tops):
+        m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        for q in np.split(fixed - corner, cuts):
+            cv2.fillPoly(m, [q], 1, cv2.LINE_8, 4)
+        light.append(m)
+    box = mask[y0:y1, x0:x1]
+    cv2.subtract(box, cv2.bitwise_and(light[0], light[1]), dst=box)
+    return mask
 
 
 def sweep_mm(centre_mm: np.ndarray, height_mm: float, camera_centre: np.ndarray | None) -> float:
@@ -535,9 +550,9 @@ class ShapeModel:
             drawn = predicted_silhouette(
                 g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, self.height_mm, camera_centre
             )
-        bad = misfit_mm2(seen, drawn, g.step_mm)
+        bad, score = fit(seen, drawn, g.step_mm)
         size_ok = abs(fp.area_mm2 / self.area_mm2 - 1.0) <= self.area_tolerance
-        return Match(self.name, fp.centroid_mm, angle, bad, iou(seen, drawn), bad <= self.tolerance_mm2 and size_ok)
+        return Match(self.name, fp.centroid_mm, angle, bad, score, bad <= self.tolerance_mm2 and size_ok)
 
     @property
     def area_tolerance(self) -> float:
