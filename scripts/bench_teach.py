@@ -322,8 +322,15 @@ def main() -> int:
         print(
             f"locate CPU, one core, 20 parts of 5 taught types: median over cameras "
             f"{statistics.median(r.locate_ms for r in good):.1f} ms (worst {max(r.locate_ms for r in good):.1f}); "
-            f"today's bolt/nut locate, 20 parts, same cameras: {statistics.median(r.plain_ms for r in good):.1f} ms; "
+            f"today's bolt/nut locate, 20 parts, same cameras: {statistics.median(r.plain_ms for r in good):.1f} ms "
+            f"(worst {max(r.plain_ms for r in good):.1f}); "
             f"teaching one type from {args.images} images: worst {max(max(r.teach_s) for r in good):.2f} s CPU"
+        )
+        print(
+            f"worst camera: classified {min(100 * r.right / max(r.taught, 1) for r in good):.2f} %, mirror confusions "
+            f"{max(r.mirror_confused for r in good)}, refused {min(100 * r.refused / max(r.distractors, 1) for r in good):.1f} %, "
+            f"centre mean {max(float(np.mean(r.centre)) if r.centre else np.inf for r in good):.3f} mm, max "
+            f"{max(max(r.centre, default=np.inf) for r in good):.3f} mm, angle {max(max(r.angle, default=0) for r in good):.2f} deg"
         )
         print(
             f"cameras meeting every accuracy goal: {sum(r.met() for r in results)}/{len(results)}; locate within "
