@@ -17,7 +17,7 @@ import pytest
 from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.camera_model import CameraModel
-from cell.sim.flatparts import layout, random_types
+from cell.sim.flatparts import circle, layout, random_types, rect
 from cell.sim.parts import PartSpec, render_scene
 from cell.vision.config import PartsConfig
 from cell.vision.locate import locate, silhouettes
@@ -30,6 +30,7 @@ from cell.vision.shapes import (
     far_sides,
     misfit_mm2,
     net_moments,
+    predicted_silhouette,
     teach,
 )
 
@@ -138,3 +139,37 @@ def test_the_matchings_pieces_are_their_plain_forms(models):
                 n = -n
             want_far = np.einsum("ij,ij->i", n * (1.0 if k == 0 else -1.0), foot - poly) < 0
             assert np.array_equal(facing, want_far)
+
+
+def _predicted_plain(grid, outer, holes, centre_mm, angle_deg, height_mm, camera_centre):
+    """The shadow of a prism: its bottom face swept to its top face in layers, then each hole's
+    light (where its bottom and top openings overlap) taken out, one hole at a time."""
+    a = np.radians(angle_deg)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    placed, placed_holes = outer @ rot.T, [h @ rot.T for h in holes]
+    foot = np.asarray(camera_centre[:2], float) - centre_mm
+    grow = float(camera_centre[2]) / (float(camera_centre[2]) - height_mm)
+    top = foot + (placed - foot) * grow
+    sweep = float(np.max(np.hypot(*(top - placed).T)))
+    layers = int(min(6, max(2, np.ceil(sweep / 0.4) + 1)))
+    mask = np.zeros((grid.size, grid.size), np.uint8)
+    for t in np.linspace(0.0, 1.0, layers):
+        grid.fill(mask, placed + t * (top - placed))
+    for h in placed_holes:
+        light = grid.draw(h, []) & grid.draw(foot + (h - foot) * grow, [])
+        mask &= 1 - light
+    return mask
+
+
+def test_the_predicted_silhouette_takes_out_each_holes_own_light(models):
+    # The taught models, and a plate whose holes lie closer together than its sweep (tall, seen
+    # from far to the side): there a hole's bottom meets its neighbour's top, which lets no light through.
+    close = [circle(-4.0, 0.0, 1.8, 36), circle(0.0, 0.0, 1.8, 36), circle(4.2, 0.5, 1.6, 36)]
+    cases = [(m.outline_mm, m.holes_mm, m.height_mm, m._grid) for m in models]
+    cases.append((rect(-12.0, -8.0, 12.0, 8.0), close, 9.0, models[2]._grid))
+    camera = np.array([144.0, 81.0, 300.0])
+    for outer, holes, height, grid in cases:
+        for centre, angle in (((30.0, 20.0), 15.0), ((250.0, 150.0), 200.0), ((144.0, 81.0), 90.0)):
+            got = predicted_silhouette(grid, outer, holes, np.array(centre), angle, height, camera)
+            want = _predicted_plain(grid, outer, holes, np.array(centre), angle, height, camera)
+            assert np.array_equal(got, want), (len(holes), centre, angle)

@@ -425,21 +425,31 @@ def predicted_silhouette(
         cv2.fillPoly(mask, [q], 1, cv2.LINE_8, 4)
     if not holes:
         return mask
-    # The light passes where a hole's bottom and top openings overlap (the holes lie apart by more
-    # than the sweep, so each hole's bottom meets only its own top); drawn in the holes' box alone.
+    # The light passes where a hole's bottom and top openings overlap, each hole on its own: all
+    # the holes in two masks when no hole's box meets another's (holes further apart than the
+    # sweep), drawn in the holes' box alone.
     bottoms, tops = grid.fixed(placed[n:]), grid.fixed(top[n:])
-    x0, y0 = np.maximum(np.minimum(bottoms.min(axis=0), tops.min(axis=0)) // 16 - 1, 0)
-    x1, y1 = np.minimum(np.maximum(bottoms.max(axis=0), tops.max(axis=0)) // 16 + 2, grid.size)
     cuts = np.cumsum([len(h) for h in holes[:-1]])
-    corner = np.array([16 * x0, 16 * y0], np.int32)
-    light = []
-    for fixed in (bottoms, tops):
-        m = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        for q in np.split(fixed - corner, cuts):
-            cv2.fillPoly(m, [q], 1, cv2.LINE_8, 4)
-        light.append(m)
-    box = mask[y0:y1, x0:x1]
-    cv2.subtract(box, cv2.bitwise_and(light[0], light[1]), dst=box)
+    groups = [[(b, t) for b, t in zip(np.split(bottoms, cuts), np.split(tops, cuts), strict=True)]]
+    if len(holes) > 1:
+        lo = np.array([np.minimum(b.min(axis=0), t.min(axis=0)) // 16 - 1 for b, t in groups[0]])
+        hi = np.array([np.maximum(b.max(axis=0), t.max(axis=0)) // 16 + 1 for b, t in groups[0]])
+        meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
+        if np.count_nonzero(meet) > len(holes):  # some hole's box meets another's
+            groups = [[pair] for pair in groups[0]]
+    for group in groups:
+        every = np.concatenate([q for pair in group for q in pair])
+        x0, y0 = np.maximum(every.min(axis=0) // 16 - 1, 0)
+        x1, y1 = np.minimum(every.max(axis=0) // 16 + 2, grid.size)
+        corner = np.array([16 * x0, 16 * y0], np.int32)
+        light = []
+        for side in (0, 1):
+            m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            for pair in group:
+                cv2.fillPoly(m, [pair[side] - corner], 1, cv2.LINE_8, 4)
+            light.append(m)
+        box = mask[y0:y1, x0:x1]
+        cv2.subtract(box, cv2.bitwise_and(light[0], light[1]), dst=box)
     return mask
 
 
