@@ -53,7 +53,8 @@ class Features:
     touches_border: bool
 
 
-def measure(blob: Blob, mask: np.ndarray) -> Features:
+def _part_moments(blob: Blob, mask: np.ndarray) -> tuple[int, int, np.ndarray, dict]:
+    """The blob's bounding box corner, its filled outline there, and the moments of its own pixels."""
     outer = blob.outer
     x, y, w, h = cv2.boundingRect(outer)
     filled = np.zeros((h, w), np.uint8)
@@ -63,6 +64,18 @@ def measure(blob: Blob, mask: np.ndarray) -> Features:
     if m["m00"] <= 0:  # a contour with no interior pixels: use the outline itself
         m = cv2.moments(outer)
         m["m00"] = m["m00"] or 1.0
+    return x, y, filled, m
+
+
+def part_centroid_px(blob: Blob, mask: np.ndarray) -> tuple[float, float]:
+    """The centroid of the blob's own pixels (holes excluded): measure()'s, alone."""
+    x, y, _, m = _part_moments(blob, mask)
+    return (x + m["m10"] / m["m00"], y + m["m01"] / m["m00"])
+
+
+def measure(blob: Blob, mask: np.ndarray) -> Features:
+    outer = blob.outer
+    x, y, filled, m = _part_moments(blob, mask)
     centroid = (x + m["m10"] / m["m00"], y + m["m01"] / m["m00"])
     mf = cv2.moments(filled, binaryImage=True)
     outer_area = mf["m00"]
@@ -85,7 +98,7 @@ def measure(blob: Blob, mask: np.ndarray) -> Features:
         area_px=float(m["m00"]),
         outer_area_px=float(outer_area),
         outer_centroid_px=outer_centroid,
-        bbox_px=(x, y, w, h),
+        bbox_px=(x, y, filled.shape[1], filled.shape[0]),
         min_rect=rect,
         holes=holes,
         solidity=float(outline_area / hull_area) if hull_area > 0 else 1.0,

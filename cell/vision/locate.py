@@ -19,10 +19,10 @@ import numpy as np
 from cell.errors import InputError
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
-from cell.vision.features import Features, measure, width_profile
+from cell.vision.features import Features, measure, part_centroid_px, width_profile
 from cell.vision.footprint import BoltPose, bolt_pose
 from cell.vision.segment import Blob, segment, to_gray
-from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob
+from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob, footprints_of_blobs
 from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
 from cell.vision.subpixel import EDGE_PX, subpixel_outline
 from cell.vision.types import LocatedPart, LocateResult
@@ -95,35 +95,33 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
     correct = cfg.use_height_correction and mapper.camera is not None
     if cfg.use_height_correction and mapper.camera is None and not isinstance(mapper, PixelScale):
         warnings.append("the calibration has no camera pose: no part-height correction")
-    feats = [measure(blob, seg.mask) for blob in seg.blobs]
-    scales, slopes, centres_mm = _local_geometry(mapper, np.array([f.centroid_px for f in feats]).reshape(-1, 2))
-    verdicts = [
-        classify(feat, blob.outer, local_scale, cfg, slope)
-        for blob, feat, local_scale, slope in zip(seg.blobs, feats, scales, slopes, strict=True)
-    ]
-    fines = [
-        _fine_outline(verdict, correct, cfg, gray, blob.outer)
-        for blob, verdict in zip(seg.blobs, verdicts, strict=True)
-    ]
-    outlines_mm = _outlines_on_table(
-        mapper,
-        [
-            _thinned(f) if f is not None and correct and _shadow_placed(v) else None
-            for v, f in zip(verdicts, fines, strict=True)
-        ],
+    # Taught types first (each blob's silhouette, all mapped in one call); the built-in rules'
+    # measurements and outlines only for the blobs no taught type takes.
+    feats = {} if shapes else {i: measure(blob, seg.mask) for i, blob in enumerate(seg.blobs)}
+    centroids = np.array(
+        [feats[i].centroid_px if i in feats else part_centroid_px(blob, seg.mask) for i, blob in enumerate(seg.blobs)]
+    ).reshape(-1, 2)
+    scales, slopes, centres_mm = _local_geometry(mapper, centroids)
+    taught: list[tuple[LocatedPart | None, str]] = (
+        _taught_all(seg.blobs, centroids, gray, mapper, cfg, shapes, scales, correct)
+        if shapes
+        else [(None, "")] * len(seg.blobs)
+    )
+    rest = [i for i, (part, _) in enumerate(taught) if part is None]
+    feats.update({i: measure(seg.blobs[i], seg.mask) for i in rest if i not in feats})
+    verdicts = {i: classify(feats[i], seg.blobs[i].outer, scales[i], cfg, slopes[i]) for i in rest}
+    fines = {i: _fine_outline(verdicts[i], correct, cfg, gray, seg.blobs[i].outer) for i in rest}
+    shadows = [(f if correct and _shadow_placed(verdicts[i]) else None) for i, f in fines.items()]
+    outlines_mm = dict(
+        zip(rest, _outlines_on_table(mapper, [None if f is None else _thinned(f) for f in shadows]), strict=True)
     )
     found = []
-    for blob, feat, verdict, local_scale, centre_mm, fine, outline_mm in zip(
-        seg.blobs, feats, verdicts, scales, centres_mm, fines, outlines_mm, strict=True
-    ):
-        taught, why = _taught(blob, feat, gray, mapper, cfg, shapes, local_scale, correct) if shapes else (None, "")
-        if taught is not None:
-            taught.outline_px = blob.outer
-            found.append(_refuse_non_finite(taught))
-            continue
-        if why and verdict.cls not in (BOLT, NUT):
-            verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
-        part = _place(feat, verdict, local_scale, mapper, cfg, correct, centre_mm, fine, outline_mm)
+    for i, (blob, (part, why)) in enumerate(zip(seg.blobs, taught, strict=True)):
+        if part is None:
+            verdict = verdicts[i]
+            if why and verdict.cls not in (BOLT, NUT):
+                verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
+            part = _place(feats[i], verdict, scales[i], mapper, cfg, correct, centres_mm[i], fines[i], outlines_mm[i])
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
@@ -164,25 +162,41 @@ def silhouettes(image_bgr: np.ndarray, mapper, config: PartsConfig) -> list[tupl
     return out
 
 
-def _taught(
-    blob: Blob,
-    feat: Features,
+def _taught_all(
+    blobs: Sequence[Blob],
+    centroids_px: np.ndarray,
     gray: np.ndarray,
     mapper,
     cfg: PartsConfig,
     shapes: Sequence[ShapeModel],
-    scale: float,
+    scales: np.ndarray,
+    correct: bool,
+) -> list[tuple[LocatedPart | None, str]]:
+    """Each blob as a taught part type, or (None, why not; empty when the built-in rules should say)."""
+    out: list[tuple[LocatedPart | None, str]] = [(None, "")] * len(blobs)
+    inside = [i for i, b in enumerate(blobs) if not b.touches_border]
+    silhouettes = footprints_of_blobs(
+        gray,
+        [blobs[i].outer for i in inside],
+        mapper,
+        cfg.segment.threshold_fraction,
+        [cfg.segment.noise_area_mm2 / scales[i] ** 2 for i in inside],
+    )
+    camera_centre = mapper.camera.center_table_mm if correct else None
+    for i, silhouette in zip(inside, silhouettes, strict=True):
+        if silhouette is not None:
+            out[i] = _taught(silhouette, centroids_px[i], shapes, camera_centre, correct)
+    return out
+
+
+def _taught(
+    silhouette: tuple[np.ndarray, list[np.ndarray]],
+    centroid_px: np.ndarray,
+    shapes: Sequence[ShapeModel],
+    camera_centre: np.ndarray | None,
     correct: bool,
 ) -> tuple[LocatedPart | None, str]:
-    """The blob as a taught part type, or (None, why not; empty when the built-in rules should say)."""
-    if feat.touches_border:
-        return None, ""
-    silhouette = footprint_of_blob(
-        gray, blob.outer, mapper, cfg.segment.threshold_fraction, cfg.segment.noise_area_mm2 / scale**2
-    )
-    if silhouette is None:
-        return None, ""
-    camera_centre = mapper.camera.center_table_mm if correct else None
+    """A blob's silhouette (table plane) as a taught part type, or (None, why not)."""
     match, fp, why = best_match(silhouette, shapes, camera_centre)
     if match is None or not match.accepted or fp is None:
         return None, why
@@ -194,7 +208,7 @@ def _taught(
         cls=match.name,
         reason=f"taught type {match.name}: fits its model (score {match.score:.3f}, "
         f"differs by {match.misfit_mm2:.1f} mm2)",
-        pixel=(float(feat.centroid_px[0]), float(feat.centroid_px[1])),
+        pixel=(float(centroid_px[0]), float(centroid_px[1])),
         table_mm=(float(centre[0]), float(centre[1])),
         angle_deg=None if model.symmetry == 0 else float(match.angle_deg),
         pick=True,

@@ -39,6 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cell.errors import CellError
+from cell.vision.subpixel import median_level
 
 SCHEMA = "pick-cell.shape-model"
 SCHEMA_VERSION = 1
@@ -73,27 +74,71 @@ class Footprint:
     holes: list[np.ndarray]
     area_mm2: float = 0.0
     centroid_mm: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    principal_deg: float = 0.0
-    anisotropy: float = 0.0  # (l1 - l2) / (l1 + l2) of the second moments: 0 round inertia
 
     def __post_init__(self) -> None:
-        m = _moments(self.outer) - sum((_moments(h) for h in self.holes), np.zeros(6))
-        a, sx, sy, sxx, syy, sxy = m
+        a, sx, sy = net_moments([self.outer, *self.holes], second=False)
         if a <= 0:
             self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
             return
-        cx, cy = sx / a, sy / a
-        mxx, myy, mxy = sxx / a - cx * cx, syy / a - cy * cy, sxy / a - cx * cy
         self.area_mm2 = float(a)
-        self.centroid_mm = np.array([cx, cy])
-        self.principal_deg = math.degrees(0.5 * math.atan2(2 * mxy, mxx - myy))
-        self.anisotropy = float(math.hypot(mxx - myy, 2 * mxy) / max(mxx + myy, 1e-12))
+        self.centroid_mm = np.array([sx / a, sy / a])
+
+    def _inertia(self) -> tuple[float, float, float]:
+        """Second moments about the centroid per unit area (mxx, myy, mxy): made when asked (teaching)."""
+        a, sx, sy, sxx, syy, sxy = net_moments([self.outer, *self.holes])
+        if a <= 0:
+            return 0.0, 0.0, 0.0
+        cx, cy = sx / a, sy / a
+        return sxx / a - cx * cx, syy / a - cy * cy, sxy / a - cx * cy
+
+    @property
+    def principal_deg(self) -> float:
+        mxx, myy, mxy = self._inertia()
+        return math.degrees(0.5 * math.atan2(2 * mxy, mxx - myy))
+
+    @property
+    def anisotropy(self) -> float:
+        """(l1 - l2) / (l1 + l2) of the second moments: 0 round inertia."""
+        mxx, myy, mxy = self._inertia()
+        return float(math.hypot(mxx - myy, 2 * mxy) / max(mxx + myy, 1e-12))
 
     def in_frame(self, centre: np.ndarray, angle_deg: float) -> tuple[np.ndarray, list[np.ndarray]]:
         """The outline and holes moved to `centre` and turned by -angle (into a part's frame)."""
         a = math.radians(angle_deg)
         rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
         return (self.outer - centre) @ rot.T, [(h - centre) @ rot.T for h in self.holes]
+
+
+def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
+    """_moments of the first polygon less those of the others (its holes), all in one pass; without
+    `second`, the area and first moments alone."""
+    if len(polys) == 1:
+        return _moments(polys[0]) if second else _moments(polys[0])[:3]
+    pts = np.concatenate(polys)
+    x, y = pts[:, 0], pts[:, 1]
+    nxt = _next_index(polys)
+    xn, yn = x[nxt], y[nxt]
+    c = x * yn - xn * y
+    rows = [c / 2, (x + xn) * c / 6, (y + yn) * c / 6]
+    if second:
+        rows += [
+            (x * x + x * xn + xn * xn) * c / 12,
+            (y * y + y * yn + yn * yn) * c / 12,
+            (x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c / 24,
+        ]
+    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
+    per = np.add.reduceat(np.stack(rows), starts, axis=1)  # (terms, polygons)
+    per *= np.where(per[0] < 0, -1.0, 1.0)  # each orientation-free
+    return per[:, 0] - per[:, 1:].sum(axis=1)
+
+
+def _next_index(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """For the polygons stacked, the index of each point's successor along its own polygon."""
+    n = np.array([len(p) for p in polys])
+    ends = np.cumsum(n)
+    nxt = np.arange(1, ends[-1] + 1)
+    nxt[ends - 1] = ends - n
+    return nxt
 
 
 def _moments(poly: np.ndarray) -> np.ndarray:
@@ -126,14 +171,15 @@ def fine_outlines(
     paper = roi[cv2.dilate(part, np.ones((5, 5), np.uint8)) == 0]
     if paper.size < 16:
         return None
-    level = fraction * float(np.median(paper))
+    level = fraction * median_level(paper)
     k = int(np.clip(round(_SAMPLES_ACROSS / max(w, h, 1)), 1, _UPSAMPLE))
     up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR) if k > 1 else roi
-    dark = (up < level).astype(np.uint8)
+    # 1 where up < level: for whole levels, up <= ceil(level) - 1.
+    _, dark = cv2.threshold(up, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
     # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
     keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
     keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
-    dark &= keep > 0
+    cv2.bitwise_and(dark, keep, dst=dark)
     contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if not contours or hierarchy is None:
         return None
@@ -153,25 +199,28 @@ def fine_outlines(
     return px(contours[best]), holes
 
 
-def _normals(poly: np.ndarray) -> np.ndarray:
-    """Unit normal at each vertex pointing out of the polygon's interior (either orientation)."""
-    nxt, prv = np.concatenate((poly[1:], poly[:1])), np.concatenate((poly[-1:], poly[:-1]))
-    d = nxt - prv
-    n = np.column_stack([d[:, 1], -d[:, 0]])
-    x, y = poly[:, 0], poly[:, 1]
-    if (x * nxt[:, 1] - nxt[:, 0] * y).sum() < 0:  # clockwise: the right-hand normal points in
-        n = -n
-    return n / np.maximum(np.hypot(n[:, 0], n[:, 1]), 1e-12)[:, None]
-
-
 def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
     """Per point of the outer outline (first) and the holes: whether its side faces away from the
     camera's foot (what is seen there is the part's top edge)."""
-    out = []
-    for k, poly in enumerate(polys):
-        n = _normals(poly) * (1.0 if k == 0 else -1.0)  # from the material into the air
-        out.append(np.einsum("ij,ij->i", n, foot - poly) < 0)
-    return out
+    return np.split(_far_stacked(np.concatenate(polys), polys, foot), np.cumsum([len(p) for p in polys[:-1]]))
+
+
+def _far_stacked(pts: np.ndarray, polys: Sequence[np.ndarray], foot: np.ndarray) -> np.ndarray:
+    """far_sides for the polygons stacked (`pts`), as one array."""
+    n = [len(p) for p in polys]
+    nxt = _next_index(polys)
+    prv = np.arange(-1, len(pts) - 1)
+    starts = nxt[np.cumsum(n) - 1]
+    prv[starts] = np.cumsum(n) - 1
+    x, y = pts[:, 0], pts[:, 1]
+    dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
+    # Clockwise: the right-hand normal points in; a hole's normal from the material into the air is
+    # the one pointing into the hole.
+    turn = x * y[nxt] - x[nxt] * y
+    sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
+    sign[1:] *= -1.0
+    facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
+    return facing < 0
 
 
 def footprint_from_table(
@@ -190,12 +239,11 @@ def footprint_from_table(
         return Footprint(polys[0], polys[1:])
     foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
     shrink = 1.0 - height_mm / cam_h
-    far = far_sides(polys, foot) if far is None else far
-    out = []
-    for poly, f in zip(polys, far, strict=True):
-        moved = poly.copy()
-        moved[f] = foot + (poly[f] - foot) * shrink
-        out.append(moved)
+    pts = np.concatenate(polys)
+    f = _far_stacked(pts, polys, foot) if far is None else np.concatenate(far)
+    moved = pts.copy()
+    moved[f] = foot + (pts[f] - foot) * shrink
+    out = np.split(moved, np.cumsum([len(p) for p in polys[:-1]]))
     return Footprint(out[0], out[1:])
 
 
@@ -210,9 +258,10 @@ class _Grid:
     size: int
     ring: np.ndarray  # int, per pixel (RINGS: outside the largest ring)
     rotor: np.ndarray  # complex e^{-i phi} per pixel
+    tabled: bool = False  # the harmonics from a table of every pixel's powers (a model's matching grid)
 
     @staticmethod
-    def make(step_mm: float, radius_mm: float) -> _Grid:
+    def make(step_mm: float, radius_mm: float, tabled: bool = False) -> _Grid:
         size = int(2 * math.ceil(radius_mm / step_mm) + 8)
         c = (size - 1) / 2
         yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
@@ -220,7 +269,7 @@ class _Grid:
         r = np.hypot(x, y)
         ring = np.minimum((r / radius_mm * RINGS).astype(np.int64), RINGS)
         rotor = np.exp(-1j * np.arctan2(y, x))
-        return _Grid(step_mm, size, ring, rotor)
+        return _Grid(step_mm, size, ring, rotor, tabled)
 
     def draw(self, outer: np.ndarray, holes: Sequence[np.ndarray], soft: bool = False) -> np.ndarray:
         """uint8 mask of a footprint given in the grid's frame (origin at the centre, mm): 0/1, or
@@ -228,9 +277,10 @@ class _Grid:
         c = (self.size - 1) / 2
         shift = 4
 
+        flip = np.array([self.step_mm, -self.step_mm])
+
         def px(p: np.ndarray) -> np.ndarray:
-            q = np.column_stack([c + p[:, 0] / self.step_mm, c - p[:, 1] / self.step_mm])
-            return np.rint(q * (1 << shift)).astype(np.int32)
+            return np.rint((p / flip + c) * (1 << shift)).astype(np.int32)
 
         m = np.zeros((self.size, self.size), np.uint8)
         on, line = (255, cv2.LINE_AA) if soft else (1, cv2.LINE_8)
@@ -239,15 +289,30 @@ class _Grid:
             cv2.fillPoly(m, [px(h) for h in holes], 0, line, shift)
         return m
 
+    def fixed(self, poly: np.ndarray) -> np.ndarray:
+        """A polygon (the grid's frame, mm) in the grid's pixels, fixed point (4 bits), as fill() paints it."""
+        c = (self.size - 1) / 2
+        return np.rint((poly / np.array([self.step_mm, -self.step_mm]) + c) * 16).astype(np.int32)
+
     def fill(self, mask: np.ndarray, poly: np.ndarray) -> None:
         """Paint a polygon (the grid's frame, mm) into a 0/1 mask."""
-        c = (self.size - 1) / 2
-        q = np.column_stack([c + poly[:, 0] / self.step_mm, c - poly[:, 1] / self.step_mm])
-        cv2.fillPoly(mask, [np.rint(q * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+        cv2.fillPoly(mask, [self.fixed(poly)], 1, cv2.LINE_8, 4)
 
     def harmonics(self, mask: np.ndarray) -> np.ndarray:
         """(RINGS, HARMONICS) complex: per ring, sum over the part's pixels (weighed by the mask) of
         e^{-i k phi}, k = 1..K."""
+        if not self.tabled:
+            return self._harmonics_direct(mask)
+        order, starts, powers = self._powers()
+        w = mask.ravel()[order].astype(np.float64)
+        out = np.empty((2 * HARMONICS, RINGS))
+        ends = [*starts[1:], len(order)]
+        for r in range(RINGS):
+            out[:, r] = powers[:, starts[r] : ends[r]] @ w[starts[r] : ends[r]]
+        return (out[:HARMONICS] + 1j * out[HARMONICS:]).T
+
+    def _harmonics_direct(self, mask: np.ndarray) -> np.ndarray:
+        """harmonics() without the table (a grid used a few times: teaching's)."""
         idx = np.flatnonzero(mask)
         ring = self.ring.ravel()[idx]
         inside = ring < RINGS
@@ -263,19 +328,35 @@ class _Grid:
             out[present] = np.add.reduceat(powers, starts, axis=1).T
         return out
 
+    def _powers(self) -> tuple[np.ndarray, list[int], np.ndarray]:
+        """The pixels inside the rings ordered by ring, where each ring starts, and per pixel the
+        real and imaginary parts of e^{-i k phi}, k = 1..K ((2K, N), in that order): made once per
+        grid (a model's), so that a footprint's harmonics are a product per ring."""
+        cached = self.__dict__.get("_powers_cache")
+        if cached is None:
+            ring = self.ring.ravel()
+            order = np.flatnonzero(ring < RINGS)
+            order = order[np.argsort(ring[order], kind="stable")]
+            starts = [int(v) for v in np.searchsorted(ring[order], np.arange(RINGS))]
+            z = np.power.outer(self.rotor.ravel()[order], _K).T  # (K, N)
+            cached = (order, starts, np.ascontiguousarray(np.vstack([z.real, z.imag])))
+            object.__setattr__(self, "_powers_cache", cached)
+        return cached
+
     def soft_harmonics(self, outer: np.ndarray, holes: Sequence[np.ndarray]) -> np.ndarray:
         return self.harmonics(self.draw(outer, holes, soft=True))
 
 
 _K = np.arange(1, HARMONICS + 1)
-_COARSE = np.exp(1j * np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False)))
+_COARSE_PHASE = np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False))
+_COARSE_COS, _COARSE_SIN = np.cos(_COARSE_PHASE), np.sin(_COARSE_PHASE)
 
 
 def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> float:
     """The angle the model is turned by to look like the measured shape (harmonics of both,
     `_Grid.harmonics`), degrees in [0, 360 / order)."""
     g = np.sum(measured * np.conj(model), axis=0)  # per k: |.|^2 e^{-i k alpha}
-    corr = (g[:, None] * _COARSE).real.sum(axis=0)
+    corr = g.real @ _COARSE_COS - g.imag @ _COARSE_SIN  # Re(g e^{i k beta}) summed over k, per beta
     beta = 2 * np.pi * int(np.argmax(corr)) / _COARSE_STEPS
     w = np.abs(g)
     for _ in range(3):
@@ -287,16 +368,22 @@ def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> flo
 
 def misfit_mm2(a: np.ndarray, b: np.ndarray, step_mm: float) -> float:
     """Area where two masks differ, beyond an opening of FIT_OPENING_MM (edge noise left out)."""
+    return fit(a, b, step_mm)[0]
+
+
+def fit(a: np.ndarray, b: np.ndarray, step_mm: float) -> tuple[float, float]:
+    """misfit_mm2 of two 0/1 masks and their overlap (intersection over union), from one difference."""
     diff = cv2.bitwise_xor(a, b)
     r = max(1, int(round(FIT_OPENING_MM / step_mm)))
+    na, nb, nd = cv2.countNonZero(a), cv2.countNonZero(b), cv2.countNonZero(diff)
+    overlap = (na + nb - nd) / (na + nb + nd) if na + nb + nd else 0.0  # twice the intersection over twice the union
+    # Only about the differences (the opening of a region keeps within r of it: the same count).
+    x, y, w, h = cv2.boundingRect(diff)
+    if w == 0 or h == 0:
+        return 0.0, overlap
+    roi = diff[max(y - r, 0) : y + h + r, max(x - r, 0) : x + w + r]
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return float(np.count_nonzero(cv2.morphologyEx(diff, cv2.MORPH_OPEN, kernel))) * step_mm**2
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    inter = np.count_nonzero(cv2.bitwise_and(a, b))
-    union = np.count_nonzero(cv2.bitwise_or(a, b))
-    return inter / union if union else 0.0
+    return float(np.count_nonzero(cv2.morphologyEx(roi, cv2.MORPH_OPEN, kernel))) * step_mm**2, overlap
 
 
 def _turn(points: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -321,21 +408,48 @@ def predicted_silhouette(
     """The mask (grid about `centre_mm`, table axes) of the shadow a prism with this footprint
     (part frame), placed at `centre_mm` turned by `angle_deg`, casts on the table seen from the
     camera centre: its bottom face swept to its top face, the holes open where both openings are."""
-    placed = _turn(outer, angle_deg)
-    placed_holes = [_turn(h, angle_deg) for h in holes]
     if camera_centre is None or height_mm <= 0:
-        return grid.draw(placed, placed_holes)
+        return grid.draw(_turn(outer, angle_deg), [_turn(h, angle_deg) for h in holes])
+    # Every point at once: the outline's first, then the holes'.
+    n = len(outer)
+    placed = _turn(np.concatenate([outer, *holes]) if holes else outer, angle_deg)
     foot = np.asarray(camera_centre[:2], float) - centre_mm
     grow = float(camera_centre[2]) / (float(camera_centre[2]) - height_mm)
     top = foot + (placed - foot) * grow
-    sweep = float(np.max(np.hypot(*(top - placed).T)))
+    up = top[:n] - placed[:n]
+    sweep = float(np.sqrt(np.max(np.einsum("ij,ij->i", up, up))))
     layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
     mask = np.zeros((grid.size, grid.size), np.uint8)
-    for t in np.linspace(0.0, 1.0, layers):
-        grid.fill(mask, placed + t * (top - placed))
-    for h in placed_holes:
-        light = grid.draw(h, []) & grid.draw(foot + (h - foot) * grow, [])
-        mask &= 1 - light
+    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    for q in grid.fixed(placed[:n] + steps * up):
+        cv2.fillPoly(mask, [q], 1, cv2.LINE_8, 4)
+    if not holes:
+        return mask
+    # The light passes where a hole's bottom and top openings overlap, each hole on its own: all
+    # the holes in two masks when no hole's box meets another's (holes further apart than the
+    # sweep), drawn in the holes' box alone.
+    bottoms, tops = grid.fixed(placed[n:]), grid.fixed(top[n:])
+    cuts = np.cumsum([len(h) for h in holes[:-1]])
+    groups = [[(b, t) for b, t in zip(np.split(bottoms, cuts), np.split(tops, cuts), strict=True)]]
+    if len(holes) > 1:
+        lo = np.array([np.minimum(b.min(axis=0), t.min(axis=0)) // 16 - 1 for b, t in groups[0]])
+        hi = np.array([np.maximum(b.max(axis=0), t.max(axis=0)) // 16 + 1 for b, t in groups[0]])
+        meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
+        if np.count_nonzero(meet) > len(holes):  # some hole's box meets another's
+            groups = [[pair] for pair in groups[0]]
+    for group in groups:
+        every = np.concatenate([q for pair in group for q in pair])
+        x0, y0 = np.maximum(every.min(axis=0) // 16 - 1, 0)
+        x1, y1 = np.minimum(every.max(axis=0) // 16 + 2, grid.size)
+        corner = np.array([16 * x0, 16 * y0], np.int32)
+        light = []
+        for side in (0, 1):
+            m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            for pair in group:
+                cv2.fillPoly(m, [pair[side] - corner], 1, cv2.LINE_8, 4)
+            light.append(m)
+        box = mask[y0:y1, x0:x1]
+        cv2.subtract(box, cv2.bitwise_and(light[0], light[1]), dst=box)
     return mask
 
 
@@ -417,7 +531,9 @@ class ShapeModel:
         self.radius_mm = float(np.max(np.hypot(*self.outline_mm.T)))
         step = grid_step_mm(self.area_mm2)
         self._grid = _Grid.make(step, self.radius_mm * 1.1 + 3.0)
-        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0)
+        # The matching grid's powers are tabled on the first match (a few MB): a taught type is
+        # matched against many blobs, its harmonics then a product per ring.
+        self._coarse = _Grid.make(HARMONIC_STEPS * step, self.radius_mm * 1.1 + 3.0, tabled=True)
         self._harm = self._coarse.soft_harmonics(self.outline_mm, self.holes_mm)
 
     # -- finding
@@ -444,9 +560,9 @@ class ShapeModel:
             drawn = predicted_silhouette(
                 g, self.outline_mm, self.holes_mm, fp.centroid_mm, angle, self.height_mm, camera_centre
             )
-        bad = misfit_mm2(seen, drawn, g.step_mm)
+        bad, score = fit(seen, drawn, g.step_mm)
         size_ok = abs(fp.area_mm2 / self.area_mm2 - 1.0) <= self.area_tolerance
-        return Match(self.name, fp.centroid_mm, angle, bad, iou(seen, drawn), bad <= self.tolerance_mm2 and size_ok)
+        return Match(self.name, fp.centroid_mm, angle, bad, score, bad <= self.tolerance_mm2 and size_ok)
 
     @property
     def area_tolerance(self) -> float:
@@ -728,17 +844,35 @@ def footprint_of_blob(
     min_hole_px: float,
 ) -> tuple[np.ndarray, list[np.ndarray]] | None:
     """The blob's silhouette (outer, holes) on the table plane, table mm; None if no edge is seen."""
-    got = fine_outlines(gray, outline_px, fraction, min_hole_px)
-    if got is None:
-        return None
-    outer, holes = got
-    polys = [_thin(outer), *(_thin(h) for h in holes)]
-    mapped = np.asarray(mapper.pixel_to_table_mm(np.vstack(polys))).reshape(-1, 2)
-    out, start = [], 0
-    for p in polys:
-        out.append(mapped[start : start + len(p)])
-        start += len(p)
-    return out[0], out[1:]
+    return footprints_of_blobs(gray, [outline_px], mapper, fraction, [min_hole_px])[0]
+
+
+def footprints_of_blobs(
+    gray: np.ndarray,
+    outlines_px: Sequence[np.ndarray],
+    mapper,
+    fraction: float,
+    min_hole_px: Sequence[float],
+) -> list[tuple[np.ndarray, list[np.ndarray]] | None]:
+    """footprint_of_blob for many blobs, their outlines mapped onto the table in one call (a
+    calibration's mapping costs mostly per call)."""
+    polys_of: list[list[np.ndarray] | None] = []
+    for outline_px, min_hole in zip(outlines_px, min_hole_px, strict=True):
+        got = fine_outlines(gray, outline_px, fraction, min_hole)
+        polys_of.append(None if got is None else [_thin(got[0]), *(_thin(h) for h in got[1])])
+    given = [p for polys in polys_of if polys is not None for p in polys]
+    if not given:
+        return [None] * len(polys_of)
+    mapped = np.asarray(mapper.pixel_to_table_mm(np.vstack(given))).reshape(-1, 2)
+    pieces = iter(np.split(mapped, np.cumsum([len(p) for p in given])[:-1]))
+    out: list[tuple[np.ndarray, list[np.ndarray]] | None] = []
+    for polys in polys_of:
+        if polys is None:
+            out.append(None)
+            continue
+        mine = [next(pieces) for _ in polys]
+        out.append((mine[0], mine[1:]))
+    return out
 
 
 def _thin(outline_px: np.ndarray) -> np.ndarray:

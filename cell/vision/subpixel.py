@@ -19,7 +19,7 @@ _MARGIN_PX = 4
 _DILATE = np.ones((5, 5), np.uint8)
 
 
-def _median(levels: np.ndarray) -> float:
+def median_level(levels: np.ndarray) -> float:
     """np.median of 8-bit levels, from their histogram (the middle one, or the mean of the middle two)."""
     below = np.cumsum(np.bincount(levels, minlength=256))
     n = int(below[-1])
@@ -46,7 +46,7 @@ def subpixel_outline(gray: np.ndarray, outline: np.ndarray, fraction: float) -> 
     # each upsampled level (a whole number of 64ths) is below the (float32) threshold exactly when
     # it is below the threshold's 64ths rounded up.
     up64 = cv2.resize(roi.astype(np.uint16) << 6, None, fx=UPSAMPLE, fy=UPSAMPLE, interpolation=cv2.INTER_LINEAR)
-    level = float(np.float32(fraction * _median(paper)))
+    level = float(np.float32(fraction * median_level(paper)))
     dark = (up64 < math.ceil(64.0 * level)).view(np.uint8)
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
