@@ -31,7 +31,9 @@ def test_dry_run_clears_the_papers_table_and_agrees_with_its_log(tmp_path, capsy
 
 @pytest.mark.slow
 def test_a_wrong_offset_misses_retries_and_fails(tmp_path, capsys):
-    code = main(["--dry-run", "--offset-x-mm", "3", "--log-dir", str(tmp_path)])
+    cfg = tmp_path / "one-retry.toml"
+    cfg.write_text("[run]\nmax_retries = 1\n")  # one retry shows it as well as two, in fewer frames
+    code = main(["--dry-run", "--config", str(cfg), "--offset-x-mm", "3", "--log-dir", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 1
     events = audit_of(tmp_path)
