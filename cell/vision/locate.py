@@ -108,7 +108,7 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
     outlines_mm = _outlines_on_table(
         mapper,
         [
-            _thinned(f) if f is not None and correct and _shadow_placed(v) else None
+            _thinned(f) if f is not None and ((correct and _shadow_placed(v)) or _posed(v)) else None
             for v, f in zip(verdicts, fines, strict=True)
         ],
     )
@@ -331,7 +331,9 @@ def _fine_outline(
 ) -> np.ndarray | None:
     """The sub-pixel outline where it is used: a bolt on its side (its pose), a nut with height correction."""
     bolt_on_side = verdict.cls == BOLT and verdict.head_width_px is not None
-    if bolt_on_side or (verdict.cls == NUT and correct):
+    if bolt_on_side:  # its ends are measured on it: halfway between the paper's level and the bolt's
+        return subpixel_outline(gray, outline, cfg.segment.threshold_fraction, mid_level=True)
+    if verdict.cls == NUT and correct:
         return subpixel_outline(gray, outline, cfg.segment.threshold_fraction)
     return None
 
@@ -358,7 +360,7 @@ def _place(
 ) -> LocatedPart:
     """`centre_mm`: the centroid mapped onto the table plane; `fine`: the blob's sub-pixel outline
     where one is needed (a bolt's pose is measured on it); `outline_mm`: that outline, thinned, on
-    the table plane where the shadow places the part."""
+    the table plane where the shadow places the part or a bolt's pose is measured."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
     angle = head = grasp = jaw = None
@@ -383,6 +385,8 @@ def _place(
             height,
             scale,
             cfg.bolt.head_across_flats_per_width,
+            outline_mm,
+            EDGE_PX,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
         if correct and outline_mm is not None:
