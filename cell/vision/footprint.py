@@ -20,10 +20,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cell.vision.features import Profile
-from cell.vision.silhouette import Bolt, shadow_outlines
 
 
 @dataclass
@@ -64,13 +64,11 @@ def _sides(poly: np.ndarray) -> Sides:
 def _widths(polygons: list[Sides], q: np.ndarray) -> np.ndarray:
     """The width across the axis of the union of polygons (each as its two sides) at each u of `q`,
     linear between their vertices; 0 outside them."""
-    top = np.full(len(q), np.nan)
-    bottom = np.full(len(q), np.nan)
-    for u1, v1, u2, v2 in polygons:
-        a = np.interp(q, u1, v1, left=np.nan, right=np.nan)
-        b = np.interp(q, u2, v2, left=np.nan, right=np.nan)
-        top = np.fmax(top, np.fmax(a, b))
-        bottom = np.fmin(bottom, np.fmin(a, b))
+    a, b = (np.interp(q, u, v, left=np.nan, right=np.nan) for u, v in (polygons[0][:2], polygons[0][2:]))
+    top, bottom = np.fmax(a, b), np.fmin(a, b)
+    for u1, v1, u2, v2 in polygons[1:]:  # NaN where a polygon does not reach: fmax and fmin pass it by
+        a, b = np.interp(q, u1, v1, left=np.nan, right=np.nan), np.interp(q, u2, v2, left=np.nan, right=np.nan)
+        top, bottom = np.fmax(top, np.fmax(a, b)), np.fmin(bottom, np.fmin(a, b))
     w = top - bottom
     w[np.isnan(w)] = 0.0
     return w
@@ -154,9 +152,10 @@ def bolt_pose(
         q_in, q_out = window * _GRID, u_out + window * _GRID
         q_head = u_out / 2 + np.array([-0.2, 0.0, 0.2]) * u_out
         q_shaft = u_out + np.linspace(0.3, 0.8, 6) * (u_tip - u_out)
-        w_in, w_out = _widths(outline, q_in) + 2 * edge, _widths(outline, q_out) + 2 * edge
-        w = _widths(outline, np.concatenate((q_head, q_shaft))) + 2 * edge
-        e, d = float(np.median(w[:3])), float(np.median(w[3:]))
+        g = len(_GRID)
+        w = _widths(outline, np.concatenate((q_in, q_out, q_head, q_shaft))) + 2 * edge
+        w_in, w_out = w[:g], w[g : 2 * g]
+        e, d = float(np.median(w[2 * g : 2 * g + 3])), float(np.median(w[2 * g + 3 :]))
         level = (e + d) / 2  # the silhouette's widths: the model's crossings are taken at the same
         u_in = _crossing_at(q_in, w_in, level, 0.0, True)
         u_out = _crossing_at(q_out, w_out, level, u_out, False)
@@ -189,9 +188,7 @@ def bolt_pose(
         # The same edges on the bolt's own shadow as this pose has it: how far each crossing lies from
         # its end face there (the head's end faces seen at a slant, sheared across as well, the tip
         # disc) is how far the measured ones lie from theirs.
-        k, L, junction = _faces_from_model(
-            measured, level, axis, k, L, junction, e, d, across_flats, mapper, axis_height_mm
-        )
+        k, L, junction = _faces_from_model(measured, level, axis, k, L, junction, d, across_flats, c, axis_height_mm)
         head = junction - k / 2 * axis
     u_c = (k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)
     return BoltPose(
@@ -206,6 +203,25 @@ def bolt_pose(
     )
 
 
+_HEX = np.deg2rad(60.0 * np.arange(6))  # a head's corners about its axis, seen end on
+_RIM = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)  # a shaft's rim (32 points: its sides within 0.005 r)
+
+
+def _shadow_sides(
+    rings: list[tuple[np.ndarray, np.ndarray, tuple[float, float]]], camera_uvz: np.ndarray, plane_mm: float
+) -> list[Sides]:
+    """Each prism's shadow seen on the plane `plane_mm` above the table, in the axis's frame: a prism is
+    a ring (v across the axis, height z) swept between two u; the camera at (u, v, height)."""
+    cu, cv, h = camera_uvz
+    out = []
+    for v, z, ends in rings:
+        f = (h - plane_mm) / np.maximum(h - z, 1e-9)  # a point at height z seen on the plane
+        pts = np.concatenate([np.column_stack((cu + (u - cu) * f, cv + (v - cv) * f)) for u in ends])
+        hull = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).reshape(-1)
+        out.append(_sides(pts[hull]))
+    return out
+
+
 def _faces_from_model(
     measured: tuple[np.ndarray, float, float, float],
     level: float,
@@ -213,25 +229,30 @@ def _faces_from_model(
     k: float,
     L: float,
     junction: np.ndarray,
-    e: float,
     d: float,
     across_flats: float,
-    mapper,
+    camera_centre: np.ndarray,
     axis_height_mm: float,
 ) -> tuple[float, float, np.ndarray]:
     """The head's length, the shaft's and the junction from the measured crossings (origin, back,
     front, tip along `axis` on the plane of the axis), each less its offset from its end face on the
-    shadow of the bolt as first estimated (silhouette.Bolt, placed where that estimate has it)."""
+    shadow of the bolt as first estimated (its head a hexagonal prism on a flat, its shaft a cylinder,
+    as silhouette.Bolt: the end faces seen at a slant and sheared across, the tip's disc)."""
     origin, u_in, u_out, u_tip = measured
-    u_c = (k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)
-    shape = Bolt(across_flats, k, d, L, math.degrees(math.atan2(axis[1], axis[0])))
-    centre = junction + u_c * axis
-    side = np.array([-axis[1], axis[0]])
-    polygons = []
-    for hull in shadow_outlines(shape, centre, mapper.camera.center_table_mm):
-        p = mapper.lift_mm(hull, axis_height_mm) - origin
-        polygons.append(_sides(np.column_stack((p @ axis, p @ side))))
-    back, front = float(np.dot(junction - origin, axis)) - k, float(np.dot(junction - origin, axis))
+    r, z = across_flats / math.sqrt(3), across_flats / 2  # the head's corner radius, the axis's height
+    front = float(np.dot(junction - origin, axis))
+    back = front - k
+    c = np.asarray(camera_centre, dtype=np.float64)
+    rel = c[:2] - origin
+    camera = np.array([rel @ axis, rel[1] * axis[0] - rel[0] * axis[1], c[2]])
+    polygons = _shadow_sides(
+        [
+            (r * np.cos(_HEX), z + r * np.sin(_HEX), (back, front)),
+            (d / 2 * np.cos(_RIM), z + d / 2 * np.sin(_RIM), (front, front + L)),
+        ],
+        camera,
+        axis_height_mm,
+    )
     window = max(k / 2, 1.0)
     q_in, q_out = back + window * _GRID, front + window * _GRID
     w = _widths(polygons, np.concatenate((q_in, q_out)))
