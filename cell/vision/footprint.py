@@ -152,14 +152,18 @@ def bolt_pose(
         q_in, q_out = window * _GRID, u_out + window * _GRID
         q_head = u_out / 2 + np.array([-0.2, 0.0, 0.2]) * u_out
         q_shaft = u_out + np.linspace(0.3, 0.8, 6) * (u_tip - u_out)
+        q_tip = u_tip + window * _GRID
         g = len(_GRID)
-        w = _widths(outline, np.concatenate((q_in, q_out, q_head, q_shaft))) + 2 * edge
-        w_in, w_out = w[:g], w[g : 2 * g]
-        e, d = float(np.median(w[2 * g : 2 * g + 3])), float(np.median(w[2 * g + 3 :]))
+        w = _widths(outline, np.concatenate((q_in, q_out, q_tip, q_head, q_shaft))) + 2 * edge
+        w_in, w_out, w_tip = w[:g], w[g : 2 * g], w[2 * g : 3 * g]
+        e, d = float(np.median(w[3 * g : 3 * g + 3])), float(np.median(w[3 * g + 3 :]))
+        # the tip where the shaft's width falls to half (its farthest point is the outline's noise's)
+        u_tip = _crossing_at(q_tip, w_tip, d / 2, u_tip, False)
         level = (e + d) / 2  # the silhouette's widths: the model's crossings are taken at the same
         u_in = _crossing_at(q_in, w_in, level, 0.0, True)
         u_out = _crossing_at(q_out, w_out, level, u_out, False)
         measured = (head_in, u_in, u_out, u_tip)
+        shaft_level = d / 2
         head_in, head_out, tip = (head_in + t * axis for t in (u_in, u_out, u_tip))
     head = (head_in + head_out) / 2
     slope = across = 0.0
@@ -181,14 +185,17 @@ def bolt_pose(
     tip_slope = 0.0
     if camera is not None and axis_height_mm > 0:
         tip_slope = abs(float(np.dot((tip - c[:2]) / (c[2] - axis_height_mm), axis)))
-    tip_true = tip - d / 2 * tip_slope * axis
+    # (measured at half its width, the tip's disc reaches sqrt(3)/2 of that)
+    tip_true = tip - (math.sqrt(3) / 2 if measured is not None else 1.0) * d / 2 * tip_slope * axis
     junction = head + k / 2 * axis
     L = max(float(np.dot(tip_true - junction, axis)), 0.1)
     if measured is not None and camera is not None and axis_height_mm > 0:
         # The same edges on the bolt's own shadow as this pose has it: how far each crossing lies from
         # its end face there (the head's end faces seen at a slant, sheared across as well, the tip
         # disc) is how far the measured ones lie from theirs.
-        k, L, junction = _faces_from_model(measured, level, axis, k, L, junction, d, across_flats, c, axis_height_mm)
+        k, L, junction = _faces_from_model(
+            measured, (level, shaft_level), axis, k, L, junction, d, across_flats, c, axis_height_mm
+        )
         head = junction - k / 2 * axis
     u_c = (k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)
     return BoltPose(
@@ -204,7 +211,7 @@ def bolt_pose(
 
 
 _HEX = np.deg2rad(60.0 * np.arange(6))  # a head's corners about its axis, seen end on
-_RIM = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)  # a shaft's rim (32 points: its sides within 0.005 r)
+_RIM = np.linspace(0.0, 2 * np.pi, 96, endpoint=False)  # a shaft's rim (32 points: its sides within 0.005 r)
 
 
 def _shadow_sides(
@@ -224,7 +231,7 @@ def _shadow_sides(
 
 def _faces_from_model(
     measured: tuple[np.ndarray, float, float, float],
-    level: float,
+    levels: tuple[float, float],
     axis: np.ndarray,
     k: float,
     L: float,
@@ -239,6 +246,7 @@ def _faces_from_model(
     shadow of the bolt as first estimated (its head a hexagonal prism on a flat, its shaft a cylinder,
     as silhouette.Bolt: the end faces seen at a slant and sheared across, the tip's disc)."""
     origin, u_in, u_out, u_tip = measured
+    level, shaft_level = levels  # the head's crossings', the tip's
     r, z = across_flats / math.sqrt(3), across_flats / 2  # the head's corner radius, the axis's height
     front = float(np.dot(junction - origin, axis))
     back = front - k
@@ -254,11 +262,12 @@ def _faces_from_model(
         axis_height_mm,
     )
     window = max(k / 2, 1.0)
-    q_in, q_out = back + window * _GRID, front + window * _GRID
-    w = _widths(polygons, np.concatenate((q_in, q_out)))
-    m_in = _crossing_at(q_in, w[: len(q_in)], level, back, True)
-    m_out = _crossing_at(q_out, w[len(q_in) :], level, front, False)
-    m_tip = float(polygons[1][0][-1])
+    q_in, q_out, q_tip = back + window * _GRID, front + window * _GRID, front + L + window * _GRID
+    w = _widths(polygons, np.concatenate((q_in, q_out, q_tip)))
+    g = len(_GRID)
+    m_in = _crossing_at(q_in, w[:g], level, back, True)
+    m_out = _crossing_at(q_out, w[g : 2 * g], level, front, False)
+    m_tip = _crossing_at(q_tip, w[2 * g :], shaft_level, front + L, False)
     back, front, tip = u_in - (m_in - back), u_out - (m_out - front), u_tip - (m_tip - front - L)
     k, L = max(front - back, 0.1), max(tip - front, 0.1)
     return k, L, origin + front * axis

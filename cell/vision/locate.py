@@ -390,9 +390,12 @@ def _place(
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
         if correct and outline_mm is not None:
-            # The shadow's centroid places the bolt; its head and grasp point move with it.
+            # The shadow's centroid places the bolt; its head and grasp point move with it across the
+            # axis. Along it they keep their place from the bolt's ends: the centroid's shift there
+            # mostly answers the widths' error (0.03 mm towards the head on average, at 0.3-0.4 mm/px).
             shift = _from_shadow(_bolt_shape(pose), outline_mm, mapper, world) - world
-            world, head, grasp = world + shift, head + shift, grasp + shift
+            side = _unit(pose.angle_deg + 90.0)
+            world, head, grasp = world + shift, head + (shift @ side) * side, grasp + (shift @ side) * side
         jaw = pose.shaft_mm + cfg.jaw_clearance_mm
     elif verdict.cls == BOLT and prof is not None:  # paper preset: the centroid, and the axis end to end
         ends_px = np.array([prof.origin_px, prof.origin_px + prof.length_px * prof.axis_px])

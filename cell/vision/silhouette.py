@@ -211,17 +211,6 @@ def _hull_moments(hull: np.ndarray) -> tuple[float, np.ndarray]:
     return m["m00"], np.array([m["m10"], m["m01"]]) / m["m00"]
 
 
-def shadow_outlines(shape: Shape, centre: np.ndarray, camera_centre: np.ndarray) -> list[np.ndarray]:
-    """Each solid's shadow on the table plane (a convex polygon, (N, 2) table mm): the shadow is their union."""
-    c = np.asarray(centre, dtype=np.float64)
-    out = []
-    for base, k1 in _Caster(shape, camera_centre).solids:
-        pts = base + k1 * c  # about the footprint centre
-        index = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).reshape(-1)
-        out.append(c + pts[index])
-    return out
-
-
 def shadow_moments(shape: Shape, centre: np.ndarray, camera_centre: np.ndarray) -> tuple[float, np.ndarray]:
     """Area and area centroid of the shadow `shape` casts on the table plane from the camera centre."""
     return _Caster(shape, camera_centre).moments(np.asarray(centre, dtype=np.float64))
