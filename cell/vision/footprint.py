@@ -6,13 +6,15 @@ wider) gains more than the shaft, so the silhouette centroid creeps towards the 
 up to about 1 mm. Instead, measure features that perspective leaves in place and rebuild
 the footprint from them, all on the plane of the bolt's axis:
 
-- the head's silhouette is centrally symmetric about the head's centre (a hex prism
-  lying on a flat), so the midpoint of its two crossings of one width level is the
-  head centre; its length there exceeds the head height by a known amount;
-- the tip disc adds (shaft diameter / 2) x the view slope along the axis to the length.
+- the head's two crossings of one width level (halfway between the head's and the shaft's) and
+  the tip's (half the shaft's width), measured on the sub-pixel outline mapped onto the plane of
+  the axis, in millimetres (issue 29: at 0.3-0.45 mm/px a pixel is a tenth of the head);
+- each less its offset from its end face on the shadow of the bolt as first estimated (a hex
+  prism on a flat and a cylinder, seen from the camera centre): the end faces tilt into view and
+  shear across, the tip's disc reaches out by about (shaft diameter / 2) x the view slope.
 
 The view slope comes from the camera pose the calibration stores; without one it is
-taken as zero (a camera straight above).
+taken as zero (a camera straight above), and the first estimate stands.
 """
 
 from __future__ import annotations
