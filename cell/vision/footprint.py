@@ -212,8 +212,11 @@ def bolt_pose(
     )
 
 
-_HEX = np.deg2rad(60.0 * np.arange(6))  # a head's corners about its axis, seen end on
-_RIM = np.linspace(0.0, 2 * np.pi, 96, endpoint=False)  # a shaft's rim (32 points: its sides within 0.005 r)
+# A head's corners about its axis seen end on, a shaft's rim (32 points: its sides within 0.005 r).
+_HEX = np.column_stack((np.cos(np.deg2rad(60.0 * np.arange(6))), np.sin(np.deg2rad(60.0 * np.arange(6)))))
+_RIM = np.column_stack(
+    (np.cos(np.linspace(0.0, 2 * np.pi, 32, endpoint=False)), np.sin(np.linspace(0.0, 2 * np.pi, 32, endpoint=False)))
+)
 
 
 def _shadow_sides(
@@ -257,8 +260,8 @@ def _faces_from_model(
     camera = np.array([rel @ axis, rel[1] * axis[0] - rel[0] * axis[1], c[2]])
     polygons = _shadow_sides(
         [
-            (r * np.cos(_HEX), z + r * np.sin(_HEX), (back, front)),
-            (d / 2 * np.cos(_RIM), z + d / 2 * np.sin(_RIM), (front, front + L)),
+            (r * _HEX[:, 0], z + r * _HEX[:, 1], (back, front)),
+            (d / 2 * _RIM[:, 0], z + d / 2 * _RIM[:, 1], (front, front + L)),
         ],
         camera,
         axis_height_mm,
