@@ -4,9 +4,10 @@ the grasp point the pick plan targets (the middle of the shaft), with no bias to
 
 Its ends are found on the sub-pixel outline itself, halfway between the paper's level and the bolt's
 (a blurred edge's contour at the segmentation's threshold lies inside the edge by about 0.18 blur
-sigmas), and the tip's reach along the axis from the slope of the view at the tip. Measured before
-on these scenes: the grasp point 0.09 mm towards the tip on average (the head read 0.14 mm long).
-The wide sweep is scripts/bench_parts.py --min-mm-per-px 0.3 --previous.
+sigmas), in millimetres on the plane of the axis, each end less its offset on the bolt's own
+shadow. Before, over the coarse bench's cameras, the grasp point lay 0.09 mm towards the tip on
+average (the head read 0.14 mm long), and on the -12 % barrel lens here up to 0.38 mm. The wide
+sweep is scripts/bench_parts.py --min-mm-per-px 0.3 --previous (docs/parts.md).
 """
 
 from __future__ import annotations
