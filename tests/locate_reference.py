@@ -2,8 +2,10 @@
 cell/vision is pinned against (tests/test_locate_speed.py) and timed beside (scripts/bench_parts.py
 --speed): as of commit ecf563f, the shadow model of cell/vision/silhouette.py (pure-Python polygon
 geometry per part), the sub-pixel outline of cell/vision/subpixel.py, the body of
-cell/vision/locate.py (one mapping call per outline and per centroid) and features.hexagonality.
-Segmentation, measurement and classification are the current ones (unchanged, but for hexagonality).
+cell/vision/locate.py (one mapping call per outline and per centroid), features.hexagonality and
+footprint.bolt_pose (a lying bolt's ends from its 1-px width profile; issue 29 measures them on the
+outline itself). Segmentation, measurement and classification are the current ones (unchanged, but
+for hexagonality).
 
 `locate(image, calibration, config)` runs it.
 """
@@ -22,8 +24,8 @@ from cell.errors import InputError
 from cell.vision import features
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
-from cell.vision.features import Features, measure, resample, width_profile
-from cell.vision.footprint import BoltPose, bolt_pose
+from cell.vision.features import Features, Profile, measure, resample, width_profile
+from cell.vision.footprint import BoltPose
 from cell.vision.segment import segment, to_gray
 from cell.vision.subpixel import EDGE_PX
 from cell.vision.types import LocatedPart, LocateResult
@@ -304,6 +306,82 @@ def _locate(image_bgr: np.ndarray, calibration_or_scale, config=None) -> LocateR
     elapsed_ms = (time.perf_counter() - t0) * 1e3
     log.debug("located %d blobs in %.1f ms", len(found), elapsed_ms)
     return LocateResult(found, (w, h), elapsed_ms, warnings)
+
+
+def _crossing(pos: np.ndarray, w: np.ndarray, level: float, i: int, j: int) -> float:
+    """Position where the width passes `level` between bins i and j (linear)."""
+    if w[j] == w[i]:
+        return float((pos[i] + pos[j]) / 2)
+    t = (level - w[i]) / (w[j] - w[i])
+    return float(pos[i] + np.clip(t, 0.0, 1.0) * (pos[j] - pos[i]))
+
+
+def bolt_pose(
+    prof: Profile,
+    head_width_px: float,
+    shaft_width_px: float,
+    mapper,
+    axis_height_mm: float,
+    table_mm_per_px: float,
+    head_across_flats_per_width: float,
+) -> BoltPose:
+    """Footprint, head, grasp point and axis angle of a bolt lying on its side.
+
+    `mapper` is a Calibration (or PixelScale); `axis_height_mm` the plane of the axis
+    (0 maps on the table and ignores parallax).
+    """
+    w, pos = prof.widths_px, prof.positions_px
+    level = (head_width_px + shaft_width_px) / 2
+    above = np.flatnonzero(w >= level)
+    first = int(above[0]) if above.size else 0
+    last = first
+    while last + 1 < len(w) and w[last + 1] >= level:
+        last += 1
+    u_in = _crossing(pos, w, level, first - 1, first) if first > 0 else 0.0
+    u_out = _crossing(pos, w, level, last, last + 1) if last + 1 < len(w) else float(pos[last])
+    # The axis is the shaft's midline: the head's outline is skewed by perspective, which
+    # tilts the blob's principal axis on short bolts by up to a degree or so.
+    shaft = slice(last + 2, len(w) - 2)
+    if len(pos[shaft]) >= 5:
+        slope, offset = np.polyfit(pos[shaft], prof.centres_px[shaft], 1)
+    else:
+        slope, offset = 0.0, float(np.median(prof.centres_px))
+    a = prof.axis_px
+    n = np.array([-a[1], a[0]])
+    pts = np.array([prof.origin_px + u * a + (offset + slope * u) * n for u in (u_in, u_out, prof.length_px)])
+    head_in, head_out, tip = mapper.pixel_to_table_mm(pts, height_mm=axis_height_mm)
+    axis = tip - head_in
+    axis /= max(float(np.hypot(*axis)), 1e-9)
+    head = (head_in + head_out) / 2
+    camera = getattr(mapper, "camera", None)
+    scale = table_mm_per_px
+    slope = across = 0.0
+    if camera is not None and axis_height_mm > 0:
+        c = camera.center_table_mm
+        scale *= 1.0 - axis_height_mm / c[2]
+        view = (head - c[:2]) / (c[2] - axis_height_mm)
+        slope = abs(float(np.dot(view, axis)))
+        across = abs(float(view[0] * axis[1] - view[1] * axis[0]))
+    # Seen at a slant across its axis the shaft's silhouette is wider by 1 / cos(slant): the rays
+    # graze the cylinder. The head's is not (a hexagon on a flat, slants under 30 degrees).
+    e, d = head_width_px * scale, shaft_width_px * scale / math.hypot(1.0, across)
+    across_flats = head_across_flats_per_width * e
+    stretch = across_flats / 2 * slope  # how far each end face tilts out along the axis
+    k = max(float(np.dot(head_out - head_in, axis)) - 2 * stretch * (e - d) / e, 0.1)
+    tip_true = tip - d / 2 * slope * axis
+    junction = head + k / 2 * axis
+    L = max(float(np.dot(tip_true - junction, axis)), 0.1)
+    u_c = (k * e * (-k / 2) + L * d * (L / 2)) / (k * e + L * d)
+    return BoltPose(
+        centre_mm=junction + u_c * axis,
+        head_mm=head,
+        grasp_mm=junction + L / 2 * axis,
+        angle_deg=math.degrees(math.atan2(axis[1], axis[0])) % 180.0,
+        shaft_mm=d,
+        length_mm=k + L,
+        head_length_mm=k,
+        head_across_flats_mm=across_flats,
+    )
 
 
 def _refuse_non_finite(part: LocatedPart) -> LocatedPart:

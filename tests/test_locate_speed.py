@@ -4,7 +4,8 @@ The previous implementation is kept verbatim in tests/locate_reference.py; here 
 pinned against it: the shadow model's area and centroid and the footprint centre on random nuts and
 bolts under random camera centres (to 1e-5 mm: the hulls are taken in float32 about the part, as
 before, about 1e-6 mm), the sub-pixel outline point for point, and whole frames located both ways
-on random cameras (every part's class the same, its table position, head and grasp point to 1e-5 mm).
+on random cameras (every part's class the same, its table position, head and grasp point to 1e-5 mm;
+a lying bolt's, which issue 29 measures differently, within 0.1-0.3 mm).
 No timing is asserted here: scripts/bench_parts.py --speed measures it.
 """
 
@@ -119,6 +120,12 @@ def test_subpixel_outline_is_the_previous_one_point_for_point():
 
 
 def test_whole_frames_locate_as_before():
+    """Every part as before, but a lying bolt's place, which issue 29 measures differently (its ends
+    and widths on its outline in millimetres, halfway between the paper's level and the bolt's, less
+    their offsets on its own shadow; the reference keeps the 1-px width profile): its footprint
+    centre, still placed by its shadow's centroid, within 0.1 mm of the previous one, its head and
+    grasp point within 0.3 mm (they moved by up to 0.22 and 0.14 mm on these frames, the head's
+    0.14-0.25 mm length and the tip's reach corrected), its axis within 0.1 deg."""
     config = PartsConfig()
     for frame, cal in _frames(2):
         ours = locate(frame, cal, config).objects
@@ -126,9 +133,14 @@ def test_whole_frames_locate_as_before():
         assert len(ours) == len(theirs) >= 15
         for a, b in zip(ours, theirs, strict=True):
             assert (a.cls, a.pick, a.reason) == (b.cls, b.pick, b.reason)
-            for p, q in [(a.table_mm, b.table_mm), (a.grasp_mm, b.grasp_mm), (a.head_mm, b.head_mm)]:
+            bolt = a.cls == "bolt"
+            for p, q, bolt_mm in [
+                (a.table_mm, b.table_mm, 0.1),
+                (a.grasp_mm, b.grasp_mm, 0.3),
+                (a.head_mm, b.head_mm, 0.3),
+            ]:
                 assert (p is None) == (q is None)
                 if p is not None:
-                    assert np.hypot(p[0] - q[0], p[1] - q[1]) < TOLERANCE_MM, (a.cls, p, q)
+                    assert np.hypot(p[0] - q[0], p[1] - q[1]) < (bolt_mm if bolt else TOLERANCE_MM), (a.cls, p, q)
             if a.angle_deg is not None:
-                assert a.angle_deg == pytest.approx(b.angle_deg, abs=1e-6)
+                assert a.angle_deg == pytest.approx(b.angle_deg, abs=0.1 if bolt else 1e-6)

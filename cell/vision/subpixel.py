@@ -29,8 +29,16 @@ def median_level(levels: np.ndarray) -> float:
     return (int(np.searchsorted(below, n // 2)) + hi) / 2
 
 
-def subpixel_outline(gray: np.ndarray, outline: np.ndarray, fraction: float) -> np.ndarray | None:
-    """(N, 2) float outline in image pixels, or None where no paper is seen around the part."""
+def subpixel_outline(
+    gray: np.ndarray, outline: np.ndarray, fraction: float, mid_level: bool = False
+) -> np.ndarray | None:
+    """(N, 2) float outline in image pixels, or None where no paper is seen around the part.
+
+    `mid_level`: the contour halfway between the paper's level and the part's own (the median of its
+    inside, 2 px in from its outline) where the part is clearly darker than the threshold: there a
+    blurred straight edge's contour lies on the edge whatever the blur. At `fraction` x the paper
+    it lies inside the edge by about 0.18 blur sigmas (backlight 200, part 25: the contour at 57 %
+    cover), which shortened a bolt's head by 0.1-0.25 mm at 0.3-0.4 mm/px."""
     H, W = gray.shape
     x, y, w, h = cv2.boundingRect(outline)
     x0, y0 = max(x - _MARGIN_PX, 0), max(y - _MARGIN_PX, 0)
@@ -47,6 +55,12 @@ def subpixel_outline(gray: np.ndarray, outline: np.ndarray, fraction: float) -> 
     # it is below the threshold's 64ths rounded up.
     up64 = cv2.resize(roi.astype(np.uint16) << 6, None, fx=UPSAMPLE, fy=UPSAMPLE, interpolation=cv2.INTER_LINEAR)
     level = float(np.float32(fraction * median_level(paper)))
+    if mid_level:
+        inside = roi[cv2.erode(part, _DILATE) > 0]
+        if inside.size >= 16:
+            own = median_level(inside)
+            if own <= 0.6 * level:
+                level = float(np.float32((median_level(paper) + own) / 2))
     dark = (up64 < math.ceil(64.0 * level)).view(np.uint8)
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
