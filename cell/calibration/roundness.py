@@ -216,23 +216,32 @@ def _fit_shapes(
         return np.linalg.inv(q)
 
     qi0 = np.linalg.inv(aat)
-    u, v = x[None] - win.offset[:, :1], y[None] - win.offset[:, 1:]
-    s0 = np.sqrt(qi0[:, 0, :1] * u * u + 2 * qi0[:, 0, 1:] * u * v + qi0[:, 1, 1:] * v * v)
+    # The fit's pixels lie in the inner box (the blur's reach beyond it is in the window); the circle
+    # itself covers only the core box: its coverage is drawn there, the rest of the window's is fixed.
     inner = half - reach
-    mask = (s0 <= 1.0 + _MARGIN_PX / radius_px[:, None]) & (np.abs(x) <= inner) & (np.abs(y) <= inner)
-    mask = mask.astype(np.float64)
+    rows = np.flatnonzero(np.abs(np.arange(-half, half + 1)) <= inner)
+    box = ((np.abs(x) <= inner) & (np.abs(y) <= inner)).reshape(-1)
+    core_half = min(half, int(np.ceil(1.3 * float(np.max(radius_px)) + 2.0)))
+    core = (np.abs(x) <= core_half) & (np.abs(y) <= core_half)
+    grey, xi, yi = grey[:, box], x[box], y[box]
+    u, v = xi[None] - win.offset[:, :1], yi[None] - win.offset[:, 1:]
+    s0 = np.sqrt(qi0[:, 0, :1] * u * u + 2 * qi0[:, 0, 1:] * u * v + qi0[:, 1, 1:] * v * v)
+    mask = (s0 <= 1.0 + _MARGIN_PX / radius_px[:, None]).astype(np.float64)
     # The neighbours' dots, drawn once with the configured shape (their rims only reach the margin).
     rel = neighbours - win.middle[:, None, :]
     rel = np.where(np.isnan(rel), 1e6, rel).reshape(-1, 2)
     others = _coverage(x, y, rel, np.repeat(qi0, 8, axis=0)).reshape(n, 8, -1).max(axis=1)
+    xc, yc = x[core], y[core]
 
     def residual(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         m = np.stack([np.stack([phi[:, 2], phi[:, 3]], -1), np.stack([phi[:, 3], phi[:, 4]], -1)], -2)
-        cover = np.maximum(_coverage(x, y, win.offset + phi[:, :2], inverse_shape(m)), others)
-        g = _blur_matrices(np.clip(np.exp(phi[:, 5]), 0.2, _SIGMA_MAX_PX), size)
+        cover = others.copy()
+        cover[:, core] = np.maximum(cover[:, core], _coverage(xc, yc, win.offset + phi[:, :2], inverse_shape(m)))
+        g = _blur_matrices(np.clip(np.exp(phi[:, 5]), 0.2, _SIGMA_MAX_PX), size, rows)
         blurred = (g @ cover.reshape(n, size, size) @ np.transpose(g, (0, 2, 1))).reshape(n, -1)
         design = np.stack(
-            [np.ones_like(blurred), np.broadcast_to(x, blurred.shape), np.broadcast_to(y, blurred.shape), -blurred], -1
+            [np.ones_like(blurred), np.broadcast_to(xi, blurred.shape), np.broadcast_to(yi, blurred.shape), -blurred],
+            -1,
         )
         weighted = np.transpose(design * mask[..., None], (0, 2, 1))
         beta = np.linalg.solve(weighted @ design + 1e-9 * np.eye(4), weighted @ grey[..., None])
@@ -285,9 +294,10 @@ def _coverage(x: np.ndarray, y: np.ndarray, centre: np.ndarray, inv: np.ndarray)
     return np.clip(0.5 - (s - 1.0) * s / np.maximum(np.hypot(gu, gv), 1e-9), 0.0, 1.0)
 
 
-def _blur_matrices(sigma: np.ndarray, size: int) -> np.ndarray:
-    """(n, size, size) Gaussian blur along one axis, each row summing to what the full kernel does."""
-    d = np.arange(size)[:, None] - np.arange(size)[None, :]
+def _blur_matrices(sigma: np.ndarray, size: int, rows: np.ndarray) -> np.ndarray:
+    """(n, len(rows), size): a Gaussian blur along one axis of `size` pixels, the output's `rows` only,
+    each summing to what the whole kernel does (pixels beyond the window count as clear)."""
+    d = rows[:, None] - np.arange(size)[None, :]
     s = sigma[:, None, None]
     kernel = np.exp(-0.5 * (d[None] / s) ** 2)
     full = np.exp(-0.5 * (np.arange(-size, size + 1)[None, :] / sigma[:, None]) ** 2).sum(axis=1)
