@@ -153,6 +153,10 @@ def main() -> int:
             )
     wall = time.perf_counter() - t0
 
+    if not outcomes:
+        print(f"no view measured ({len(skipped)} left out); nothing to report")
+        return 1
+
     def kind(o: Outcome) -> str:
         return "photo" if o.view.name.startswith("photo") else "render"
 

@@ -178,8 +178,10 @@ def measure_pitch_ratio(
         gray, scale = cv2.pyrDown(gray), 2 * scale
     jac, at = jac / scale, (pixel + 0.5) / scale - 0.5
     # Neighbours on the plate: where found, their measured centres; else where the lattice puts them.
+    on = (col_row >= 0).all(axis=1) & (col_row[:, 0] < plate.columns) & (col_row[:, 1] < plate.rows)
+    usable &= on
     grid = np.full((plate.columns, plate.rows, 2), np.nan)
-    grid[col_row[:, 0], col_row[:, 1]] = at
+    grid[col_row[on, 0], col_row[on, 1]] = at[on]
     nb_cr = col_row[:, None, :] + _NEIGHBOURS[None]
     on_plate = (nb_cr >= 0).all(axis=2) & (nb_cr[..., 0] < plate.columns) & (nb_cr[..., 1] < plate.rows)
     nb = grid[np.clip(nb_cr[..., 0], 0, plate.columns - 1), np.clip(nb_cr[..., 1], 0, plate.rows - 1)]
@@ -188,6 +190,8 @@ def measure_pitch_ratio(
     nb = np.where(np.isnan(nb), predicted, nb)
     nb[~on_plate] = np.nan
     chosen = np.flatnonzero(usable)
+    if chosen.size < 4:
+        return None
     chosen = chosen[np.linspace(0, chosen.size - 1, min(chosen.size, _MAX_CIRCLES)).round().astype(int)]
     jac, at, nb = jac[chosen], at[chosen], nb[chosen]
     log_factor, ok = _fit_shapes(gray, at, jac, nb, plate.diameter_mm / 2)
