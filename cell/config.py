@@ -135,12 +135,20 @@ class CalibrationConfig(Strict):
         description="where a recalibration copies the active_path file it replaces (name + date and time)",
     )
     max_pitch_ratio_error_pct: float = Field(
-        2.5,
+        2.0,
         gt=0,
         le=50,
-        description="refused when the plate's circles, mapped back through the configured pitches, are this "
-        "much wider than tall (or taller than wide): pitch_x_mm / pitch_y_mm is not the plate's (a wrong pitch, "
-        "X and Y swapped)",
+        description="the smallest pitch-ratio error refused: the plate's circles, mapped back through the "
+        "configured pitches, wider than tall (or taller than wide) by more than this and by more than "
+        "pitch_ratio_refuse_sd standard errors of the measurement on that image (pitch_x_mm / pitch_y_mm is not "
+        "the plate's: a wrong pitch, X and Y swapped)",
+    )
+    pitch_ratio_refuse_sd: float = Field(
+        4.0,
+        gt=0,
+        le=20,
+        description="a pitch ratio is refused only when it is off by more than this many standard errors of the "
+        "circles' own measurement (their spread over the plate), and more than max_pitch_ratio_error_pct",
     )
     camera_height_min_mm: float = Field(
         50.0, gt=0, description="a fitted camera surely closer to the table (3 standard deviations) is refused"

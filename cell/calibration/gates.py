@@ -26,15 +26,19 @@ def plausibility_problems(result: CalibrationResult, limits: CalibrationConfig, 
     """What makes the fit physically implausible (empty: nothing)."""
     problems = []
     ratio = result.pitch_ratio
-    tolerance = 1.0 + limits.max_pitch_ratio_error_pct / 100.0
-    if ratio is not None and not 1.0 / tolerance <= ratio.factor <= tolerance:
+    floor, sds = limits.max_pitch_ratio_error_pct, limits.pitch_ratio_refuse_sd
+    if ratio is not None and ratio.refused(floor, sds):
         configured = plate.pitch_x_mm / plate.pitch_y_mm
+        sd_pct = 100.0 * ratio.log_sd
         problems.append(
-            f"the plate's circles are round only if pitch_x_mm / pitch_y_mm is {configured / ratio.factor:.3f}, "
-            f"not the configured {plate.pitch_x_mm:g} / {plate.pitch_y_mm:g} = {configured:.3f} "
-            f"({100.0 * abs(ratio.factor - 1.0):.1f} % off, median of {ratio.circles} circles; "
-            f"calibration.max_pitch_ratio_error_pct {limits.max_pitch_ratio_error_pct:g}): a wrong pitch, "
-            f"or X and Y swapped?"
+            f"the plate's circles are round only if pitch_x_mm / pitch_y_mm is {configured / ratio.factor:.3f} "
+            f"+- {configured / ratio.factor * ratio.log_sd:.3f}, not the configured {plate.pitch_x_mm:g} / "
+            f"{plate.pitch_y_mm:g} = {configured:.3f} (the circles measure {100.0 * (ratio.factor - 1.0):+.1f} "
+            f"+- {sd_pct:.1f} % (one standard error, median of {ratio.circles} circles); refused beyond "
+            f"{ratio.threshold_pct(floor, sds):.1f} %: calibration.pitch_ratio_refuse_sd {sds:g} standard errors, "
+            f"at least calibration.max_pitch_ratio_error_pct {floor:g}): a wrong pitch, or X and Y swapped? "
+            f"(hint: measure the plate's pitches between circle centres far apart and set plate.pitch_x_mm and "
+            f"plate.pitch_y_mm; X runs along the columns)"
         )
     centre = result.calibration.camera_center_table_mm
     if centre is None or not np.all(np.isfinite(centre)) or result.plate_height_mm is None:

@@ -75,8 +75,9 @@ def _plausibility_lines(result: CalibrationResult) -> list[str]:
         p = result.calibration.pattern
         configured = p["pitch_x_mm"] / p["pitch_y_mm"]
         lines.append(
-            f"pitch ratio the circles see: {configured / result.pitch_ratio.factor:.4f} (configured "
-            f"{configured:.4f}, {result.pitch_ratio.circles} circles)"
+            f"pitch ratio the circles see: {configured / result.pitch_ratio.factor:.4f} +- "
+            f"{configured / result.pitch_ratio.factor * result.pitch_ratio.log_sd:.4f} (configured {configured:.4f}, "
+            f"{result.pitch_ratio.circles} circles, one standard error)"
         )
     if result.plate_height_mm is not None:
         height, sd = result.plate_height_mm, result.plate_height_sd_mm
