@@ -76,7 +76,24 @@ class Footprint:
     centroid_mm: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def __post_init__(self) -> None:
-        a, sx, sy = net_moments([self.outer, *self.holes], second=False)
+        self._centre(net_moments([self.outer, *self.holes], second=False))
+
+    @classmethod
+    def _of_stacked(cls, pts: np.ndarray, bounds: Sequence[int], nxt: np.ndarray) -> Footprint:
+        """The footprint of the outline and holes stacked in `pts` (each polygon from one bound to
+        the next, `nxt` their _next_index): the same as Footprint(outer, holes), without stacking
+        them again."""
+        fp = cls.__new__(cls)
+        fp.outer = pts[bounds[0] : bounds[1]]
+        fp.holes = [pts[a:b] for a, b in zip(bounds[1:-1], bounds[2:], strict=True)]
+        if len(bounds) == 2:
+            fp._centre(_moments(fp.outer)[:3])
+        else:
+            fp._centre(_net_stacked(pts, nxt, bounds[:-1], second=False))
+        return fp
+
+    def _centre(self, moments: np.ndarray) -> None:
+        a, sx, sy = moments[:3]
         if a <= 0:
             self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
             return
@@ -114,9 +131,14 @@ def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
     `second`, the area and first moments alone."""
     if len(polys) == 1:
         return _moments(polys[0]) if second else _moments(polys[0])[:3]
-    pts = np.concatenate(polys)
+    return _net_stacked(
+        np.concatenate(polys), _next_index(polys), np.cumsum([0, *(len(p) for p in polys[:-1])]), second
+    )
+
+
+def _net_stacked(pts: np.ndarray, nxt: np.ndarray, starts: Sequence[int] | np.ndarray, second: bool) -> np.ndarray:
+    """net_moments of the polygons stacked in `pts` (`nxt`: their _next_index; `starts`: where each begins)."""
     x, y = pts[:, 0], pts[:, 1]
-    nxt = _next_index(polys)
     xn, yn = x[nxt], y[nxt]
     c = x * yn - xn * y
     rows = [c / 2, (x + xn) * c / 6, (y + yn) * c / 6]
@@ -126,7 +148,6 @@ def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
             (y * y + y * yn + yn * yn) * c / 12,
             (x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c / 24,
         ]
-    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
     per = np.add.reduceat(np.stack(rows), starts, axis=1)  # (terms, polygons)
     per *= np.where(per[0] < 0, -1.0, 1.0)  # each orientation-free
     return per[:, 0] - per[:, 1:].sum(axis=1)
@@ -202,25 +223,52 @@ def fine_outlines(
 def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
     """Per point of the outer outline (first) and the holes: whether its side faces away from the
     camera's foot (what is seen there is the part's top edge)."""
-    return np.split(_far_stacked(np.concatenate(polys), polys, foot), np.cumsum([len(p) for p in polys[:-1]]))
+    st = _Stack.of(polys)
+    return np.split(st.far(foot), st.bounds[1:-1])
 
 
-def _far_stacked(pts: np.ndarray, polys: Sequence[np.ndarray], foot: np.ndarray) -> np.ndarray:
-    """far_sides for the polygons stacked (`pts`), as one array."""
-    n = [len(p) for p in polys]
-    nxt = _next_index(polys)
-    prv = np.arange(-1, len(pts) - 1)
-    starts = nxt[np.cumsum(n) - 1]
-    prv[starts] = np.cumsum(n) - 1
-    x, y = pts[:, 0], pts[:, 1]
-    dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
-    # Clockwise: the right-hand normal points in; a hole's normal from the material into the air is
-    # the one pointing into the hole.
-    turn = x * y[nxt] - x[nxt] * y
-    sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
-    sign[1:] *= -1.0
-    facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
-    return facing < 0
+@dataclass(frozen=True)
+class _Stack:
+    """An outline and its holes stacked in one array (each polygon from one bound to the next),
+    with each point's successor along its polygon: made once per silhouette, for every height."""
+
+    pts: np.ndarray
+    n: list[int]
+    bounds: list[int]
+    nxt: np.ndarray
+
+    @staticmethod
+    def of(polys: Sequence[np.ndarray]) -> _Stack:
+        n = [len(p) for p in polys]
+        return _Stack(np.concatenate(polys), n, [0, *np.cumsum(n).tolist()], _next_index(polys))
+
+    def far(self, foot: np.ndarray) -> np.ndarray:
+        """far_sides, as one array."""
+        pts, nxt, n = self.pts, self.nxt, self.n
+        prv = np.arange(-1, len(pts) - 1)
+        ends = np.asarray(self.bounds[1:]) - 1
+        starts = nxt[ends]
+        prv[starts] = ends
+        x, y = pts[:, 0], pts[:, 1]
+        dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
+        # Clockwise: the right-hand normal points in; a hole's normal from the material into the air
+        # is the one pointing into the hole.
+        turn = x * y[nxt] - x[nxt] * y
+        sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
+        sign[1:] *= -1.0
+        facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
+        return facing < 0
+
+    def footprint(self, height_mm: float, camera_centre: np.ndarray | None, far: np.ndarray | None) -> Footprint:
+        """footprint_from_table of the stacked silhouette (`far`: self.far(foot), or None to make it)."""
+        if camera_centre is None or height_mm <= 0:
+            return Footprint._of_stacked(self.pts, self.bounds, self.nxt)
+        foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
+        shrink = 1.0 - height_mm / cam_h
+        f = self.far(foot) if far is None else far
+        moved = self.pts.copy()
+        moved[f] = foot + (self.pts[f] - foot) * shrink
+        return Footprint._of_stacked(moved, self.bounds, self.nxt)
 
 
 def footprint_from_table(
@@ -237,14 +285,7 @@ def footprint_from_table(
     polys = [np.asarray(outer_mm, float), *(np.asarray(h, float) for h in holes_mm)]
     if camera_centre is None or height_mm <= 0:
         return Footprint(polys[0], polys[1:])
-    foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
-    shrink = 1.0 - height_mm / cam_h
-    pts = np.concatenate(polys)
-    f = _far_stacked(pts, polys, foot) if far is None else np.concatenate(far)
-    moved = pts.copy()
-    moved[f] = foot + (pts[f] - foot) * shrink
-    out = np.split(moved, np.cumsum([len(p) for p in polys[:-1]]))
-    return Footprint(out[0], out[1:])
+    return _Stack.of(polys).footprint(height_mm, camera_centre, None if far is None else np.concatenate(far))
 
 
 # ---- rasters and harmonics ---------------------------------------------------------------------
@@ -888,12 +929,13 @@ def best_match(
     outer, holes = silhouette
     corrected: dict[float, Footprint] = {}
     best: tuple[Match, Footprint] | None = None
-    far = None if camera_centre is None else far_sides([outer, *holes], np.asarray(camera_centre[:2], float))
+    stack = _Stack.of([np.asarray(outer, float), *(np.asarray(h, float) for h in holes)])
+    far = None if camera_centre is None else stack.far(np.asarray(camera_centre[:2], float))
     for m in models:
         if len(m.holes_mm) != len(holes):
             continue
         if m.height_mm not in corrected:
-            corrected[m.height_mm] = footprint_from_table(outer, holes, m.height_mm, camera_centre, far)
+            corrected[m.height_mm] = stack.footprint(m.height_mm, camera_centre, far)
         fp = corrected[m.height_mm]
         if not m.candidate(fp.area_mm2, len(holes)):
             continue
