@@ -262,10 +262,20 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
             if j == index[id(part)]:
                 continue
             poly = polys[j]
-            if any(_overlap(jaw, poly) for jaw in jaws):
+            # A jaw wholly further from the outline's centre than its radius cannot touch it (the
+            # margin covers float32 rounding): most neighbours are left out before the full test.
+            if any(_near(jaw, centres[j], radii[j]) and _overlap(jaw, poly) for jaw in jaws):
                 part.pick = False
                 part.reason = f"{part.cls}: the jaws would touch part {other.id}: left for later"
                 break
+
+
+def _near(jaw: np.ndarray, centre: np.ndarray, radius: float) -> bool:
+    """Whether a jaw's rectangle comes within `radius` (and 1 um) of `centre`: its centre within
+    `radius` and its half diagonal."""
+    c = jaw.mean(axis=0)
+    reach = radius + math.hypot(*(jaw[2] - jaw[0])) / 2 + 1e-3
+    return math.hypot(float(c[0] - centre[0]), float(c[1] - centre[1])) <= reach
 
 
 def _overlap(jaw: np.ndarray, poly: np.ndarray) -> bool:
