@@ -199,8 +199,14 @@ def fine_outlines(
     _, dark = cv2.threshold(up, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
     # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
     keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
-    keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
-    cv2.bitwise_and(dark, keep, dst=dark)
+    # An upsampled pixel is a convex mix (whole weights) of the ROI's pixels within one of the one
+    # it is upsampled from, so it is below the level only if one of those is: when every ROI pixel
+    # below the level lies within `keep` shrunk by one, every dark upsampled pixel lies in `keep`
+    # upsampled, and the mask would change nothing (most blobs: no neighbour in the box).
+    _, below = cv2.threshold(roi, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
+    if cv2.countNonZero(cv2.subtract(cv2.dilate(below, np.ones((3, 3), np.uint8)), keep)):
+        keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
+        cv2.bitwise_and(dark, keep, dst=dark)
     contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if not contours or hierarchy is None:
         return None
