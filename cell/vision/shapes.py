@@ -27,6 +27,7 @@ the overlap (intersection over union) as the score.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -395,6 +396,7 @@ class _Grid:
 
 
 _K = np.arange(1, HARMONICS + 1)
+_K_SQUARED = _K**2
 _COARSE_PHASE = np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False))
 _COARSE_COS, _COARSE_SIN = np.cos(_COARSE_PHASE), np.sin(_COARSE_PHASE)
 
@@ -406,9 +408,10 @@ def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> flo
     corr = g.real @ _COARSE_COS - g.imag @ _COARSE_SIN  # Re(g e^{i k beta}) summed over k, per beta
     beta = 2 * np.pi * int(np.argmax(corr)) / _COARSE_STEPS
     w = np.abs(g)
+    wk, norm = w * _K, max(np.sum(w * _K_SQUARED), 1e-30)
     for _ in range(3):
         e = np.angle(g * np.exp(1j * _K * beta))  # k (beta - alpha), wrapped
-        beta -= float(np.sum(w * _K * e) / max(np.sum(w * _K**2), 1e-30))
+        beta -= float(np.sum(wk * e) / norm)
     period = 360.0 / max(order, 1)
     return math.degrees(beta) % period
 
@@ -443,6 +446,14 @@ _SWEEP_LAYERS = 6  # at most: the bottom face, the top face and copies between t
 _SWEEP_STEP_MM = 0.4  # ...at most this far apart (the gaps at corners are less than the fit's opening)
 
 
+@functools.cache
+def _layer_steps(layers: int) -> np.ndarray:
+    """np.linspace(0, 1, layers) shaped to scale an outline's points, made once per count."""
+    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    steps.flags.writeable = False
+    return steps
+
+
 def predicted_silhouette(
     grid: _Grid,
     outer: np.ndarray,
@@ -467,7 +478,7 @@ def predicted_silhouette(
     sweep = float(np.sqrt(np.max(np.einsum("ij,ij->i", up, up))))
     layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
     mask = np.zeros((grid.size, grid.size), np.uint8)
-    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    steps = _layer_steps(layers)
     for q in grid.fixed(placed[:n] + steps * up):
         cv2.fillPoly(mask, [q], 1, cv2.LINE_8, 4)
     if not holes:
@@ -479,8 +490,9 @@ def predicted_silhouette(
     cuts = np.cumsum([len(h) for h in holes[:-1]])
     groups = [[(b, t) for b, t in zip(np.split(bottoms, cuts), np.split(tops, cuts), strict=True)]]
     if len(holes) > 1:
-        lo = np.array([np.minimum(b.min(axis=0), t.min(axis=0)) // 16 - 1 for b, t in groups[0]])
-        hi = np.array([np.maximum(b.max(axis=0), t.max(axis=0)) // 16 + 1 for b, t in groups[0]])
+        starts = np.concatenate(([0], cuts))
+        lo = np.minimum(np.minimum.reduceat(bottoms, starts), np.minimum.reduceat(tops, starts)) // 16 - 1
+        hi = np.maximum(np.maximum.reduceat(bottoms, starts), np.maximum.reduceat(tops, starts)) // 16 + 1
         meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
         if np.count_nonzero(meet) > len(holes):  # some hole's box meets another's
             groups = [[pair] for pair in groups[0]]
