@@ -128,6 +128,12 @@ def test_the_matchings_pieces_are_their_plain_forms(models):
         assert misfit_mm2(a, b, fine.step_mm) == whole > 0
         assert misfit_mm2(a, a, fine.step_mm) == 0.0
 
+        # The footprint about its centroid without the turn by 0 is the same, to the bit.
+        fp = Footprint(model.outline_mm + (3.0, -2.0), [h + (3.0, -2.0) for h in model.holes_mm])
+        turned = fp.in_frame(fp.centroid_mm, 0.0)
+        assert np.array_equal(turned[0], fp.outer - fp.centroid_mm)
+        assert all(np.array_equal(a, b - fp.centroid_mm) for a, b in zip(turned[1], fp.holes, strict=True))
+
         # Every polygon's moments and facing at once, against one polygon at a time.
         polys = [model.outline_mm, *(h[::-1] for h in model.holes_mm)]  # holes either way round
         plain = net_moments(polys[:1]) - sum((net_moments([h]) for h in polys[1:]), np.zeros(6))

@@ -607,7 +607,8 @@ class ShapeModel:
     ) -> Match:
         """This model against a footprint (the pose) and the silhouette it came from, on the table
         plane (the fit: the model's predicted silhouette against it; without one, the footprint)."""
-        outer, holes = fp.in_frame(fp.centroid_mm, 0.0)
+        # The footprint about its centroid (fp.in_frame(fp.centroid_mm, 0.0), without the turn by 0).
+        outer, holes = fp.outer - fp.centroid_mm, [h - fp.centroid_mm for h in fp.holes]
         g = self._grid
         harm = self._coarse.soft_harmonics(outer, holes)
         angle = 0.0 if self.symmetry == 0 else rotation_deg(harm, self._harm, self.symmetry)
