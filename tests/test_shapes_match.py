@@ -21,6 +21,7 @@ from cell.sim.flatparts import circle, layout, random_types, rect
 from cell.sim.parts import PartSpec, render_scene
 from cell.vision.config import PartsConfig
 from cell.vision.locate import locate, silhouettes
+from cell.vision.segment import segment
 from cell.vision.shapes import (
     FIT_OPENING_MM,
     HARMONICS,
@@ -28,6 +29,7 @@ from cell.vision.shapes import (
     Example,
     Footprint,
     far_sides,
+    fine_outlines,
     misfit_mm2,
     net_moments,
     predicted_silhouette,
@@ -126,6 +128,12 @@ def test_the_matchings_pieces_are_their_plain_forms(models):
         assert misfit_mm2(a, b, fine.step_mm) == whole > 0
         assert misfit_mm2(a, a, fine.step_mm) == 0.0
 
+        # The footprint about its centroid without the turn by 0 is the same, to the bit.
+        fp = Footprint(model.outline_mm + (3.0, -2.0), [h + (3.0, -2.0) for h in model.holes_mm])
+        turned = fp.in_frame(fp.centroid_mm, 0.0)
+        assert np.array_equal(turned[0], fp.outer - fp.centroid_mm)
+        assert all(np.array_equal(a, b - fp.centroid_mm) for a, b in zip(turned[1], fp.holes, strict=True))
+
         # Every polygon's moments and facing at once, against one polygon at a time.
         polys = [model.outline_mm, *(h[::-1] for h in model.holes_mm)]  # holes either way round
         plain = net_moments(polys[:1]) - sum((net_moments([h]) for h in polys[1:]), np.zeros(6))
@@ -173,3 +181,59 @@ def test_the_predicted_silhouette_takes_out_each_holes_own_light(models):
             got = predicted_silhouette(grid, outer, holes, np.array(centre), angle, height, camera)
             want = _predicted_plain(grid, outer, holes, np.array(centre), angle, height, camera)
             assert np.array_equal(got, want), (len(holes), centre, angle)
+
+
+def _fine_outlines_plain(gray, outline, fraction, min_hole_px):
+    """fine_outlines written out: the upsampled threshold always masked by the blob's grown outline
+    upsampled; and whether the mask took out any dark pixel (a neighbour's edge in the box)."""
+    x, y, w, h = cv2.boundingRect(outline)
+    x0, y0 = max(x - 4, 0), max(y - 4, 0)
+    roi = gray[y0 : min(y + h + 4, gray.shape[0]), x0 : min(x + w + 4, gray.shape[1])]
+    part = np.zeros(roi.shape, np.uint8)
+    cv2.drawContours(part, [outline], -1, 255, -1, offset=(-x0, -y0))
+    level = fraction * float(np.median(roi[cv2.dilate(part, np.ones((5, 5), np.uint8)) == 0]))
+    k = int(np.clip(round(400 / max(w, h, 1)), 1, 4))
+    up = cv2.resize(roi, None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR)
+    dark = (up < np.ceil(level)).astype(np.uint8)
+    keep = cv2.resize(cv2.dilate(part, np.ones((3, 3), np.uint8)), None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
+    masked = dark & (keep > 0)
+    contours, hier = cv2.findContours(masked, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    best = max((i for i in range(len(contours)) if hier[0][i][3] == -1), key=lambda i: cv2.contourArea(contours[i]))
+    holes = [c for i, c in enumerate(contours) if hier[0][i][3] == best and cv2.contourArea(c) >= min_hole_px * k**2]
+    polys = [(c.reshape(-1, 2) + 0.5) / k - 0.5 + (x0, y0) for c in (contours[best], *holes)]
+    return polys, not np.array_equal(masked, dark)
+
+
+def test_the_fine_outlines_are_their_plain_form_with_neighbours_close(cal):
+    """The blob's mask on the upsampled threshold is left out only where it changes nothing: parts
+    laid 1 mm apart (a neighbour's edge inside the box) and further, against the plain form."""
+    rng = np.random.default_rng(8)
+    parts = layout([TYPES[n] for n in FIVE for _ in range(3)], rng, (10, 8, 260, 154), 1.0)
+    frame = render_scene(cal.camera, parts, seed=4)
+    gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    seg = segment(frame, CFG, part_width_px=CFG.max_part_width_mm / 0.15, noise_area_px=20.0, gray=gray)
+    masked = 0
+    for blob in seg.blobs:
+        outer, holes = fine_outlines(gray, blob.outer, CFG.segment.threshold_fraction, 20.0)
+        want, mattered = _fine_outlines_plain(gray, blob.outer, CFG.segment.threshold_fraction, 20.0)
+        assert len(holes) == len(want) - 1
+        for got, plain in zip((outer, *holes), want, strict=True):
+            assert np.array_equal(got, plain)
+        masked += mattered
+    assert len(seg.blobs) >= 12 and 1 <= masked < len(seg.blobs)
+
+
+def test_the_fine_outline_keeps_out_a_neighbour_joined_by_a_dim_gap():
+    """Two dark parts whose one-pixel gap is dimmer than the level: upsampled, they join; the blob's
+    own mask keeps its neighbour out, as the plain form does."""
+    gray = np.full((120, 160), 200, np.uint8)
+    gray[30:90, 20:70] = 20  # the blob
+    gray[30:90, 71:110] = 20  # its neighbour...
+    gray[30:90, 70] = 90  # ...a pixel away, the gap below the level (100)
+    mask = np.zeros_like(gray)
+    mask[30:90, 20:70] = 1
+    outline = max(cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0], key=len)
+    outer, holes = fine_outlines(gray, outline, 0.5, 20.0)
+    (want,), mattered = _fine_outlines_plain(gray, outline, 0.5, 20.0)
+    assert mattered and holes == [] and np.array_equal(outer, want)
+    assert outer[:, 0].max() < 71  # not the neighbour's

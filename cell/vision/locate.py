@@ -258,6 +258,7 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
         for sign in (1.0, -1.0):
             near, far = g + sign * half * d, g + sign * (half + t) * d
             jaws.append(np.array([near - w * side, far - w * side, far + w * side, near + w * side], np.float32))
+        spans = [(jaw, jaw.mean(axis=0), math.hypot(*(jaw[2] - jaw[0])) / 2) for jaw in jaws]
         reach = half + t + w + 1.0  # the farthest a jaw's corner lies from the grasp point, and a margin
         close = np.flatnonzero(np.hypot(*(centres - g).T) <= reach + radii)
         for j in close:
@@ -265,10 +266,19 @@ def _leave_crowded(found: list[LocatedPart], mapper, cfg: PartsConfig) -> None:
             if j == index[id(part)]:
                 continue
             poly = polys[j]
-            if any(_overlap(jaw, poly) for jaw in jaws):
+            # A jaw wholly further from the outline's centre than its radius cannot touch it (the
+            # margin covers float32 rounding): most neighbours are left out before the full test.
+            if any(_near(c, hd, centres[j], radii[j]) and _overlap(jaw, poly) for jaw, c, hd in spans):
                 part.pick = False
                 part.reason = f"{part.cls}: the jaws would touch part {other.id}: left for later"
                 break
+
+
+def _near(jaw_centre: np.ndarray, half_diagonal: float, centre: np.ndarray, radius: float) -> bool:
+    """Whether a jaw's rectangle (its centre and half diagonal) comes within `radius` (and 1 um) of
+    `centre`."""
+    d = math.hypot(float(jaw_centre[0] - centre[0]), float(jaw_centre[1] - centre[1]))
+    return d <= radius + half_diagonal + 1e-3
 
 
 def _overlap(jaw: np.ndarray, poly: np.ndarray) -> bool:

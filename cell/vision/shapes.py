@@ -27,6 +27,7 @@ the overlap (intersection over union) as the score.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -76,7 +77,24 @@ class Footprint:
     centroid_mm: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def __post_init__(self) -> None:
-        a, sx, sy = net_moments([self.outer, *self.holes], second=False)
+        self._centre(net_moments([self.outer, *self.holes], second=False))
+
+    @classmethod
+    def _of_stacked(cls, pts: np.ndarray, bounds: Sequence[int], nxt: np.ndarray) -> Footprint:
+        """The footprint of the outline and holes stacked in `pts` (each polygon from one bound to
+        the next, `nxt` their _next_index): the same as Footprint(outer, holes), without stacking
+        them again."""
+        fp = cls.__new__(cls)
+        fp.outer = pts[bounds[0] : bounds[1]]
+        fp.holes = [pts[a:b] for a, b in zip(bounds[1:-1], bounds[2:], strict=True)]
+        if len(bounds) == 2:
+            fp._centre(_moments(fp.outer)[:3])
+        else:
+            fp._centre(_net_stacked(pts, nxt, bounds[:-1], second=False))
+        return fp
+
+    def _centre(self, moments: np.ndarray) -> None:
+        a, sx, sy = moments[:3]
         if a <= 0:
             self.area_mm2, self.centroid_mm = 0.0, self.outer.mean(axis=0)
             return
@@ -114,9 +132,14 @@ def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
     `second`, the area and first moments alone."""
     if len(polys) == 1:
         return _moments(polys[0]) if second else _moments(polys[0])[:3]
-    pts = np.concatenate(polys)
+    return _net_stacked(
+        np.concatenate(polys), _next_index(polys), np.cumsum([0, *(len(p) for p in polys[:-1])]), second
+    )
+
+
+def _net_stacked(pts: np.ndarray, nxt: np.ndarray, starts: Sequence[int] | np.ndarray, second: bool) -> np.ndarray:
+    """net_moments of the polygons stacked in `pts` (`nxt`: their _next_index; `starts`: where each begins)."""
     x, y = pts[:, 0], pts[:, 1]
-    nxt = _next_index(polys)
     xn, yn = x[nxt], y[nxt]
     c = x * yn - xn * y
     rows = [c / 2, (x + xn) * c / 6, (y + yn) * c / 6]
@@ -126,7 +149,6 @@ def net_moments(polys: Sequence[np.ndarray], second: bool = True) -> np.ndarray:
             (y * y + y * yn + yn * yn) * c / 12,
             (x * yn + 2 * x * y + 2 * xn * yn + xn * y) * c / 24,
         ]
-    starts = np.cumsum([0, *(len(p) for p in polys[:-1])])
     per = np.add.reduceat(np.stack(rows), starts, axis=1)  # (terms, polygons)
     per *= np.where(per[0] < 0, -1.0, 1.0)  # each orientation-free
     return per[:, 0] - per[:, 1:].sum(axis=1)
@@ -178,8 +200,14 @@ def fine_outlines(
     _, dark = cv2.threshold(up, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
     # Only this blob: its filled outline, grown a little (a neighbour's edge in the box is not it).
     keep = cv2.dilate(part, np.ones((3, 3), np.uint8))
-    keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
-    cv2.bitwise_and(dark, keep, dst=dark)
+    # An upsampled pixel is a convex mix (whole weights) of the ROI's pixels within one of the one
+    # it is upsampled from, so it is below the level only if one of those is: when every ROI pixel
+    # below the level lies within `keep` shrunk by one, every dark upsampled pixel lies in `keep`
+    # upsampled, and the mask would change nothing (most blobs: no neighbour in the box).
+    _, below = cv2.threshold(roi, math.ceil(level) - 1, 1, cv2.THRESH_BINARY_INV)
+    if cv2.countNonZero(cv2.subtract(cv2.dilate(below, np.ones((3, 3), np.uint8)), keep)):
+        keep = cv2.resize(keep, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST) if k > 1 else keep
+        cv2.bitwise_and(dark, keep, dst=dark)
     contours, hierarchy = cv2.findContours(dark, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if not contours or hierarchy is None:
         return None
@@ -202,25 +230,52 @@ def fine_outlines(
 def far_sides(polys: Sequence[np.ndarray], foot: np.ndarray) -> list[np.ndarray]:
     """Per point of the outer outline (first) and the holes: whether its side faces away from the
     camera's foot (what is seen there is the part's top edge)."""
-    return np.split(_far_stacked(np.concatenate(polys), polys, foot), np.cumsum([len(p) for p in polys[:-1]]))
+    st = _Stack.of(polys)
+    return np.split(st.far(foot), st.bounds[1:-1])
 
 
-def _far_stacked(pts: np.ndarray, polys: Sequence[np.ndarray], foot: np.ndarray) -> np.ndarray:
-    """far_sides for the polygons stacked (`pts`), as one array."""
-    n = [len(p) for p in polys]
-    nxt = _next_index(polys)
-    prv = np.arange(-1, len(pts) - 1)
-    starts = nxt[np.cumsum(n) - 1]
-    prv[starts] = np.cumsum(n) - 1
-    x, y = pts[:, 0], pts[:, 1]
-    dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
-    # Clockwise: the right-hand normal points in; a hole's normal from the material into the air is
-    # the one pointing into the hole.
-    turn = x * y[nxt] - x[nxt] * y
-    sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
-    sign[1:] *= -1.0
-    facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
-    return facing < 0
+@dataclass(frozen=True)
+class _Stack:
+    """An outline and its holes stacked in one array (each polygon from one bound to the next),
+    with each point's successor along its polygon: made once per silhouette, for every height."""
+
+    pts: np.ndarray
+    n: list[int]
+    bounds: list[int]
+    nxt: np.ndarray
+
+    @staticmethod
+    def of(polys: Sequence[np.ndarray]) -> _Stack:
+        n = [len(p) for p in polys]
+        return _Stack(np.concatenate(polys), n, [0, *np.cumsum(n).tolist()], _next_index(polys))
+
+    def far(self, foot: np.ndarray) -> np.ndarray:
+        """far_sides, as one array."""
+        pts, nxt, n = self.pts, self.nxt, self.n
+        prv = np.arange(-1, len(pts) - 1)
+        ends = np.asarray(self.bounds[1:]) - 1
+        starts = nxt[ends]
+        prv[starts] = ends
+        x, y = pts[:, 0], pts[:, 1]
+        dx, dy = x[nxt] - x[prv], y[nxt] - y[prv]  # the right-hand normal is (dy, -dx)
+        # Clockwise: the right-hand normal points in; a hole's normal from the material into the air
+        # is the one pointing into the hole.
+        turn = x * y[nxt] - x[nxt] * y
+        sign = np.where(np.add.reduceat(turn, starts) < 0, -1.0, 1.0)
+        sign[1:] *= -1.0
+        facing = (dy * (foot[0] - x) - dx * (foot[1] - y)) * np.repeat(sign, n)
+        return facing < 0
+
+    def footprint(self, height_mm: float, camera_centre: np.ndarray | None, far: np.ndarray | None) -> Footprint:
+        """footprint_from_table of the stacked silhouette (`far`: self.far(foot), or None to make it)."""
+        if camera_centre is None or height_mm <= 0:
+            return Footprint._of_stacked(self.pts, self.bounds, self.nxt)
+        foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
+        shrink = 1.0 - height_mm / cam_h
+        f = self.far(foot) if far is None else far
+        moved = self.pts.copy()
+        moved[f] = foot + (self.pts[f] - foot) * shrink
+        return Footprint._of_stacked(moved, self.bounds, self.nxt)
 
 
 def footprint_from_table(
@@ -237,14 +292,7 @@ def footprint_from_table(
     polys = [np.asarray(outer_mm, float), *(np.asarray(h, float) for h in holes_mm)]
     if camera_centre is None or height_mm <= 0:
         return Footprint(polys[0], polys[1:])
-    foot, cam_h = np.asarray(camera_centre[:2], float), float(camera_centre[2])
-    shrink = 1.0 - height_mm / cam_h
-    pts = np.concatenate(polys)
-    f = _far_stacked(pts, polys, foot) if far is None else np.concatenate(far)
-    moved = pts.copy()
-    moved[f] = foot + (pts[f] - foot) * shrink
-    out = np.split(moved, np.cumsum([len(p) for p in polys[:-1]]))
-    return Footprint(out[0], out[1:])
+    return _Stack.of(polys).footprint(height_mm, camera_centre, None if far is None else np.concatenate(far))
 
 
 # ---- rasters and harmonics ---------------------------------------------------------------------
@@ -348,6 +396,7 @@ class _Grid:
 
 
 _K = np.arange(1, HARMONICS + 1)
+_K_SQUARED = _K**2
 _COARSE_PHASE = np.outer(_K, np.linspace(0, 2 * np.pi, _COARSE_STEPS, endpoint=False))
 _COARSE_COS, _COARSE_SIN = np.cos(_COARSE_PHASE), np.sin(_COARSE_PHASE)
 
@@ -359,9 +408,10 @@ def rotation_deg(measured: np.ndarray, model: np.ndarray, order: int = 1) -> flo
     corr = g.real @ _COARSE_COS - g.imag @ _COARSE_SIN  # Re(g e^{i k beta}) summed over k, per beta
     beta = 2 * np.pi * int(np.argmax(corr)) / _COARSE_STEPS
     w = np.abs(g)
+    wk, norm = w * _K, max(np.sum(w * _K_SQUARED), 1e-30)
     for _ in range(3):
         e = np.angle(g * np.exp(1j * _K * beta))  # k (beta - alpha), wrapped
-        beta -= float(np.sum(w * _K * e) / max(np.sum(w * _K**2), 1e-30))
+        beta -= float(np.sum(wk * e) / norm)
     period = 360.0 / max(order, 1)
     return math.degrees(beta) % period
 
@@ -396,6 +446,14 @@ _SWEEP_LAYERS = 6  # at most: the bottom face, the top face and copies between t
 _SWEEP_STEP_MM = 0.4  # ...at most this far apart (the gaps at corners are less than the fit's opening)
 
 
+@functools.cache
+def _layer_steps(layers: int) -> np.ndarray:
+    """np.linspace(0, 1, layers) shaped to scale an outline's points, made once per count."""
+    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    steps.flags.writeable = False
+    return steps
+
+
 def predicted_silhouette(
     grid: _Grid,
     outer: np.ndarray,
@@ -420,7 +478,7 @@ def predicted_silhouette(
     sweep = float(np.sqrt(np.max(np.einsum("ij,ij->i", up, up))))
     layers = int(min(_SWEEP_LAYERS, max(2, math.ceil(sweep / _SWEEP_STEP_MM) + 1)))
     mask = np.zeros((grid.size, grid.size), np.uint8)
-    steps = np.linspace(0.0, 1.0, layers)[:, None, None]
+    steps = _layer_steps(layers)
     for q in grid.fixed(placed[:n] + steps * up):
         cv2.fillPoly(mask, [q], 1, cv2.LINE_8, 4)
     if not holes:
@@ -432,8 +490,9 @@ def predicted_silhouette(
     cuts = np.cumsum([len(h) for h in holes[:-1]])
     groups = [[(b, t) for b, t in zip(np.split(bottoms, cuts), np.split(tops, cuts), strict=True)]]
     if len(holes) > 1:
-        lo = np.array([np.minimum(b.min(axis=0), t.min(axis=0)) // 16 - 1 for b, t in groups[0]])
-        hi = np.array([np.maximum(b.max(axis=0), t.max(axis=0)) // 16 + 1 for b, t in groups[0]])
+        starts = np.concatenate(([0], cuts))
+        lo = np.minimum(np.minimum.reduceat(bottoms, starts), np.minimum.reduceat(tops, starts)) // 16 - 1
+        hi = np.maximum(np.maximum.reduceat(bottoms, starts), np.maximum.reduceat(tops, starts)) // 16 + 1
         meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
         if np.count_nonzero(meet) > len(holes):  # some hole's box meets another's
             groups = [[pair] for pair in groups[0]]
@@ -548,7 +607,8 @@ class ShapeModel:
     ) -> Match:
         """This model against a footprint (the pose) and the silhouette it came from, on the table
         plane (the fit: the model's predicted silhouette against it; without one, the footprint)."""
-        outer, holes = fp.in_frame(fp.centroid_mm, 0.0)
+        # The footprint about its centroid (fp.in_frame(fp.centroid_mm, 0.0), without the turn by 0).
+        outer, holes = fp.outer - fp.centroid_mm, [h - fp.centroid_mm for h in fp.holes]
         g = self._grid
         harm = self._coarse.soft_harmonics(outer, holes)
         angle = 0.0 if self.symmetry == 0 else rotation_deg(harm, self._harm, self.symmetry)
@@ -888,12 +948,13 @@ def best_match(
     outer, holes = silhouette
     corrected: dict[float, Footprint] = {}
     best: tuple[Match, Footprint] | None = None
-    far = None if camera_centre is None else far_sides([outer, *holes], np.asarray(camera_centre[:2], float))
+    stack = _Stack.of([np.asarray(outer, float), *(np.asarray(h, float) for h in holes)])
+    far = None if camera_centre is None else stack.far(np.asarray(camera_centre[:2], float))
     for m in models:
         if len(m.holes_mm) != len(holes):
             continue
         if m.height_mm not in corrected:
-            corrected[m.height_mm] = footprint_from_table(outer, holes, m.height_mm, camera_centre, far)
+            corrected[m.height_mm] = stack.footprint(m.height_mm, camera_centre, far)
         fp = corrected[m.height_mm]
         if not m.candidate(fp.area_mm2, len(holes)):
             continue
