@@ -1,7 +1,7 @@
 """Fixtures shared by the test modules; the fakes themselves are in tests/doubles.py.
 
 Markers (registered in pyproject.toml, --strict-markers): `slow` on the end-to-end runs
-(`make check` leaves them out); `exhaustive` on the fault-injection sweeps, collected only
+(`make check` leaves them out); `exhaustive` on the sweeps far longer than the suite, collected only
 with --exhaustive. pytest-timeout bounds every test, and the ones that open a pty or a
 subprocess say their own, tighter, limit. Device and file locks go to a folder of this
 test session, not the machine's.
@@ -23,8 +23,8 @@ def pytest_addoption(parser):
     parser.addoption(
         "--exhaustive",
         action="store_true",
-        help="also run the exhaustive fault-injection sweeps (every audit write, every signal in every "
-        "state on both arms; far longer than the suite)",
+        help="also run the exhaustive sweeps (every audit write, every signal in every state on both arms, "
+        "every hard variant of the real plate photos through the pitch gate; far longer than the suite)",
     )
 
 
