@@ -86,7 +86,7 @@ def test_real_photo_hard_variant(index):
     check_photo(hard(kind, photo(index), int(rng.integers(1 << 30))))
 
 
-@pytest.mark.exhaustive  # 77 cases of 4-6 s each in a quiet `make test` since the gate fits every ellipse
+@pytest.mark.exhaustive  # 49 cases of 4-6 s each in a quiet `make test` since the gate fits every ellipse
 @pytest.mark.parametrize("kind", HARD)
 @pytest.mark.parametrize("index", range(1, 8))
 def test_real_photo_hard_variants_sweep(index, kind):
