@@ -352,29 +352,9 @@ def main() -> int:
         f"{'ratio':>8}{'max px':>10}"
     )
     ratios: list[tuple[float, str]] = []
-    if PHOTOS.exists():
-        config = CellConfig(plate=PHOTO_PLATE)
-        for path in sorted(PHOTOS.glob("opencv_circles*.png")):
-            gray0 = read_gray(path)
-            for w, h in PHOTO_SIZES:
-                s = w / gray0.shape[1]
-                gray = gray0 if s == 1 else cv2.resize(gray0, (w, h), interpolation=cv2.INTER_CUBIC)
-                label = f"{path.stem} {w}x{h}"
-                ratios.append((bench(label, gray, config, s * s, args.repeat), label))
-    else:
-        print(f"({PHOTOS} is absent: real photos skipped)")
+    for label, gray, config, area_scale in timing_images():
+        ratios.append((bench(label, gray, config, area_scale, args.repeat), label))
     rendered_config = CellConfig()
-    for w, h in RENDER_SIZES:
-        # The plate (264 x 176 mm) filling most of the frame, mild barrel distortion and tilt.
-        plate = rendered_config.plate
-        mm_per_px = 1.15 * max(plate.pitch_x_mm * plate.columns / w, plate.pitch_y_mm * plate.rows / h)
-        cam = CameraModel.looking_down(
-            w, h, mm_per_px, (132.0, 88.0), tilt_deg=4.0, tilt_azimuth_deg=30.0, roll_deg=2.0, k1=-0.08
-        )
-        gray = cv2.cvtColor(render_plate(cam, plate, seed=7), cv2.COLOR_BGR2GRAY)
-        d_px = plate.diameter_mm / mm_per_px
-        label = f"rendered 13x12 {w}x{h}"
-        ratios.append((bench(label, gray, rendered_config, max(1.0, (d_px / 40.0) ** 2), args.repeat), label))
     large = large_rendered_table(rendered_config, args.large)
     if large:
         print(f"largest distance ours - OpenCV on the large rendered plates: {min(large):.3f}-{max(large):.3f} px")

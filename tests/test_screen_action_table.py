@@ -109,9 +109,17 @@ def small_config(tmp_path: Path) -> CellConfig:
 
 
 @contextlib.contextmanager
-def served(tmp_path: Path, web: WebConfig | None = None) -> Iterator[tuple[Any, Any, CellConfig, Authenticator]]:
-    cfg = small_config(tmp_path)
-    write_users(tmp_path / "users.json", [UserEntry(n, r, hash_password(p, 1000)) for n, (p, r) in USERS.items()])
+def served(
+    tmp_path: Path,
+    web: WebConfig | None = None,
+    cfg: CellConfig | None = None,
+    users_by_name: dict[str, tuple[str, Role]] = USERS,
+) -> Iterator[tuple[Any, Any, CellConfig, Authenticator]]:
+    """The line service in-process with `users_by_name` (name: (password, role)) and its screen's app."""
+    cfg = cfg or small_config(tmp_path)
+    write_users(
+        tmp_path / "users.json", [UserEntry(n, r, hash_password(p, 1000)) for n, (p, r) in users_by_name.items()]
+    )
     cfg.service.users_file = tmp_path / "users.json"
     users = Authenticator(cfg.service)
     web = web or WebConfig()

@@ -20,19 +20,14 @@ import numpy as np
 import pytest
 from starlette.testclient import TestClient
 
-from cell.access.throttle import LoginThrottle
-from cell.access.users import Authenticator, UserEntry, hash_password, write_users
-from cell.commands.serve import open_service
 from cell.config import CellConfig
 from cell.core.commands import Command, RecipeRequest, VisionState
 from cell.core.events import Role
 from cell.recipes import load_recipe_file
-from cell.service.config import LoginConfig
 from cell.sim.cell import teach_family
 from cell.vision.locate import locate
-from cell.web.app import build_app
-from cell.web.auth import Access
 from cell.web.config import WebConfig
+from tests.test_screen_action_table import served as screen_served
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -66,21 +61,8 @@ def served(tmp_path: Path, web: WebConfig | None = None, **parts: Any) -> Iterat
     cfg = teach_config(tmp_path)
     for key, value in parts.items():
         setattr(cfg.parts, key, value)
-    write_users(tmp_path / "users.json", [UserEntry(n, r, hash_password(p, 1000)) for n, (p, r) in USERS.items()])
-    cfg.service.users_file = tmp_path / "users.json"
-    users = Authenticator(cfg.service)
-    web = web or WebConfig()
-    with contextlib.ExitStack() as stack:
-        service = open_service(cfg, True, stack)
-        service.start()
-        access = Access(
-            "127.0.0.1",
-            web,
-            authenticate=users.authenticate,
-            throttle=LoginThrottle(LoginConfig()),
-            credential=users.credential,
-        )
-        yield service, build_app(service, cfg, web, access), cfg
+    with screen_served(tmp_path, web, cfg, USERS) as (service, app, cfg, _users):
+        yield service, app, cfg
 
 
 def logged_in(app: Any, user: str) -> TestClient:

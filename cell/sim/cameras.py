@@ -88,7 +88,7 @@ def random_camera(family: CameraFamily, seed: int) -> SimulatedCamera:
     r2 = (w**2 + h**2) / 4 / f_px**2
     k2_share = float(rng.uniform(0.0, 0.3))
     k1, k2 = corner * (1 - k2_share) / r2, corner * k2_share / r2**2
-    plate = _plate_in_view(w * mm_per_px, h * mm_per_px)
+    plate = plate_in_view(w * mm_per_px, h * mm_per_px)
     centre = ((plate.columns - 1) * plate.pitch_x_mm / 2, (plate.rows - 1) * plate.pitch_y_mm / 2)
     camera = CameraModel.looking_down(
         w,
@@ -117,7 +117,7 @@ def random_camera(family: CameraFamily, seed: int) -> SimulatedCamera:
     return SimulatedCamera(family.name, seed, camera, optics, plate, corner, tilt)
 
 
-def _plate_in_view(view_w_mm: float, view_h_mm: float) -> PlateConfig:
+def plate_in_view(view_w_mm: float, view_h_mm: float) -> PlateConfig:
     """The paper's plate with as many columns and rows as fit in `_PLATE_FILL` of the view."""
     px, py = _PITCH_MM
     columns = int(min(13, (view_w_mm * _PLATE_FILL - _DIAMETER_MM) // px + 1))

@@ -14,6 +14,7 @@ import numpy as np
 
 from cell.camera_model import CameraModel
 from cell.config import PlateConfig
+from cell.sim.cameras import plate_in_view
 from cell.sim.degrade import perspective, uneven_light
 from cell.sim.render import Optics, render_plate
 
@@ -69,10 +70,9 @@ def rendered(
     blur = blur if blur_px is None else blur_px
     hfov = rng.uniform(60, 90)
     mm_per_px = plate.diameter_mm / d_px
-    if plate is PAPER_PLATE:  # as many columns and rows as fit in 80 % of the view
-        cols = int(min(13, (0.8 * w * mm_per_px - 10) // 22 + 1))
-        rows = int(min(12, (0.8 * h * mm_per_px - 10) // 16 + 1))
-        plate = plate.model_copy(update={"columns": max(cols, 4), "rows": max(rows, 4)})
+    if plate is PAPER_PLATE:  # as many columns and rows as fit in the view, at least 4 x 4
+        fit = plate_in_view(w * mm_per_px, h * mm_per_px)
+        plate = plate.model_copy(update={"columns": max(fit.columns, 4), "rows": max(fit.rows, 4)})
     centre = ((plate.columns - 1) * plate.pitch_x_mm / 2, (plate.rows - 1) * plate.pitch_y_mm / 2)
     camera = CameraModel.looking_down(
         w,
