@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -583,6 +583,16 @@ class LineService:
                 except AuditWriteFailed as e:
                     raise NotRecorded(command, f"{action} not carried out: {e}", self._vstate) from None
                 log.info("%s from %s", name, origin.describe())
+
+    def refuse(
+        self, command: Command, origin: Origin, action: str, message: str, arguments: dict[str, Any] | None = None
+    ) -> NoReturn:
+        """LineServiceAPI.refuse: an interface's own rule refused `action` (a step of `command`); recorded, raised."""
+        with self._lock:
+            refused = AccessDenied(command, f"{action} refused: {message}", self._vstate)
+            self._emit_best_effort(self._step_record(action, origin, arguments, refused))
+        log.info("%s from %s refused: %s", action, origin.describe(), message)
+        raise refused
 
     def _step_record(
         self, name: str, origin: Origin, arguments: dict[str, Any] | None, refused: CommandRefused | None
