@@ -202,3 +202,51 @@ async def has_variable(cell: Cell, name: str) -> bool:
 
 async def read_is(cell: Cell, name: str, value: int) -> bool:
     return bool(await cell.read(name) == value)
+
+
+@pytest.mark.timeout(120)
+def test_prepare_recipe_over_opcua_of_a_type_without_a_bin_says_so_in_a_vision_information_event(tmp_path):
+    """OPC 40100-1's PrepareRecipe answers InternalId, IsCompleted and Error (an Int32, 0 for OK): no words.
+    The recipe is prepared (Error 0); that its taught type has no bin goes out as a VisionInformationEvent
+    from the VisionSystem, in the words the service's log has."""
+    from tests.test_mv_opcua import Events, SpecClient, ext
+
+    cfg = teach_config(tmp_path)
+    cfg.service.opcua_port = free_port()
+    with served(tmp_path, None, cfg, USERS) as (service, app, cfg, _users):
+        with logged_in(app, "erik") as screen:
+            session = screen.post("/api/teach/capture", json={}).json()["session"]
+            assert learn(screen, session).status_code == 200
+            later = screen.post(f"/api/teach/{session}/confirm", json={"recipe_id": "later", "bin_robot_mm": None})
+            assert later.status_code == 200, later.text
+
+        async def prepare_over_opcua() -> None:
+            loopback = cfg.model_copy(deep=True)
+            loopback.service.users_file = None
+            server = OpcUaServer(service, loopback)
+            await server.start()
+            try:
+                url = f"opc.tcp://127.0.0.1:{cfg.service.opcua_port}/{cfg.service.opcua_path}"
+                async with Client(url, timeout=10) as client:
+                    s = await SpecClient(client).setup()
+                    handler = Events()
+                    sub = await client.create_subscription(50, handler)
+                    info_type = await client.nodes.base_event_type.get_child(
+                        [f"{s.mv}:VisionEventType", f"{s.mv}:VisionInformationEventType"]
+                    )
+                    await sub.subscribe_events(s.vs, info_type)
+                    prepare = (ext(ua.RecipeIdExternalDataType(Id="later")), ext(ua.RecipeIdInternalDataType(Id="")))
+                    internal, completed, error = await s.call(s.recipes, "PrepareRecipe", *prepare)
+                    assert (internal.Id, completed, error) == ("later", True, 0)
+                    (said,) = await handler.wait(lambda e: "no bin" in e.Message.Text, 1)
+                    assert said.Message.Text == (
+                        "recipe later: bracket has no bin: found and counted but left on the table "
+                        "(give types.NAME.bin_robot_mm, or teach again with --bin-robot-mm X Y Z or --bin-of TYPE)"
+                    )
+                    assert said.Severity <= 300  # low: nothing to acknowledge
+                    await sub.delete()
+            finally:
+                await server.stop()
+
+        asyncio.run(asyncio.wait_for(prepare_over_opcua(), 100))
+        assert service.snapshot().recipe == "later"
