@@ -146,7 +146,7 @@ PICK_EVENT_FIELDS = [
     ("AngleDeg", _T.Double),
     ("Outcome", _T.String),
 ]
-_NODE_ADDED = 1  # ModelChangeStructureDataType.Verb: NodeAdded (OPC 10000-3, 9.32.2)
+_NODE_ADDED = 1  # ModelChangeStructureDataType.Verb bit NodeAdded (ReferenceAdded is 4)
 _PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
 _STATUS = {  # a refused command's status code
     Refusal.INVALID_STATE: ua.StatusCodes.BadInvalidState,
