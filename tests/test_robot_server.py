@@ -439,6 +439,65 @@ def test_a_pymodbus_client_clears_the_dry_run_table_over_modbus_tcp(tmp_path):
     assert all(e["peer"].startswith("modbus ") for e in reports if e["report"] == "given")
 
 
+def test_over_modbus_a_taught_type_reads_its_recipe_class_no_in_class_no(tmp_path, recipe):  # noqa: F811
+    """CLASS_NO (register 106) of a pick of a taught type: the class_no its recipe gave it when it was taught
+    (the L bracket 3, the plate 4), as the socket's answer says; the bin registers are the type's own."""
+    import shutil
+
+    from cell.core.commands import RecipeRequest
+    from cell.recipes import load_recipe_file
+    from cell.sim.world import Bin, SimPart
+    from drivers.arm.robot_modbus import Reg, Request, words_float
+
+    def at(regs: list[int], reg: Reg) -> int:
+        return regs[reg - Reg.ANSWER_SEQ]
+
+    def signed(v: int) -> int:
+        return v - 65536 if v >= 32768 else v
+
+    loaded, shapes = load_recipe_file(recipe)
+    assert loaded.class_numbers()["l-bracket"] == 3 and loaded.class_numbers()["plate-4h"] == 4
+    cfg = robot_config(tmp_path, modbus_port=free_port())
+    cfg.sim.perfect_calibration = True
+    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
+    (tmp_path / "recipes").mkdir()
+    shutil.copy(recipe, tmp_path / "recipes" / "taught.toml")
+    shutil.copytree(recipe.parent / "models", tmp_path / "recipes" / "models")
+    with serving(cfg) as (service, _):
+        world = service.cell.sim.world  # two of each taught type on the table, nothing else
+        poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0), (120.0, 140.0, 100.0), (230.0, 40.0, 300.0)]
+        placed = [TYPES[shapes[k % 2].name].placed(*pose) for k, pose in enumerate(poses)]
+        world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate(placed)]
+        world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
+        world.version += 1
+        service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
+        service.command(Command.START_SINGLE)
+        plc = Plc(cfg.robot_server.modbus_port)
+        told = []
+        while True:
+            regs = plc.ask(Request.NEXT)
+            result = signed(at(regs, Reg.RESULT))
+            if result == 0:
+                continue
+            if result == -1:
+                assert at(regs, Reg.CODE) == NotNow.NOT_RUNNING, regs  # the table is clear: the job ended
+                break
+            assert result == 1, regs
+            no = (at(regs, Reg.PICK_NO) << 16) | at(regs, Reg.PICK_NO + 1)
+            bin_mm = tuple(
+                round(words_float(regs[r - Reg.ANSWER_SEQ : r - Reg.ANSWER_SEQ + 2]), 3)
+                for r in (Reg.BIN_X_MM, Reg.BIN_Y_MM, Reg.BIN_Z_MM)
+            )
+            told.append((at(regs, Reg.CLASS_NO), bin_mm))
+            assert signed(at(plc.ask(Request.PICKED, no), Reg.RESULT)) == 1
+            assert signed(at(plc.ask(Request.PLACED, no), Reg.RESULT)) == 1
+        plc.close()
+        wait_for(lambda: service.snapshot().vision_state == V.READY, what="Ready after the job")
+        picked = dict(service.snapshot().counters.picked)
+    assert picked == {"l-bracket": 2, "plate-4h": 2}
+    assert sorted(told) == sorted([(3, BINS["l-bracket"])] * 2 + [(4, BINS["plate-4h"])] * 2)
+
+
 def test_a_halt_or_a_stop_withdraws_a_pick_no_robot_took_and_nothing_is_verified(tmp_path):
     with serving(robot_config(tmp_path)) as (service, address):
         robot = UrClient(address)

@@ -36,6 +36,8 @@ USERS = {
     "vera": ("vera-pass-1", Role.VIEWER),
     "otto": ("otto-pass-1", Role.OPERATOR),
     "erik": ("erik-pass-1", Role.ENGINEER),
+    "eve": ("eve-pass-1", Role.ENGINEER),
+    "ada": ("ada-pass-1", Role.ADMIN),
 }
 FAMILY = "l-bracket"
 HEIGHT_MM = teach_family(FAMILY, 0).height_mm
@@ -228,6 +230,46 @@ def test_viewers_and_operators_are_refused_and_csrf_is_required(tmp_path):
             assert app.screen.teach.desk.session.id == session  # still the engineer's
         refusals = [(e["command"], e["origin"]["user"]) for e in audit(cfg) if not e["accepted"]]
         assert ("CapturePartImage", "vera") in refusals and ("AddPartType", "otto") in refusals
+
+
+def test_the_session_is_its_engineers_another_is_refused_in_words_and_an_admin_may_cancel_it(tmp_path):
+    with served(tmp_path) as (service, app, cfg):
+        with logged_in(app, "erik") as erik, logged_in(app, "eve") as eve, logged_in(app, "ada") as admin:
+            session = erik.post("/api/teach/capture", json={}).json()["session"]
+            assert learn(erik, session).status_code == 200
+            state = eve.get("/api/teach").json()
+            assert state["session"] == session and state["owner"] == "erik"
+            whose = "the teaching session is erik's (started "
+            for step, body in (
+                ("capture", {}),
+                (f"{session}/learn", {"name": "bracket", "height_mm": 3}),
+                (f"{session}/confirm", {"recipe_id": "r"}),
+                (f"{session}/cancel", {}),
+            ):
+                refused = eve.post(f"/api/teach/{step}", json=body)
+                assert refused.status_code == 403, (step, refused.text)
+                said = refused.json()["error"]
+                assert whose in said and "only erik may capture into it, teach from it, confirm or cancel it" in said
+                assert ("an admin may cancel it" in said) == step.endswith("cancel"), said
+            assert admin.post(f"/api/teach/{session}/confirm", json={"recipe_id": "r"}).status_code == 403
+            held = app.screen.teach.desk.session
+            assert held.id == session and len(held.frames) == 1 and held.learnt.name == "bracket"  # as erik left it
+            assert not (cfg.service.machine_vision.recipes_dir / "r.toml").exists()
+            cancelled = admin.post(f"/api/teach/{session}/cancel", json={})
+            assert cancelled.status_code == 200 and app.screen.teach.desk.session is None
+        lines = audit(cfg)
+        eves = [(e["command"], e["refusal"]) for e in lines if e["origin"]["user"] == "eve"]
+        assert eves == [
+            ("CapturePartImage", "access_denied"),
+            ("AddPartType", "access_denied"),
+            ("AddPartType", "access_denied"),
+            ("CancelPartType", "access_denied"),
+        ]
+        assert all(
+            whose in e["message"] and e["arguments"]["owner"] == "erik" for e in lines if e["origin"]["user"] == "eve"
+        )
+        (ada_cancel,) = [e for e in lines if e["origin"]["user"] == "ada" and e["accepted"]]
+        assert ada_cancel["command"] == "CancelPartType" and ada_cancel["arguments"]["owner"] == "erik"
 
 
 def test_refusals_in_words_names_and_recipe_ids_never_paths(tmp_path):

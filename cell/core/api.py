@@ -16,7 +16,7 @@ and inside Operational: Initialized, Ready, SingleExecution, ContinuousExecution
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import Any, Protocol
+from typing import Any, NoReturn, Protocol
 
 import numpy as np
 
@@ -99,6 +99,14 @@ class LineServiceAPI(Protocol):
         """Check `command`'s role (and with `state` its states and guards) in the command table for `origin`,
         before an interface's own step does anything (an uploaded plate's fit, a report's answer): refused,
         CommandRefused is raised and recorded; allowed, nothing happens but, with `action`, a record of it."""
+        ...
+
+    def refuse(
+        self, command: Command, origin: Origin, action: str, message: str, arguments: dict[str, Any] | None = None
+    ) -> NoReturn:
+        """An interface's own rule refused `action`, a step of `command` (another engineer's teaching session):
+        recorded as refused (access_denied, `message`) as the command table's refusals are, and raised
+        (AccessDenied): nothing was done."""
         ...
 
     def capture_plate_image(self, origin: Origin = SERVICE_ORIGIN) -> np.ndarray:

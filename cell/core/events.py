@@ -23,6 +23,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from cell.core.parts import PartRegistry
+
 _NOT_RECORDED = {"record": False}
 
 
@@ -427,6 +429,23 @@ class SnapshotChanged(Event):
     what: str
 
 
+@dataclass(frozen=True, kw_only=True)
+class PartClassesChanged(Event):
+    """The registry of part classes grew while the service runs: a recipe with taught types it did not count
+    was added (AddRecipe), prepared (PrepareRecipe) or taught (AddPartType). `parts` is the whole registry
+    now, in its order (never smaller than before: a counter shown stays); `added` the names new in it.
+    OPC UA adds their Picked<Plural> variables, Sparkplug sends its births again, /metrics and the screen
+    count them (cell.core.parts)."""
+
+    kind: ClassVar[str] = "part_classes"
+    recipe: str
+    added: tuple[str, ...]
+    parts: PartRegistry = field(metadata=_NOT_RECORDED)
+
+    def record(self) -> dict[str, Any]:
+        return {**super().record(), "classes": list(self.parts.names)}
+
+
 EVENT_TYPES: tuple[type[Event], ...] = (
     RunStarted,
     StateChanged,
@@ -454,5 +473,6 @@ EVENT_TYPES: tuple[type[Event], ...] = (
     AlarmCleared,
     CalibrationInstalled,
     SnapshotChanged,
+    PartClassesChanged,
 )
 BY_KIND: dict[str, type[Event]] = {t.kind: t for t in EVENT_TYPES}

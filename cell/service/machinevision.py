@@ -321,6 +321,7 @@ class MachineVisionServer(VisionStateMachinePart, RecipeManagementPart, ResultMa
             "result": await self.server.get_event_generator(
                 node_id(1024, mv), self.node.nodeid
             ),  # ResultReadyEventType
+            "info": await self.server.get_event_generator(node_id(1038, mv), self.node.nodeid),  # VisionInformation
         }
         await self._n["diagnostic_level"].write_value(ua.Variant(0, _T.UInt16))
         await self._read_only()

@@ -35,7 +35,15 @@ from cell.config import CellConfig
 from cell.core.api import LineServiceAPI
 from cell.core.commands import STATE_COMMANDS, Command, CommandRefused, Refusal
 from cell.core.eventbus import Subscription
-from cell.core.events import Event, JobStarted, Origin, PartFailed, PickVerified, SnapshotChanged
+from cell.core.events import (
+    Event,
+    JobStarted,
+    Origin,
+    PartClassesChanged,
+    PartFailed,
+    PickVerified,
+    SnapshotChanged,
+)
 from cell.core.parts import BUILT_IN_PARTS, PartRegistry
 from cell.core.records import PickRecord, PickRecords, Snapshot
 from cell.core.values import Kind, kinds, snapshot_values
@@ -138,6 +146,7 @@ PICK_EVENT_FIELDS = [
     ("AngleDeg", _T.Double),
     ("Outcome", _T.String),
 ]
+_NODE_ADDED = 1  # ModelChangeStructureDataType.Verb bit NodeAdded (ReferenceAdded is 4)
 _PICKS_QUEUED = 100  # picks waiting for the loop; a stalled loop drops the oldest, never holds the cell
 _STATUS = {  # a refused command's status code
     Refusal.INVALID_STATE: ua.StatusCodes.BadInvalidState,
@@ -190,11 +199,15 @@ class OpcUaServer:
         )
         self.parts = service.parts  # the part classes, whose counters are variables of their own
         self.variables = variables(self.parts)
+        self._grown: PartRegistry | None = None  # a registry grown while serving, its variables not added yet
+        self._cell: Any = None  # the Cell object's node, and its namespace: new counters are added to it
+        self._ns = 0
         self.nodes: dict[str, ua.NodeId] = {}
         self._written: dict[str, object] = {}
         self._dirty = asyncio.Event()
         self._picks: deque[PickRecord] = deque(maxlen=_PICKS_QUEUED)
         self._pick_events: EventGenerator | None = None
+        self._model_changes: EventGenerator | None = None  # Cell's GeneralModelChangeEvent: variables added
         self._task: asyncio.Task[None] | None = None
         self._subscription: Subscription | None = None
         self._records = PickRecords()
@@ -225,25 +238,22 @@ class OpcUaServer:
             s.set_identity_tokens([ua.AnonymousIdentityToken])
         ns = await s.register_namespace(NAMESPACE)
         cell = await s.nodes.objects.add_object(node_id("Cell", ns), ua.QualifiedName("Cell", ns))
-        values = _values(self.service.snapshot(), self.parts)
-        for name, (vtype, array) in self.variables.items():
-            var = await cell.add_variable(
-                node_id(name, ns), ua.QualifiedName(name, ns), ua.Variant(values[name], vtype, is_array=array or None)
-            )
-            self.nodes[name] = var.nodeid
-            self._written[name] = values[name]
+        self._cell, self._ns = cell, ns
+        await self._add_variables(self.variables, self.parts)
         for command in STATE_COMMANDS:
             await cell.add_method(
                 node_id(command.value, ns), ua.QualifiedName(command.value, ns), self._method(command), [], []
             )
         etype = await s.create_custom_event_type(ns, "PickEventType", ua.ObjectIds.BaseEventType, PICK_EVENT_FIELDS)
         self._pick_events = await s.get_event_generator(etype, cell.nodeid)
+        self._model_changes = await s.get_event_generator(ua.ObjectIds.GeneralModelChangeEventType, cell.nodeid)
         loop = asyncio.get_running_loop()
         self._subscription = self.service.subscribe(
             "opcua",
             lambda e: self._on_event(loop, e),
-            kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted),
+            kinds=(SnapshotChanged, PickVerified, PartFailed, JobStarted, PartClassesChanged),
         )
+        self._note_parts(self.service.parts)  # grown before the subscription began
         simulated = self.service.snapshot().simulated
         self.machine_vision = MachineVisionServer(
             s, self.service, self.config, results=self._results(simulated), dry_run=simulated
@@ -314,13 +324,68 @@ class OpcUaServer:
         cell.service.opcua_security.caller_origin, from the request being handled."""
         return caller_origin()
 
+    async def _add_variables(self, wanted: Mapping[str, tuple[ua.VariantType, bool]], parts: PartRegistry) -> None:
+        """The Cell variables of `wanted` it does not have yet, with their current values (at start: all)."""
+        values = _values(self.service.snapshot(), parts)
+        for name, (vtype, array) in wanted.items():
+            if name in self.nodes:
+                continue
+            var = await self._cell.add_variable(
+                node_id(name, self._ns),
+                ua.QualifiedName(name, self._ns),
+                ua.Variant(values[name], vtype, is_array=array or None),
+            )
+            self.nodes[name] = var.nodeid
+            self._written[name] = values[name]
+
+    def _note_parts(self, parts: PartRegistry) -> None:
+        """On the loop: a registry larger than the one served is added at the publisher's next round."""
+        if len(parts) > len(self._grown or self.parts):
+            self._grown = parts
+
+    async def _add_part_classes(self) -> None:
+        """The registry grew while serving (PartClassesChanged): a Picked<Plural> variable for each new class,
+        added to Cell (after its other variables) before any value is written by the new registry."""
+        parts, self._grown = self._grown, None
+        if parts is None or len(parts) <= len(self.parts):
+            return
+        wanted = variables(parts)
+        new = [name for name in wanted if name not in self.nodes]
+        await self._add_variables(wanted, parts)
+        self.parts, self.variables = parts, wanted
+        log.info("OPC UA: Cell has %s now (part classes new to the service)", ", ".join(new))
+        if self._model_changes is not None and new:
+            await self._model_changed(self._model_changes, new)
+
+    async def _model_changed(self, events: EventGenerator, added: list[str]) -> None:
+        """A GeneralModelChangeEvent from Cell naming the variables added (NodeAdded): a client that browsed Cell
+        hears it should browse again. Best effort: the variables are there whether or not it goes out."""
+        ev = events.event
+        ev.Message = ua.LocalizedText(f"Cell: {', '.join(added)} added (part classes new to the service)")
+        ev.Severity = 100
+        ev.Changes = [
+            ua.ModelChangeStructureDataType(
+                Affected=self.nodes[name],
+                AffectedType=ua.NodeId(ua.Int32(ua.ObjectIds.BaseDataVariableType)),
+                Verb=_NODE_ADDED,
+            )
+            for name in added
+        ]
+        ev.data_types["Changes"] = _T.ExtensionObject  # asyncua keeps the DataType's NodeId there, not a VariantType
+        try:
+            await events.trigger()
+        except Exception:
+            log.exception("OPC UA: the GeneralModelChangeEvent for %s was not sent", ", ".join(added))
+
     def _on_event(self, loop: asyncio.AbstractEventLoop, event: Event) -> None:
-        """On the subscriber's thread: queue picks for the events, wake the publisher."""
+        """On the subscriber's thread: queue picks for the events, note a grown registry, wake the publisher."""
         record = self._records.of(event)
         if record is not None:
             self._picks.append(record)  # deque.append is atomic; the loop drains it
         if not loop.is_closed():
             try:
+                if isinstance(event, PartClassesChanged):
+                    loop.call_soon_threadsafe(self._note_parts, event.parts)
                 loop.call_soon_threadsafe(self._dirty.set)
             except RuntimeError:
                 pass  # the server's loop is shutting down
@@ -353,6 +418,9 @@ class OpcUaServer:
             await self._write_changes()
 
     async def _write_changes(self) -> None:
+        self._note_parts(self.service.parts)  # the event's registry, should a full queue have dropped the event
+        if self._grown is not None:
+            await self._add_part_classes()
         while self._picks:
             await self._fire(self._picks[0])
             self._picks.popleft()

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -70,6 +70,7 @@ from cell.core.events import (
     JobEnded,
     JobStarted,
     Origin,
+    PartClassesChanged,
     ServiceStarted,
     ServiceStopped,
     SnapshotChanged,
@@ -91,6 +92,7 @@ from cell.recipes import (
     check_recipe_id,
     parse_recipe,
     read_recipe_if_any,
+    taught_class,
 )
 from cell.runner import Runner, make_parked_arm_safe
 from cell.service.ledger import Ledger
@@ -195,7 +197,7 @@ class LineService:
         cell.camera.on_clear = self.clear_warning
         self.recipes = RecipeBook(self.config.service.machine_vision.recipes_dir)
         # the part classes counted: the built-in ones and every taught type of the recipes in the folder at
-        # start-up (OPC UA, Sparkplug and /metrics make a counter of each then); a recipe added later brings its own
+        # start-up; a recipe added, prepared or taught later grows it (never shrinks it): PartClassesChanged
         self.parts: PartRegistry = self.recipes.taught_parts()
         self._recipe_id: str = ""  # the prepared recipe (none: the cell's own config)
         self._recipe: Recipe | None = None
@@ -457,14 +459,7 @@ class LineService:
         and finds its taught types by their shape models."""
         self._recipe_id, self._recipe, shapes = prepared
         self._shapes = tuple(shapes)
-        new = [name for name in self._recipe.types if name not in self.parts]
-        if new:  # added after start-up: picked and recorded by name; the interfaces' counters are made at start-up
-            log.warning(
-                "recipe %s: taught types %s were not in the recipes at start-up: picked and recorded in the history, "
-                "but OPC UA, Sparkplug, /metrics and the screen count them only after the service restarts",
-                self._recipe_id,
-                ", ".join(new),
-            )
+        self._grow_parts(self._recipe_id, self._recipe.types)
         if words := self._recipe.unbinned_words(self._recipe_id):  # said once, when the recipe is prepared
             log.warning("%s", words)
         log.info("recipe %s prepared by %s", self._recipe_id, origin.describe())
@@ -473,7 +468,33 @@ class LineService:
         self._recipe_id, self._recipe, self._shapes = "", None, ()
 
     def _cmd_add_recipe(self, origin: Origin, added: tuple[str, str]) -> None:
-        self.recipes.add(*added)  # validated before it was recorded; the write is atomic
+        recipe_id, content = added
+        self.recipes.add(recipe_id, content)  # validated before it was recorded; the write is atomic
+        self._grow_parts(recipe_id, parse_recipe(content, f"recipe {recipe_id!r}").types)
+
+    def _grow_parts(self, recipe_id: str, names: Iterable[str]) -> None:
+        """Under the lock: the taught types of `recipe_id` the registry does not count yet added to it (none is
+        ever taken away while the service runs: a counter an interface shows stays), announced on the bus
+        (PartClassesChanged) so OPC UA, Sparkplug, /metrics and the screen count them from now on."""
+        grown, added = self.parts, []
+        for name in names:
+            if name in grown:
+                continue
+            try:
+                grown = grown.with_classes((taught_class(name),))
+            except ValueError as e:  # its counter's name is another class's (l-bracket, l_bracket)
+                log.warning("recipe %s: the taught type %s gets no counter of its own: %s", recipe_id, name, e)
+                continue
+            added.append(name)
+        if not added:
+            return
+        self.parts = grown
+        self._emit_best_effort(PartClassesChanged(recipe=recipe_id, added=tuple(added), parts=grown))
+        log.info(
+            "recipe %s: part classes %s counted from now on (OPC UA, Sparkplug, /metrics, the screen)",
+            recipe_id,
+            ", ".join(added),
+        )
 
     def _cmd_remove_recipe(self, origin: Origin, recipe_id: str) -> None:
         self.recipes.remove(recipe_id)
@@ -497,6 +518,7 @@ class LineService:
             recipe_id,
             "; ".join(said := done.lines(model.name, recipe_id)),
         )
+        self._grow_parts(recipe_id, (model.name,))
         if recipe_id == self._recipe_id:
             self._cmd_prepare_recipe(origin, (recipe_id, *self.recipes.load_with_shapes(recipe_id)))
         return tuple(said)
@@ -561,6 +583,16 @@ class LineService:
                 except AuditWriteFailed as e:
                     raise NotRecorded(command, f"{action} not carried out: {e}", self._vstate) from None
                 log.info("%s from %s", name, origin.describe())
+
+    def refuse(
+        self, command: Command, origin: Origin, action: str, message: str, arguments: dict[str, Any] | None = None
+    ) -> NoReturn:
+        """LineServiceAPI.refuse: an interface's own rule refused `action` (a step of `command`); recorded, raised."""
+        with self._lock:
+            refused = AccessDenied(command, f"{action} refused: {message}", self._vstate)
+            self._emit_best_effort(self._step_record(action, origin, arguments, refused))
+        log.info("%s from %s refused: %s", action, origin.describe(), message)
+        raise refused
 
     def _step_record(
         self, name: str, origin: Origin, arguments: dict[str, Any] | None, refused: CommandRefused | None

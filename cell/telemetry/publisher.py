@@ -45,6 +45,7 @@ from cell.core.events import (
     JobEnded,
     JobStarted,
     Origin,
+    PartClassesChanged,
     PartFailed,
     PickVerified,
     Role,
@@ -72,6 +73,7 @@ KINDS = (
     AlarmRaised,
     AlarmCleared,
     CalibrationInstalled,
+    PartClassesChanged,
 )
 WARNING_KEY = "telemetry-mqtt"
 _CLOSE_WAIT_S = 3.0
@@ -219,6 +221,8 @@ class SparkplugPublisher:
         self.cfg, self.service = cfg, service
         self.topics = Topics(cfg.group_id, cfg.edge_node_id, cfg.device_id)
         self.commands = cfg.commands
+        # the part classes the births name a counter of (grown while serving: PartClassesChanged, a rebirth)
+        self.parts: PartRegistry = service.parts
         self._lock = threading.RLock()  # seq, the births and every publish, in order
         self._counts = threading.Lock()
         folder = cfg.state_dir if cfg.state_dir is not None else state_dir
@@ -307,6 +311,7 @@ class SparkplugPublisher:
                 '(set command_role, e.g. "operator", to let the plant\'s host start and stop the cell)'
             )
         self._sub = bus.subscribe("telemetry-mqtt", self.handle, kinds=KINDS, maxsize=self.cfg.queue_max)
+        self._grow(self.service.parts)  # grown before the subscription began (not born yet: nothing sent)
         with self._lock:
             self._bd_seq_store.keep(self.bd_seq)
         self.client.connect_async(self.cfg.host, self.cfg.port, keepalive=self.cfg.keepalive_s)
@@ -469,7 +474,7 @@ class SparkplugPublisher:
         return False
 
     def _birth_sent(self) -> bool:
-        self._values.update(M.snapshot_values(self.service.snapshot(), self.service.parts))
+        self._values.update(M.snapshot_values(self.service.snapshot(), self.parts))
         node = [
             Metric(M.BD_SEQ, M.D.INT64, self.session_bd_seq),
             Metric(M.REBIRTH, M.D.BOOLEAN, False),
@@ -478,7 +483,7 @@ class SparkplugPublisher:
         self._seq = 0
         if not self._send(self.topics.node("NBIRTH"), node, birth=True):
             return False
-        specs = M.device_specs(self.commands, self.service.parts)
+        specs = M.device_specs(self.commands, self.parts)
         device = [Metric(s.name, s.dtype, self._values.get(s.name)) for s in specs]
         return self._send(self.topics.device("DBIRTH"), device, birth=True)
 
@@ -494,7 +499,7 @@ class SparkplugPublisher:
             with self._counts:
                 self.dropped += 1
             return
-        types = {s.name: s.dtype for s in M.device_specs(self.commands, self.service.parts)}
+        types = {s.name: s.dtype for s in M.device_specs(self.commands, self.parts)}
         self._send(self.topics.device("DDATA"), [Metric(k, types[k], v) for k, v in changed.items()], birth=False)
 
     def _send(self, topic: str, metrics: list[Metric], birth: bool) -> bool:
@@ -518,6 +523,9 @@ class SparkplugPublisher:
 
     # ---- the bus subscriber's thread -------------------------------------------------------------
     def handle(self, event: Event) -> None:
+        if isinstance(event, PartClassesChanged):
+            self._grow(event.parts)
+            return
         if isinstance(event, PickVerified):
             self._cycle[event.pick_id] = event.cycle_ms
         record = self._records.of(event)
@@ -528,8 +536,23 @@ class SparkplugPublisher:
             return
         if isinstance(event, StateChanged) and not self.born and not self._birth_due:
             return  # the runner's steps while the broker is away: the next birth reads the snapshot again
+        if len(self.service.parts) > len(self.parts):  # its PartClassesChanged dropped (a full queue)
+            self._grow(self.service.parts)
         with self._lock:  # read and published under one lock: no birth between them (it would be newer)
-            self._data(M.snapshot_values(self.service.snapshot(), self.service.parts))
+            self._data(M.snapshot_values(self.service.snapshot(), self.parts))
+
+    def _grow(self, parts: PartRegistry) -> None:
+        """New part classes: their counters are new metrics, which Sparkplug B announces only in a birth: the
+        births are sent again (same session, same bdSeq; NBIRTH's seq 0), the new counters in the DBIRTH. No
+        DDATA names them before it. While the broker is away the next birth carries them."""
+        with self._lock:
+            if len(parts) <= len(self.parts):
+                return
+            new = [p.sparkplug_name for p in parts if p.name not in self.parts]
+            self.parts = parts
+            if self.born or self._birth_due:
+                log.info("telemetry: births sent again for the new metrics %s", ", ".join(new))
+                self._birth()
 
     # ---- the service's warning while the broker is away ---------------------------------------------
     def _warn(self, reason: str) -> None:

@@ -6,7 +6,9 @@ idle, refused in words otherwise), names the type and gives its height; the serv
 shows each frame with every example's outline and the jaws where they would close, the consistency and
 the symmetry found, or the refusal in words. Confirm adds the type to a recipe file (AddPartType through
 the command table: the model file and `[types.NAME]` written whole or not at all, recorded); Cancel
-discards. One session at a time, at most `service.web.teach_max_frames` frames, discarded when nothing
+discards. The session is the engineer's who captured its first frame: another engineer's capture, teach,
+confirm or cancel on it is refused in words naming whose it is (403, recorded); an admin may cancel it.
+One session at a time, at most `service.web.teach_max_frames` frames, discarded when nothing
 was done with it for `service.web.teach_timeout_s`: a client cannot make the screen hold more. Nothing
 from a request names a file: the type's name and the recipe id are checked against their patterns, the
 session and its pictures live in memory under a random id.
@@ -20,7 +22,7 @@ import secrets
 import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from datetime import UTC
+from datetime import UTC, datetime
 from importlib import resources
 from typing import Any
 
@@ -34,7 +36,7 @@ from starlette.routing import Route
 from cell.config import CellConfig
 from cell.core.api import LineServiceAPI
 from cell.core.commands import Command, CommandRefused, PartTypeRequest, Refusal
-from cell.core.events import Origin
+from cell.core.events import Origin, Role
 from cell.core.records import PartImage
 from cell.errors import REPORTED_ERRORS, CellError
 from cell.recipes import RecipeError, bins_of, check_recipe_id, read_recipe_if_any
@@ -93,8 +95,13 @@ class Session:
     """One teaching session: its frames (each with the calibration it was taken with) and what they taught."""
 
     id: str
+    owner: str  # the user who captured its first frame: only they capture into it, teach from it, confirm it
+    started_utc: datetime = field(default_factory=lambda: datetime.now(UTC))
     frames: list[PartImage] = field(default_factory=list)
     learnt: Learnt | None = None
+
+    def whose(self) -> str:
+        return f"the teaching session is {self.owner or 'anonymous'}'s (started {self.started_utc:%H:%M:%S} UTC)"
 
 
 def _jpeg(image: np.ndarray, max_width_px: int, quality: int) -> bytes:
@@ -153,12 +160,34 @@ class TeachDesk:
     def close(self) -> None:
         self._touch(None)
 
+    def _own(self, s: Session, origin: Origin, command: Command, action: str, admin_may: bool = False) -> None:
+        """The step is `origin`'s to take on `s`: the session's own engineer (or, with `admin_may`, an admin).
+        Otherwise the role is checked first (its refusal recorded as ever), then this refusal, in words
+        naming whose session it is, recorded (AccessDenied); nothing is done."""
+        if origin.user == s.owner or (admin_may and origin.role is Role.ADMIN):
+            return
+        self.service.authorize(command, origin, state=False)
+        who = s.owner or "anonymous"
+        also = "; an admin may cancel it" if action == CANCEL else ""
+        self.service.refuse(
+            command,
+            origin,
+            action,
+            f"{s.whose()}: only {who} may capture into it, teach from it, confirm or cancel it{also} "
+            f"(hint: ask {who} to confirm or cancel it, or wait until it is discarded after "
+            f"{self._timeout:g} s without a step)",
+            {"session": s.id, "owner": s.owner},
+        )
+
     # -- the steps
     def capture(self, origin: Origin) -> Session:
         """A frame from the cell's camera added to the session (a new one if none is open): CapturePartImage's
         role and state checked by the service first, and the session's room before the camera is touched."""
+        capture = Command.CAPTURE_PART_IMAGE
         with self._lock:
             s = self.session
+            if s is not None:
+                self._own(s, origin, capture, capture.value)
             if s is not None and len(s.frames) >= self.web.teach_max_frames:
                 raise Full(
                     f"the session holds {len(s.frames)} frames, the most it takes (service.web.teach_max_frames): "
@@ -168,7 +197,8 @@ class TeachDesk:
         with self._lock:
             s = self.session
             if s is None:
-                s = Session(secrets.token_urlsafe(16))
+                s = Session(secrets.token_urlsafe(16), origin.user)
+            self._own(s, origin, capture, capture.value)  # another engineer's session began meanwhile
             if len(s.frames) >= self.web.teach_max_frames:  # another capture filled it meanwhile
                 raise Full(f"the session holds {len(s.frames)} frames, the most it takes: teach from these")
             s.frames.append(frame)
@@ -184,6 +214,7 @@ class TeachDesk:
         check_height_mm(height_mm)
         with self._lock:
             s = self.open(session_id)
+            self._own(s, origin, Command.ADD_PART_TYPE, Command.ADD_PART_TYPE.value)
             frames = list(s.frames)
         if not self._learning.acquire(blocking=False):
             raise Full("a model is being learnt from these frames already: wait for it")
@@ -240,6 +271,7 @@ class TeachDesk:
         self.service.authorize(Command.ADD_PART_TYPE, origin, state=False)  # the role first; refused: recorded
         with self._lock:
             s = self.open(session_id)
+            self._own(s, origin, Command.ADD_PART_TYPE, Command.ADD_PART_TYPE.value)
             learnt = s.learnt
         if learnt is None or learnt.model is None:
             raise NoSession("nothing learnt to confirm: give the name and height, and teach from the frames first")
@@ -263,12 +295,18 @@ class TeachDesk:
         return bins_of(read_recipe_if_any(path), self.config.planning)
 
     def cancel(self, session_id: str, origin: Origin) -> None:
-        """The session discarded: AddPartType's role first (a refusal changes nothing), then recorded."""
+        """The session discarded: AddPartType's role first (a refusal changes nothing), then whose it is (its
+        engineer's, or an admin's), then recorded."""
         self.service.authorize(Command.ADD_PART_TYPE, origin, state=False)
         with self._lock:
-            self.open(session_id)
+            s = self.open(session_id)
+            self._own(s, origin, Command.ADD_PART_TYPE, CANCEL, admin_may=True)
             self.service.authorize(
-                Command.ADD_PART_TYPE, origin, CANCEL, state=False, arguments={"session": session_id}
+                Command.ADD_PART_TYPE,
+                origin,
+                CANCEL,
+                state=False,
+                arguments={"session": session_id, "owner": s.owner},
             )
             self._touch(None)
 
@@ -279,6 +317,8 @@ def session_json(s: Session | None, active_recipe: str) -> dict[str, Any]:
         return {"session": None, "active_recipe": active_recipe}
     out: dict[str, Any] = {
         "session": s.id,
+        "owner": s.owner,
+        "started": s.started_utc.isoformat(timespec="seconds"),
         "active_recipe": active_recipe,
         "frames": len(s.frames),
         "taken": [f.time_utc.astimezone(UTC).isoformat(timespec="seconds") for f in s.frames],

@@ -46,7 +46,8 @@ function refusedWords(e) {
 
 function render() {
   const frames = session && session.session ? session.frames : 0;
-  $("teach-frames").textContent = frames ? `${frames} frame(s) held.` : "No frames yet.";
+  const whose = frames && session.owner ? ` (${session.owner}'s session: only they confirm it)` : "";
+  $("teach-frames").textContent = frames ? `${frames} frame(s) held${whose}.` : "No frames yet.";
   $("teach-take").disabled = !canControl;
   $("teach-learn").disabled = !canControl || !frames;
   $("teach-cancel").disabled = !canControl || !frames;
