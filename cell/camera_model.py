@@ -95,16 +95,24 @@ class CameraModel:
         """Rotation table -> camera."""
         return self._R
 
+    def _centre(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera centre in the object frame, and as (X, Y, height above the table): computed once
+        and kept in `cache` (locate asks for them several times per part)."""
+        kept = self.cache.get("centre")
+        if kept is None:
+            C = -self._R.T @ self.tvec
+            kept = self.cache["centre"] = (C, np.array([C[0], C[1], abs(C[2])]))
+        return kept
+
     @property
     def _up(self) -> float:
         """+1 if object z grows towards the camera, -1 if away from it."""
-        return 1.0 if (-self._R.T @ self.tvec)[2] > 0 else -1.0
+        return 1.0 if self._centre()[0][2] > 0 else -1.0
 
     @property
     def center_table_mm(self) -> np.ndarray:
         """Camera centre as (X, Y, height above the table) in table mm."""
-        C = -self._R.T @ self.tvec
-        return np.array([C[0], C[1], abs(C[2])])
+        return self._centre()[1].copy()
 
     def project(self, xy_table_mm: np.ndarray, height_mm: float | np.ndarray = 0.0) -> np.ndarray:
         """Pixel positions (N, 2) of table points (N, 2) at `height_mm` above the table."""
@@ -128,7 +136,7 @@ class CameraModel:
         ).reshape(-1, 2)
         rays_cam = np.column_stack([norm, np.ones(len(norm))])
         rays_table = rays_cam @ self._R  # R.T @ ray for each row
-        C = -self._R.T @ self.tvec
+        C = self._centre()[0]
         z_plane = self._up * height_mm
         s = (z_plane - C[2]) / rays_table[:, 2]
         return C[:2] + s[:, None] * rays_table[:, :2]

@@ -15,6 +15,7 @@ import numpy as np
 
 from cell.vision.config import PartsConfig
 from cell.vision.features import Features, Profile, width_profile
+from cell.vision.smallstats import median, percentile
 from cell.vision.types import PartClass
 
 UNKNOWN: PartClass = "unknown"
@@ -118,8 +119,8 @@ def _classify_elongated(
     prof = width_profile(outline, feat.centroid_px, feat.axis_px)
     w = prof.widths_px
     n = len(w)
-    head_px = float(np.percentile(w[: max(3, n // 4)], 90))
-    shaft_px = float(np.median(w[int(0.45 * n) : max(int(0.9 * n), int(0.45 * n) + 1)]))
+    head_px = percentile(w[: max(3, n // 4)], 90)
+    shaft_px = median(w[int(0.45 * n) : max(int(0.9 * n), int(0.45 * n) + 1)])
     peak = int(np.argmax(w[: max(3, n // 3)]))
     below = np.flatnonzero(w[peak:] < (head_px + shaft_px) / 2)
     head_len = peak + int(below[0]) if below.size else n

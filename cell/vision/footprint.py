@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from cell.vision.features import Profile
+from cell.vision.smallstats import median
 
 
 @dataclass
@@ -92,6 +93,15 @@ def _crossing_at(q: np.ndarray, w: np.ndarray, level: float, guess: float, risin
     return float(q[j] + f * (q[j + 1] - q[j]))
 
 
+def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """The least-squares line y = slope x + offset (np.polyfit(x, y, 1) to about 1e-15 of its values,
+    in a tenth of its time), about the points' mean; x must not be all the same."""
+    xm, ym = float(x.mean()), float(y.mean())
+    dx = x - xm
+    slope = float(dx @ (y - ym)) / float(dx @ dx)
+    return slope, ym - slope * xm
+
+
 def bolt_pose(
     prof: Profile,
     head_width_px: float,
@@ -126,9 +136,9 @@ def bolt_pose(
     # tilts the blob's principal axis on short bolts by up to a degree or so.
     shaft = slice(last + 2, len(w) - 2)
     if len(pos[shaft]) >= 5:
-        slope, offset = np.polyfit(pos[shaft], prof.centres_px[shaft], 1)
+        slope, offset = _line_fit(pos[shaft], prof.centres_px[shaft])
     else:
-        slope, offset = 0.0, float(np.median(prof.centres_px))
+        slope, offset = 0.0, median(prof.centres_px)
     a = prof.axis_px
     n = np.array([-a[1], a[0]])
     pts = np.array([prof.origin_px + u * a + (offset + slope * u) * n for u in (u_in, u_out, prof.length_px)])
@@ -158,7 +168,7 @@ def bolt_pose(
         g = len(_GRID)
         w = _widths(outline, np.concatenate((q_in, q_out, q_tip, q_head, q_shaft))) + 2 * edge
         w_in, w_out, w_tip = w[:g], w[g : 2 * g], w[2 * g : 3 * g]
-        e, d = float(np.median(w[3 * g : 3 * g + 3])), float(np.median(w[3 * g + 3 :]))
+        e, d = median(w[3 * g : 3 * g + 3]), median(w[3 * g + 3 :])
         # the tip where the shaft's width falls to half (its farthest point is the outline's noise's)
         u_tip = _crossing_at(q_tip, w_tip, d / 2, u_tip, False)
         level = (e + d) / 2  # the silhouette's widths: the model's crossings are taken at the same

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from cell.vision.config import PartsConfig
+from cell.vision.subpixel import median_level
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ def _segment_default(gray: np.ndarray, config: PartsConfig, part_width_px: float
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     background = cv2.dilate(small, kernel, borderType=cv2.BORDER_REPLICATE)
     background = cv2.blur(background, (r + 1, r + 1), borderType=cv2.BORDER_REPLICATE)
-    level = float(np.median(background))
+    level = median_level(background.ravel())  # np.median's, from the levels' histogram
     if level < config.segment.min_background_level:
         msg = f"frame too dark (backlight level {level:.0f} < {config.segment.min_background_level:.0f}): no parts can be seen"
         return Segmentation([], np.zeros_like(gray), level, [msg])
