@@ -102,27 +102,10 @@ def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return slope, ym - slope * xm
 
 
-def bolt_pose(
-    prof: Profile,
-    head_width_px: float,
-    shaft_width_px: float,
-    mapper,
-    axis_height_mm: float,
-    table_mm_per_px: float,
-    head_across_flats_per_width: float,
-    outline_mm: np.ndarray | None = None,
-    edge_px: float = 0.5,
-) -> BoltPose:
-    """Footprint, head, grasp point and axis angle of a bolt lying on its side.
-
-    `mapper` is a Calibration (or PixelScale); `axis_height_mm` the plane of the axis
-    (0 maps on the table and ignores parallax). `outline_mm`: the (sub-pixel) outline the profile
-    was taken from, mapped onto the table plane, `edge_px` how far the true edge lies outside it.
-    With it the widths and ends are measured in millimetres on the plane of the axis, exactly on
-    the outline: not in the image's pixels, which a wide lens stretches unevenly (a bolt near the
-    corner of a -12 % barrel lens read up to 1 mm long in the head), nor in the profile's 1-px bins
-    (whose widest point stands for the whole bin: the head read 0.4 px long on average).
-    """
+def axis_points_px(prof: Profile, head_width_px: float, shaft_width_px: float) -> np.ndarray:
+    """(3, 2) image pixels on the shaft's midline where the profile's width crosses halfway between
+    the head's and the shaft's (the head's back, its front) and at the profile's far end (the tip):
+    bolt_pose's first estimate of the bolt's axis, before the outline measures it."""
     w, pos = prof.widths_px, prof.positions_px
     level = (head_width_px + shaft_width_px) / 2
     above = np.flatnonzero(w >= level)
@@ -141,8 +124,39 @@ def bolt_pose(
         slope, offset = 0.0, median(prof.centres_px)
     a = prof.axis_px
     n = np.array([-a[1], a[0]])
-    pts = np.array([prof.origin_px + u * a + (offset + slope * u) * n for u in (u_in, u_out, prof.length_px)])
-    head_in, head_out, tip = mapper.pixel_to_table_mm(pts, height_mm=axis_height_mm)
+    return np.array([prof.origin_px + u * a + (offset + slope * u) * n for u in (u_in, u_out, prof.length_px)])
+
+
+def bolt_pose(
+    prof: Profile,
+    head_width_px: float,
+    shaft_width_px: float,
+    mapper,
+    axis_height_mm: float,
+    table_mm_per_px: float,
+    head_across_flats_per_width: float,
+    outline_mm: np.ndarray | None = None,
+    edge_px: float = 0.5,
+    axis_on_table_mm: np.ndarray | None = None,
+) -> BoltPose:
+    """Footprint, head, grasp point and axis angle of a bolt lying on its side.
+
+    `mapper` is a Calibration (or PixelScale); `axis_height_mm` the plane of the axis
+    (0 maps on the table and ignores parallax). `outline_mm`: the (sub-pixel) outline the profile
+    was taken from, mapped onto the table plane, `edge_px` how far the true edge lies outside it.
+    With it the widths and ends are measured in millimetres on the plane of the axis, exactly on
+    the outline: not in the image's pixels, which a wide lens stretches unevenly (a bolt near the
+    corner of a -12 % barrel lens read up to 1 mm long in the head), nor in the profile's 1-px bins
+    (whose widest point stands for the whole bin: the head read 0.4 px long on average).
+    `axis_on_table_mm`: axis_points_px(prof, head_width_px, shaft_width_px) mapped onto the table
+    plane already (locate maps every part's in one call with the outlines); the mapper must then
+    lift points (lift_mm), as pixel_to_table_mm does after its mapping.
+    """
+    if axis_on_table_mm is None:
+        pts = axis_points_px(prof, head_width_px, shaft_width_px)
+        head_in, head_out, tip = mapper.pixel_to_table_mm(pts, height_mm=axis_height_mm)
+    else:
+        head_in, head_out, tip = mapper.lift_mm(np.asarray(axis_on_table_mm, dtype=np.float64), axis_height_mm)
     axis = tip - head_in
     axis /= max(float(np.hypot(*axis)), 1e-9)
     camera = getattr(mapper, "camera", None)

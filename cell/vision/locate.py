@@ -19,8 +19,8 @@ import numpy as np
 from cell.errors import InputError
 from cell.vision.classify import BOLT, NUT, Verdict, classify
 from cell.vision.config import PartsConfig
-from cell.vision.features import Features, measure, part_centroid_px, width_profile
-from cell.vision.footprint import BoltPose, bolt_pose
+from cell.vision.features import Features, Profile, measure, part_centroid_px, width_profile
+from cell.vision.footprint import BoltPose, axis_points_px, bolt_pose
 from cell.vision.segment import Blob, segment, to_gray
 from cell.vision.shapes import ShapeModel, best_match, footprint_of_blob, footprints_of_blobs
 from cell.vision.silhouette import Bolt, Nut, footprint_centre, nut_from_outline, polygon_moments
@@ -115,16 +115,33 @@ def locate(image_bgr: np.ndarray, calibration_or_scale, config=None, shapes: Seq
         (f if f is not None and ((correct and _shadow_placed(verdicts[i])) or _posed(verdicts[i])) else None)
         for i, f in fines.items()
     ]
-    outlines_mm = dict(
-        zip(rest, _outlines_on_table(mapper, [None if f is None else _thinned(f) for f in shadows]), strict=True)
+    # A posed bolt's profile on its fine outline, and its axis's first estimate (footprint.py): those
+    # points are mapped in the same call as the outlines (where the mapper lifts mapped points).
+    profiles = {i: _pose_profile(feats[i], verdicts[i], fines[i]) for i in rest if _posed(verdicts[i])}
+    axes_px = {i: _axis_px(verdicts[i], p) for i, p in profiles.items()} if hasattr(mapper, "lift_mm") else {}
+    mapped = _outlines_on_table(
+        mapper, [None if f is None else _thinned(f) for f in shadows] + [axes_px.get(i) for i in rest]
     )
+    outlines_mm = dict(zip(rest, mapped[: len(rest)], strict=True))
+    axes_mm = dict(zip(rest, mapped[len(rest) :], strict=True))
     found = []
     for i, (blob, (part, why)) in enumerate(zip(seg.blobs, taught, strict=True)):
         if part is None:
             verdict = verdicts[i]
             if why and verdict.cls not in (BOLT, NUT):
                 verdict = Verdict(verdict.cls, f"{verdict.reason}; {why}", verdict.size_mm)
-            part = _place(feats[i], verdict, scales[i], mapper, cfg, correct, centres_mm[i], fines[i], outlines_mm[i])
+            part = _place(
+                feats[i],
+                verdict,
+                scales[i],
+                mapper,
+                cfg,
+                correct,
+                centres_mm[i],
+                outlines_mm[i],
+                profiles.get(i),
+                axes_mm[i],
+            )
         part.outline_px = blob.outer
         found.append(_refuse_non_finite(part))
     found.sort(key=lambda p: (p.pixel[1], p.pixel[0]))
@@ -365,6 +382,20 @@ def _fine_outline(
     return None
 
 
+def _pose_profile(feat: Features, verdict: Verdict, fine: np.ndarray | None) -> Profile:
+    """The width profile a posed bolt's pose is measured on: its sub-pixel outline's where it has one."""
+    if fine is None:
+        assert verdict.profile is not None  # _posed
+        return verdict.profile
+    return width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
+
+
+def _axis_px(verdict: Verdict, profile: Profile) -> np.ndarray:
+    """A posed bolt's axis's first estimate in pixels (footprint.axis_points_px)."""
+    assert verdict.head_width_px is not None and verdict.shaft_width_px is not None  # _posed
+    return axis_points_px(profile, verdict.head_width_px, verdict.shaft_width_px)
+
+
 def _outlines_on_table(mapper, outlines_px: list[np.ndarray | None]) -> list[np.ndarray | None]:
     """Each outline mapped onto the table plane, all in one mapping call (its cost is mostly per call)."""
     given = [o for o in outlines_px if o is not None]
@@ -382,12 +413,14 @@ def _place(
     cfg: PartsConfig,
     correct: bool,
     centre_mm: np.ndarray,
-    fine: np.ndarray | None,
     outline_mm: np.ndarray | None,
+    pose_profile: Profile | None = None,
+    axis_mm: np.ndarray | None = None,
 ) -> LocatedPart:
-    """`centre_mm`: the centroid mapped onto the table plane; `fine`: the blob's sub-pixel outline
-    where one is needed (a bolt's pose is measured on it); `outline_mm`: that outline, thinned, on
-    the table plane where the shadow places the part or a bolt's pose is measured."""
+    """`centre_mm`: the centroid mapped onto the table plane; `outline_mm`: the blob's sub-pixel
+    outline, thinned, on the table plane where the shadow places the part or a bolt's pose is
+    measured; `pose_profile`: a posed bolt's width profile on that outline (_pose_profile),
+    `axis_mm`: its axis's first estimate mapped onto the table plane (footprint.axis_points_px)."""
     height = reference_height_mm(verdict, cfg) if correct else 0.0
     centre = np.asarray(feat.centroid_px, dtype=np.float64)
     angle = head = grasp = jaw = None
@@ -402,10 +435,8 @@ def _place(
     else:
         world = mapper.pixel_to_table_mm(centre, height_mm=height)[0]
     if posed and prof is not None and head_px is not None and shaft_px is not None:
-        if fine is not None:
-            prof = width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
         pose = bolt_pose(
-            prof,
+            prof if pose_profile is None else pose_profile,
             head_px,
             shaft_px,
             mapper,
@@ -414,6 +445,7 @@ def _place(
             cfg.bolt.head_across_flats_per_width,
             outline_mm,
             EDGE_PX,
+            axis_mm,
         )
         world, head, grasp, angle = pose.centre_mm, pose.head_mm, pose.grasp_mm, pose.angle_deg
         if correct and outline_mm is not None:

@@ -54,13 +54,14 @@ def subpixel_outline(
     # each upsampled level (a whole number of 64ths) is below the (float32) threshold exactly when
     # it is below the threshold's 64ths rounded up.
     up64 = cv2.resize(roi.astype(np.uint16) << 6, None, fx=UPSAMPLE, fy=UPSAMPLE, interpolation=cv2.INTER_LINEAR)
-    level = float(np.float32(fraction * median_level(paper)))
+    paper_level = median_level(paper)
+    level = float(np.float32(fraction * paper_level))
     if mid_level:
         inside = roi[cv2.erode(part, _DILATE) > 0]
         if inside.size >= 16:
             own = median_level(inside)
             if own <= 0.6 * level:
-                level = float(np.float32((median_level(paper) + own) / 2))
+                level = float(np.float32((paper_level + own) / 2))
     dark = (up64 < math.ceil(64.0 * level)).view(np.uint8)
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
