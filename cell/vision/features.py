@@ -114,13 +114,20 @@ def measure(blob: Blob, mask: np.ndarray) -> Features:
 def resample(outline: np.ndarray, count: int | None = None, step_px: float = 0.5) -> np.ndarray:
     """Points evenly spaced along the closed outline: `count` of them, or `step_px` apart."""
     pts = outline.reshape(-1, 2).astype(np.float64)
-    closed = np.vstack([pts, pts[:1]])
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(closed, axis=0).T))])
-    if s[-1] <= 0:
+    closed = np.concatenate((pts, pts[:1]))
+    step = closed[1:] - closed[:-1]
+    s = np.empty(len(closed))  # the length along the outline at each point
+    s[0] = 0.0
+    np.cumsum(np.hypot(step[:, 0], step[:, 1]), out=s[1:])
+    total = s[-1]
+    if total <= 0:
         return pts[:1]
-    n = count or max(3, int(s[-1] / step_px))
-    t = np.arange(n) * (s[-1] / n)  # np.linspace(0, s[-1], n, endpoint=False), without its overhead
-    return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
+    n = count or max(3, int(total / step_px))
+    t = np.arange(n) * (total / n)  # np.linspace(0, total, n, endpoint=False), without its overhead
+    out = np.empty((n, 2))
+    out[:, 0] = np.interp(t, s, closed[:, 0])
+    out[:, 1] = np.interp(t, s, closed[:, 1])
+    return out
 
 
 def hexagonality(outline: np.ndarray, centre: tuple[float, float]) -> float:
@@ -171,8 +178,9 @@ def width_profile(
     np.minimum.at(vmin, bins, v)
     ok = np.isfinite(vmax)
     idx = np.arange(nb)
-    vmax = np.interp(idx, idx[ok], vmax[ok])
-    vmin = np.interp(idx, idx[ok], vmin[ok])
+    if not ok.all():  # bins no point fell in: between their neighbours (np.interp returns the rest as they are)
+        vmax = np.interp(idx, idx[ok], vmax[ok])
+        vmin = np.interp(idx, idx[ok], vmin[ok])
     widths = vmax - vmin + 2 * edge_px
     mids = (vmax + vmin) / 2
     k = max(1, nb // 5)

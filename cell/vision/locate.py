@@ -464,13 +464,15 @@ def _place(
         head = ends[0]
     elif verdict.cls == NUT:
         if correct and outline_mm is not None:
+            moments = polygon_moments(outline_mm)
             nut = nut_from_outline(
                 outline_mm,
                 verdict.size_mm["across_flats_mm"],
                 cfg.nut.thickness_per_across_flats,
                 mapper.camera.center_table_mm,
+                moments,
             )
-            world = _from_shadow(nut, outline_mm, mapper, world)
+            world = _from_shadow(nut, outline_mm, mapper, world, moments[1])
         grasp = world
         jaw = feat.enclosing_diameter_px * scale + cfg.jaw_clearance_mm
     features = {
@@ -498,9 +500,12 @@ def _place(
     )
 
 
-def _from_shadow(shape: Nut | Bolt, outline_mm: np.ndarray, mapper, start_mm: np.ndarray) -> np.ndarray:
-    """The footprint centre whose shadow (silhouette.py) has the centroid of the outline on the table plane."""
-    _, measured = polygon_moments(outline_mm)
+def _from_shadow(
+    shape: Nut | Bolt, outline_mm: np.ndarray, mapper, start_mm: np.ndarray, centroid_mm: np.ndarray | None = None
+) -> np.ndarray:
+    """The footprint centre whose shadow (silhouette.py) has the centroid of the outline on the table plane
+    (`centroid_mm`, where the caller has it)."""
+    measured = polygon_moments(outline_mm)[1] if centroid_mm is None else centroid_mm
     return footprint_centre(shape, measured, mapper.camera.center_table_mm, start_mm)
 
 

@@ -229,7 +229,13 @@ def footprint_centre(
     return c
 
 
-def nut_from_outline(outline_mm: np.ndarray, across_flats_mm: float, thickness_ratio: float, camera_centre) -> Nut:
+def nut_from_outline(
+    outline_mm: np.ndarray,
+    across_flats_mm: float,
+    thickness_ratio: float,
+    camera_centre,
+    moments: tuple[float, np.ndarray] | None = None,
+) -> Nut:
     """The nut whose shadow has this outline (on the table plane): the corner direction from the
     outline's edges, the across flats from its area (which grows as the square), the thickness
     `thickness_ratio` times that.
@@ -237,8 +243,9 @@ def nut_from_outline(outline_mm: np.ndarray, across_flats_mm: float, thickness_r
     The shadow is the bottom hexagon swept to the top one: its edges run along the hexagon's six
     sides, and two along the sweep (towards the camera's foot), which are left out. So the sides'
     direction is the sixth harmonic of the edge directions weighed by length, the sweep's excepted.
+    `moments`: polygon_moments(outline_mm) where the caller has them.
     """
-    area, centre = polygon_moments(outline_mm)
+    area, centre = polygon_moments(outline_mm) if moments is None else moments
     edges = np.diff(np.vstack([outline_mm, outline_mm[:1]]), axis=0)
     length = np.hypot(edges[:, 0], edges[:, 1])
     direction = np.arctan2(edges[:, 1], edges[:, 0])
