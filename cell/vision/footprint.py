@@ -78,6 +78,7 @@ def _widths(polygons: list[Sides], q: np.ndarray) -> np.ndarray:
 
 
 _GRID = np.linspace(-1.0, 1.0, 41)  # where the widths are taken about a crossing, in windows
+_SHAFT_STEPS = np.linspace(0.3, 0.8, 6)  # where along the shaft its width is taken (a fraction of it)
 
 
 def _crossing_at(q: np.ndarray, w: np.ndarray, level: float, guess: float, rising: bool) -> float:
@@ -85,12 +86,14 @@ def _crossing_at(q: np.ndarray, w: np.ndarray, level: float, guess: float, risin
     (`rising`: growing through it in the +u direction); `guess` where they do not."""
     w = w - level
     sign = w >= 0 if rising else w < 0
-    i = np.flatnonzero(~sign[:-1] & sign[1:])
+    i = (~sign[:-1] & sign[1:]).nonzero()[0]
     if not i.size:
         return guess
-    j = i[np.argmin(np.abs(q[i] - guess))]
-    f = w[j] / (w[j] - w[j + 1]) if w[j] != w[j + 1] else 0.5
-    return float(q[j] + f * (q[j + 1] - q[j]))
+    j = int(i[np.argmin(np.abs(q[i] - guess))]) if i.size > 1 else int(i[0])
+    # in Python floats (the same arithmetic as numpy's scalars, without their overhead)
+    a, b, q0, q1 = float(w[j]), float(w[j + 1]), float(q[j]), float(q[j + 1])
+    f = a / (a - b) if a != b else 0.5
+    return q0 + f * (q1 - q0)
 
 
 def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -177,7 +180,7 @@ def bolt_pose(
         window = 4.0 * scale
         q_in, q_out = window * _GRID, u_out + window * _GRID
         q_head = u_out / 2 + np.array([-0.2, 0.0, 0.2]) * u_out
-        q_shaft = u_out + np.linspace(0.3, 0.8, 6) * (u_tip - u_out)
+        q_shaft = u_out + _SHAFT_STEPS * (u_tip - u_out)
         q_tip = u_tip + window * _GRID
         g = len(_GRID)
         w = _widths(outline, np.concatenate((q_in, q_out, q_tip, q_head, q_shaft))) + 2 * edge
