@@ -1,0 +1,123 @@
+"""locate's shortcuts of issue 29's speed item 5(a) give what the plain forms give, to the bit: a
+posed bolt's axis points mapped in the frame's one mapping call then lifted (bolt_pose's
+`axis_on_table_mm`) against bolt_pose mapping them itself, the outline resampled without np.diff /
+vstack / column_stack against the previous form, a nut's outline moments handed over against taken
+again, and the camera centre kept against computed. No timing is asserted here: scripts/bench_parts.py
+--speed measures it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cell.calibration.models import CameraMap
+from cell.calibration.store import Calibration
+from cell.sim.cameras import FAMILY, random_camera
+from cell.sim.parts import random_scene, render_scene
+from cell.vision import features, locate
+from cell.vision.classify import BOLT, NUT, classify
+from cell.vision.config import PartsConfig
+from cell.vision.footprint import axis_points_px, bolt_pose
+from cell.vision.segment import segment, to_gray
+from cell.vision.silhouette import nut_from_outline, polygon_moments
+from cell.vision.subpixel import EDGE_PX, subpixel_outline
+
+
+def _frame(seed: int):
+    sim = random_camera(FAMILY["1920 x 1080"], seed)
+    cam = sim.camera
+    parts = random_scene(seed=seed, n_parts=(17, 19), area_mm=sim.scene_area_mm)
+    frame = render_scene(cam, parts, sim.optics, seed=seed)
+    return frame, Calibration("camera", CameraMap(cam), (cam.width_px, cam.height_px), cam)
+
+
+def _parts(seed: int):
+    """(blob, features, verdict, sub-pixel outline, calibration) of each bolt and nut of a frame."""
+    config = PartsConfig()
+    frame, cal = _frame(seed)
+    gray = to_gray(frame)
+    scale = cal.mm_per_px((960, 540))
+    seg = segment(frame, config, config.max_part_width_mm / scale, config.segment.noise_area_mm2 / scale**2, gray=gray)
+    for blob in seg.blobs:
+        feat = features.measure(blob, seg.mask)
+        verdict = classify(feat, blob.outer, scale, config)
+        if verdict.cls in (BOLT, NUT):
+            mid = verdict.cls == BOLT
+            fine = subpixel_outline(gray, blob.outer, config.segment.threshold_fraction, mid_level=mid)
+            yield blob, feat, verdict, fine, cal
+
+
+def _previous_resample(outline: np.ndarray, count: int | None = None, step_px: float = 0.5) -> np.ndarray:
+    """features.resample as it was before issue 29's speed item 5(a)."""
+    pts = outline.reshape(-1, 2).astype(np.float64)
+    closed = np.vstack([pts, pts[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(closed, axis=0).T))])
+    if s[-1] <= 0:
+        return pts[:1]
+    n = count or max(3, int(s[-1] / step_px))
+    t = np.arange(n) * (s[-1] / n)
+    return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
+
+
+def test_bolt_pose_on_axis_points_mapped_with_the_outlines_is_the_same():
+    config = PartsConfig()
+    bolts = 0
+    for seed in (29_100, 29_101):
+        for _blob, feat, verdict, fine, cal in _parts(seed):
+            if verdict.cls != BOLT or fine is None or verdict.head_width_px is None:
+                continue
+            assert verdict.shaft_width_px is not None
+            prof = features.width_profile(fine, feat.centroid_px, feat.axis_px, edge_px=EDGE_PX)
+            axis_px = axis_points_px(prof, verdict.head_width_px, verdict.shaft_width_px)
+            outline = locate._thinned(fine)
+            # as locate maps them: after the frame's outlines, in one call
+            mapped = cal.pixel_to_table_mm(np.concatenate((outline, axis_px)))
+            outline_mm, axis_mm = mapped[: len(outline)], mapped[len(outline) :]
+            height = locate.reference_height_mm(verdict, config)
+            args = (prof, verdict.head_width_px, verdict.shaft_width_px, cal, height, 0.3, 1.0, outline_mm, EDGE_PX)
+            plain, batched = bolt_pose(*args), bolt_pose(*args, axis_on_table_mm=axis_mm)
+            for name in ("centre_mm", "head_mm", "grasp_mm"):
+                np.testing.assert_array_equal(getattr(batched, name), getattr(plain, name))
+            assert (batched.angle_deg, batched.shaft_mm, batched.length_mm, batched.head_length_mm) == (
+                plain.angle_deg,
+                plain.shaft_mm,
+                plain.length_mm,
+                plain.head_length_mm,
+            )
+            bolts += 1
+    assert bolts >= 6
+
+
+def test_resample_is_the_previous_form():
+    rng = np.random.default_rng(5)
+    outlines = [blob.outer for blob, *_ in _parts(29_100)]
+    outlines += [fine for *_, fine, _cal in _parts(29_100) if fine is not None]
+    outlines += [rng.normal(0, 30, (int(rng.integers(1, 60)), 1, 2)) for _ in range(200)]
+    outlines += [np.zeros((5, 1, 2), np.int32)]  # no length: its first point
+    for outline in outlines:
+        for count in (None, 180):
+            np.testing.assert_array_equal(features.resample(outline, count), _previous_resample(outline, count))
+
+
+def test_nut_from_outline_with_its_moments_handed_over_is_the_same():
+    nuts = 0
+    for _blob, _feat, verdict, fine, cal in _parts(29_100):
+        if verdict.cls != NUT or fine is None:
+            continue
+        outline_mm = cal.pixel_to_table_mm(locate._thinned(fine))
+        camera = cal.camera.center_table_mm
+        af = verdict.size_mm["across_flats_mm"]
+        plain = nut_from_outline(outline_mm, af, 0.8, camera)
+        handed = nut_from_outline(outline_mm, af, 0.8, camera, polygon_moments(outline_mm))
+        assert handed == plain
+        nuts += 1
+    assert nuts >= 3
+
+
+def test_the_kept_camera_centre_is_the_computed_one():
+    _, cal = _frame(29_100)
+    cam = cal.camera
+    C = -cam.rotation.T @ cam.tvec
+    first = cam.center_table_mm
+    np.testing.assert_array_equal(first, [C[0], C[1], abs(C[2])])
+    first[:] = 0.0  # a caller's copy: the kept one is not changed
+    np.testing.assert_array_equal(cam.center_table_mm, [C[0], C[1], abs(C[2])])
