@@ -35,7 +35,11 @@ run, interleaved, --repeat times each; a frame's time is its fastest run (the ma
 only adds), and the median and the worst frame are printed, with how far the two codes' answers
 differ (they must agree, but for the lying bolts, measured differently since issue 29).
 
-    python scripts/bench_parts.py --speed [--cameras 8] [--scenes 3] [--repeat 7]
+    python scripts/bench_parts.py --speed [--cameras 8] [--scenes 3] [--repeat 7] [--against ../main]
+
+--against DIR also times another checkout's locate on the same frames in the same run (each run of
+this code, of the reference and of DIR's in turn), and prints how far its answers differ from this
+code's (every part's class, position, grasp point, head and angle).
 
 Lying bolts at coarse scales (issue 29): each run also prints, per class, the centre error along
 the bolt's own axis and across it (a nut: its distance), and for bolts the same for the grasp point
@@ -56,7 +60,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import math  # noqa: E402
+import pickle  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
@@ -410,15 +416,70 @@ def warning_summary(results: dict[str, list[CameraRun]]) -> None:
     print(f"  silent misses: {len(silent)}" + (": " + "; ".join(silent) if silent else ""))
 
 
-def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int) -> int:
-    """Locate CPU time per 1920 x 1080 frame of 17-19 parts, one core: current against previous."""
+class _Against:
+    """locate of another checkout (`--against DIR`) in its own process (scripts/locate_worker.py with
+    DIR on PYTHONPATH), timed there in its own CPU time."""
+
+    def __init__(self, checkout: str):
+        root = Path(checkout).resolve()
+        if not (root / "cell" / "vision" / "locate.py").is_file():
+            raise SystemExit(f"--against {checkout}: no cell/vision/locate.py there; give a checkout of this repo")
+        env = {**os.environ, "PYTHONPATH": str(root)}
+        worker = Path(__file__).resolve().parent / "locate_worker.py"
+        self.proc = subprocess.Popen(
+            [sys.executable, str(worker)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env
+        )
+
+    def frame(self, frame: np.ndarray, cal, config: PartsConfig) -> None:
+        self._send(("frame", (frame, cal, config)))
+
+    def run(self) -> tuple[float, list]:
+        self._send(("run", None))
+        assert self.proc.stdout is not None
+        return pickle.load(self.proc.stdout)
+
+    def _send(self, message) -> None:
+        assert self.proc.stdin is not None
+        pickle.dump(message, self.proc.stdin)
+        self.proc.stdin.flush()
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+
+
+def _largest_difference(ours: list, theirs: list) -> float:
+    """The largest difference between two answers' positions (mm) and angles (deg); inf when their
+    classes differ."""
+    if [p[0] for p in ours] != [p[0] for p in theirs]:
+        return math.inf
+    worst = 0.0
+    for a, b in zip(ours, theirs, strict=True):
+        for p, q in zip(a[1:], b[1:], strict=True):
+            if (p is None) != (q is None):
+                return math.inf
+            if p is not None:
+                worst = max(worst, abs(p - q) if isinstance(p, float) else math.dist(p, q))
+    return worst
+
+
+def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int, against: str | None = None) -> int:
+    """Locate CPU time per 1920 x 1080 frame of 17-19 parts, one core: current against previous (and
+    against another checkout's, `against`)."""
     from tests import locate_reference as previous
 
     family = FAMILY["1920 x 1080"]
     index = [f.name for f in FAMILIES].index(family.name)
     parts_config = PartsConfig()
-    rows = []  # (camera seed, scene, parts, current ms, previous ms, largest difference mm)
-    print(f"{'camera':>7}{'scene':>6}{'parts':>6}{'current ms':>12}{'previous ms':>13}{'ratio':>7}{'diff mm':>10}")
+    # Against another checkout, this code runs in a worker process as well: both alike (each its own
+    # copy of the frame, the same pickling), run by run in turn.
+    workers = (_Against(str(Path(__file__).resolve().parents[1])), _Against(against)) if against else None
+    rows = []  # (camera, scene, parts, current ms, previous ms, difference mm, bolts', worker ms, against ms, diff)
+    print(
+        f"{'camera':>7}{'scene':>6}{'parts':>6}{'current ms':>12}{'previous ms':>13}{'ratio':>7}{'diff mm':>10}"
+        + (f"{'worker ms':>11}{'against ms':>12}{'ratio':>7}{'diff':>10}" if workers else "")
+    )
     for i in range(cameras):
         sim = random_camera(family, seed_base + 1000 * index + i)
         config = CellConfig(plate=sim.plate)
@@ -432,7 +493,10 @@ def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int) -> int:
             rng = np.random.default_rng(seed)
             parts = random_scene(seed=seed, n_parts=(17, 19), area_mm=sim.scene_area_mm)
             frame = render_scene(sim.camera, parts, sim.optics, seed=seed, exposure=float(rng.uniform(0.8, 1.1)))
-            now, before = [], []
+            now, before, own, elsewhere = [], [], [], []
+            mine, there = [], []
+            for w in workers or ():
+                w.frame(frame, cal, parts_config)
             for _ in range(repeat):
                 t = time.process_time()
                 ours = locate(frame, cal, parts_config)
@@ -440,17 +504,30 @@ def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int) -> int:
                 t = time.process_time()
                 theirs = previous.locate(frame, cal, parts_config)
                 before.append(1e3 * (time.process_time() - t))
+                if workers:
+                    ms, mine = workers[0].run()
+                    own.append(ms)
+                    ms, there = workers[1].run()
+                    elsewhere.append(ms)
             pairs = list(zip(ours.objects, theirs.objects, strict=True))
             diff = max((math.dist(a.table_mm, b.table_mm) for a, b in pairs if a.cls != "bolt"), default=0.0)
             bolt_diff = max((math.dist(a.table_mm, b.table_mm) for a, b in pairs if a.cls == "bolt"), default=0.0)
             if [o.cls for o in ours.objects] != [o.cls for o in theirs.objects]:
                 diff = math.inf
-            rows.append((sim.seed, k, len(parts), min(now), min(before), diff, bolt_diff))
+            paired = (min(own), min(elsewhere), _largest_difference(mine, there)) if workers else (math.nan,) * 3
+            rows.append((sim.seed, k, len(parts), min(now), min(before), diff, bolt_diff, *paired))
             print(
                 f"{sim.seed:>7}{k:>6}{len(parts):>6}{min(now):>12.1f}{min(before):>13.1f}"
-                f"{min(now) / min(before):>7.2f}{diff:>10.1e}",
+                f"{min(now) / min(before):>7.2f}{diff:>10.1e}"
+                + (
+                    f"{paired[0]:>11.1f}{paired[1]:>12.1f}{paired[0] / paired[1]:>7.2f}{paired[2]:>10.1e}"
+                    if workers
+                    else ""
+                ),
                 flush=True,
             )
+    for w in workers or ():
+        w.close()
     if not rows:
         return 1
     cur, prev, ratio = (
@@ -469,6 +546,15 @@ def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int) -> int:
         f"  largest difference between their part positions: {max(r[5] for r in rows):.1e} mm; lying bolts' "
         f"(measured differently since issue 29): {max(r[6] for r in rows):.3f} mm"
     )
+    if workers:
+        here, there = np.array([r[7] for r in rows]), np.array([r[8] for r in rows])
+        print(f"  current, in a worker process: median {np.median(here):.1f} ms, worst {here.max():.1f} ms")
+        print(f"  against {against}, in a worker process: median {np.median(there):.1f} ms, worst {there.max():.1f} ms")
+        print(
+            f"  current / against: median {np.median(here / there):.2f}, worst {(here / there).max():.2f}; largest "
+            f"difference of every part's position, grasp point, head (mm) and angle (deg): {max(r[9] for r in rows):.1e}"
+            " (inf: a class differs)"
+        )
     return 0
 
 
@@ -504,6 +590,12 @@ def main() -> int:
         help="locate CPU time only, 1920 x 1080 frames of 17-19 parts: the current code against the previous one",
     )
     ap.add_argument(
+        "--against",
+        metavar="DIR",
+        help="--speed: also another checkout's locate (e.g. main's worktree), in its own process "
+        "(scripts/locate_worker.py), interleaved run by run, with the largest difference of the answers",
+    )
+    ap.add_argument(
         "--measured-height-sd",
         type=float,
         default=5.0,
@@ -519,7 +611,7 @@ def main() -> int:
     args = ap.parse_args()
     if args.speed:
         cv2.setNumThreads(1)
-        return speed_bench(args.cameras, args.scenes, args.repeat or 7, args.seed_base)
+        return speed_bench(args.cameras, args.scenes, args.repeat or 7, args.seed_base, args.against)
     args.repeat = 1 if args.repeat is None else args.repeat
     if args.quick:
         args.cameras, args.scenes = 2, 1

@@ -66,5 +66,8 @@ def subpixel_outline(
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return None
-    pts = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
-    return (pts + 0.5) / UPSAMPLE - 0.5 + (x0, y0)
+    largest = contours[0] if len(contours) == 1 else max(contours, key=cv2.contourArea)
+    # (p + 0.5) / UPSAMPLE - 0.5 + the corner, in one step: every value on the way is a whole number of
+    # eighths well within a double's 53 bits, so both forms are exact and the same
+    offset = np.array([x0, y0], dtype=np.float64) + (0.5 / UPSAMPLE - 0.5)
+    return largest.reshape(-1, 2) * (1.0 / UPSAMPLE) + offset
