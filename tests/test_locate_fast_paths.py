@@ -1,6 +1,7 @@
 """locate's shortcuts of issue 29's speed item 5(a) give what the plain forms give, to the bit: a
 posed bolt's axis points mapped in the frame's one mapping call then lifted (bolt_pose's
-`axis_on_table_mm`) against bolt_pose mapping them itself, the outline resampled without np.diff /
+`axis_on_table_mm`) against bolt_pose mapping them itself, the convex overlap with its side tests laid out
+along the longer polygon, the outline resampled without np.diff /
 vstack / column_stack against the previous form, a nut's outline moments handed over against taken
 again, and the camera centre kept against computed. No timing is asserted here: scripts/bench_parts.py
 --speed measures it."""
@@ -13,7 +14,7 @@ from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.sim.cameras import FAMILY, random_camera
 from cell.sim.parts import random_scene, render_scene
-from cell.vision import features, locate
+from cell.vision import features, locate, silhouette
 from cell.vision.classify import BOLT, NUT, classify
 from cell.vision.config import PartsConfig
 from cell.vision.footprint import axis_points_px, bolt_pose
@@ -121,3 +122,47 @@ def test_the_kept_camera_centre_is_the_computed_one():
     np.testing.assert_array_equal(first, [C[0], C[1], abs(C[2])])
     first[:] = 0.0  # a caller's copy: the kept one is not changed
     np.testing.assert_array_equal(cam.center_table_mm, [C[0], C[1], abs(C[2])])
+
+
+def _previous_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """silhouette._intersection as it was before issue 29's speed item 5(a)."""
+    a_next = np.concatenate((a[1:], a[:1]))
+    b_next = np.concatenate((b[1:], b[:1]))
+    ea, eb = a_next - a, b_next - b
+    side_a = eb[:, 0] * (a[:, 1:2] - b[:, 1]) - eb[:, 1] * (a[:, 0:1] - b[:, 0])
+    side_b = ea[:, 0] * (b[:, 1:2] - a[:, 1]) - ea[:, 1] * (b[:, 0:1] - a[:, 0])
+    hair = 1e-12
+    kept = [a[(side_a >= -hair).all(axis=1)], b[(side_b >= -hair).all(axis=1)]]
+    sa_next = np.concatenate((side_a[1:], side_a[:1]))
+    sb_next = np.concatenate((side_b[1:], side_b[:1]))
+    crosses = ((side_a >= 0) != (sa_next >= 0)) & ((side_b >= 0) != (sb_next >= 0)).T
+    i, j = np.nonzero(crosses)
+    if len(i):
+        t = side_a[i, j] / (side_a[i, j] - sa_next[i, j])
+        kept.append(a[i] + ea[i] * t[:, None])
+    pts = np.concatenate(kept)
+    if len(pts) < 3:
+        return np.zeros((0, 2))
+    d = pts - pts.mean(axis=0)
+    return pts[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
+
+
+def test_the_convex_overlap_is_the_previous_form():
+    """Random hulls that overlap, nest, share an edge or miss, each way round, and a bolt's head and
+    shaft shadows (a hexagon's hull against a 96-point rim's)."""
+    rng = np.random.default_rng(11)
+    pairs = []
+    for k in range(3000):
+        a = silhouette._hull(rng.normal(0, 1, (int(rng.integers(3, 12)), 2)))
+        if k % 3 == 0:  # sharing an edge of a
+            b = silhouette._hull(np.vstack([a[:2], rng.normal(rng.uniform(-1, 1), 1, (int(rng.integers(1, 60)), 2))]))
+        else:
+            b = silhouette._hull(rng.normal(rng.uniform(-1, 1), 1, (int(rng.integers(3, 60)), 2)))
+        pairs += [(a, b), (b, a)]
+    camera = np.array([120.0, 80.0, 400.0])
+    for axis_deg in range(0, 360, 15):
+        caster = silhouette._Caster(silhouette.Bolt(13.0, 5.3, 8.0, 30.0, axis_deg), camera)
+        hulls = [silhouette._hull(base + k1 * np.array([60.0, 40.0])) for base, k1 in caster.solids]
+        pairs.append((hulls[0], hulls[1]))
+    for a, b in pairs:
+        np.testing.assert_array_equal(silhouette._intersection(a, b), _previous_intersection(a, b))

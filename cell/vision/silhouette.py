@@ -86,27 +86,32 @@ def _intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
     A vertex counts as inside when it lies within a hair of every edge (a cross product of 1e-12
     mm^2): a point on a shared edge is kept, and what this adds or leaves out is that small."""
-    a_next = np.concatenate((a[1:], a[:1]))
-    b_next = np.concatenate((b[1:], b[:1]))
-    ea, eb = a_next - a, b_next - b
-    # side_a[i, j]: where a's vertex i lies from b's edge j (> 0: to its left, inside);
-    # side_b[j, i]: where b's vertex j lies from a's edge i.
-    side_a = eb[:, 0] * (a[:, 1:2] - b[:, 1]) - eb[:, 1] * (a[:, 0:1] - b[:, 0])
-    side_b = ea[:, 0] * (b[:, 1:2] - a[:, 1]) - ea[:, 1] * (b[:, 0:1] - a[:, 0])
+    na = len(a)
+    ea = np.concatenate((a[1:], a[:1])) - a
+    eb = np.concatenate((b[1:], b[:1])) - b
+    bx, by = b.T.copy()  # contiguous: the products below run along b
+    ebx, eby = eb.T.copy()
+    ax, ay = a[:, 0:1], a[:, 1:2]
+    # Both (len(a), len(b)): side_a[i, j], where a's vertex i lies from b's edge j (> 0: to its left,
+    # inside); side_b[i, j], where b's vertex j lies from a's edge i.
+    side_a = ebx * (ay - by) - eby * (ax - bx)
+    side_b = ea[:, 0:1] * (by - ay) - ea[:, 1:2] * (bx - ax)
     hair = 1e-12  # mm^2: about the part (the caster's frame), 1e-12 / an edge's length off it
-    kept = [a[(side_a >= -hair).all(axis=1)], b[(side_b >= -hair).all(axis=1)]]
+    kept = [a[(side_a >= -hair).all(axis=1)], b[(side_b >= -hair).all(axis=0)]]
     # a's edge i (from vertex i to i + 1) crosses b's edge j where both change side.
-    sa_next = np.concatenate((side_a[1:], side_a[:1]))  # [i, j]: a's vertex i + 1 from b's edge j
-    sb_next = np.concatenate((side_b[1:], side_b[:1]))  # [j, i]: b's vertex j + 1 from a's edge i
-    crosses = ((side_a >= 0) != (sa_next >= 0)) & ((side_b >= 0) != (sb_next >= 0)).T
+    pa, pb = side_a >= 0, side_b >= 0
+    crosses = (pa != np.concatenate((pa[1:], pa[:1]))) & (pb != np.concatenate((pb[:, 1:], pb[:, :1]), axis=1))
     i, j = np.nonzero(crosses)
     if len(i):
-        t = side_a[i, j] / (side_a[i, j] - sa_next[i, j])
+        from_i = side_a[i, j]
+        i_next = i + 1
+        i_next[i_next == na] = 0
+        t = from_i / (from_i - side_a[i_next, j])
         kept.append(a[i] + ea[i] * t[:, None])
     pts = np.concatenate(kept)
     if len(pts) < 3:
         return np.zeros((0, 2))
-    d = pts - pts.mean(axis=0)
+    d = pts - np.add.reduce(pts, axis=0) / len(pts)  # pts.mean(axis=0), without its overhead
     return pts[np.argsort(np.arctan2(d[:, 1], d[:, 0]), kind="stable")]
 
 
