@@ -3,18 +3,20 @@ posed bolt's axis points mapped in the frame's one mapping call then lifted (bol
 `axis_on_table_mm`) against bolt_pose mapping them itself, the convex overlap with its side tests laid out
 along the longer polygon, the outline resampled without np.diff /
 vstack / column_stack against the previous form, a nut's outline moments handed over against taken
-again, and the camera centre kept against computed. No timing is asserted here: scripts/bench_parts.py
+again, the shadow model's end faces stacked and its union's moments in Python floats against face by
+face and numpy's 2-vectors, and the camera centre kept against computed. No timing is asserted here: scripts/bench_parts.py
 --speed measures it."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from cell.calibration.models import CameraMap
 from cell.calibration.store import Calibration
 from cell.sim.cameras import FAMILY, random_camera
 from cell.sim.parts import random_scene, render_scene
-from cell.vision import features, locate, silhouette
+from cell.vision import features, footprint, locate, silhouette
 from cell.vision.classify import BOLT, NUT, classify
 from cell.vision.config import PartsConfig
 from cell.vision.footprint import axis_points_px, bolt_pose
@@ -166,3 +168,41 @@ def test_the_convex_overlap_is_the_previous_form():
         pairs.append((hulls[0], hulls[1]))
     for a, b in pairs:
         np.testing.assert_array_equal(silhouette._intersection(a, b), _previous_intersection(a, b))
+
+
+def test_the_shadow_casters_points_and_union_are_the_plain_forms():
+    """A bolt's end faces stacked in one step against face by face, and the union's moments in Python
+    floats against numpy's 2-vectors; the pose's model shadow likewise."""
+    rng = np.random.default_rng(13)
+    for _ in range(300):
+        camera = np.array([rng.uniform(-50, 310), rng.uniform(-50, 230), rng.uniform(100, 900)])
+        centre = np.array([rng.uniform(0, 260), rng.uniform(0, 180)])
+        bolt = silhouette.Bolt(
+            rng.uniform(7, 14), rng.uniform(3, 6), rng.uniform(4, 9), rng.uniform(8, 45), 360 * rng.random()
+        )
+        caster = silhouette._Caster(bolt, camera)
+        head_vz, head_u, shaft_vz, shaft_u, axis, side = bolt.frame()
+        c = camera
+        for (base, _k1), (vz, ends) in zip(caster.solids, ((head_vz, head_u), (shaft_vz, shaft_u)), strict=True):
+            k = c[2] / np.maximum(c[2] - vz[:, 1:], 1e-9)
+            local = vz[:, :1] * side
+            np.testing.assert_array_equal(base, np.concatenate([c[:2] + (u * axis + local - c[:2]) * k for u in ends]))
+        hulls = [cv2.convexHull((b + k1 * centre).astype(np.float32), clockwise=False) for b, k1 in caster.solids]
+        (a1, c1), (a2, c2) = silhouette._hull_moments(hulls[0]), silhouette._hull_moments(hulls[1])
+        overlap = silhouette._intersection(*(h.reshape(-1, 2).astype(np.float64) for h in hulls))
+        a12, c12 = (0.0, c1) if len(overlap) < 3 else polygon_moments(overlap)
+        union = a1 + a2 - a12
+        area, centroid = caster.moments(centre)
+        assert area == union
+        np.testing.assert_array_equal(centroid, centre + (a1 * c1 + a2 * c2 - a12 * c12) / max(union, 1e-12))
+        # the pose's model shadow: each end's ring seen on the plane, face by face
+        rings = [(r * np.cos(np.linspace(0, 6, 9)), 4 + r * np.sin(np.linspace(0, 6, 9)), (-3.0, 9.5)) for r in (2, 3)]
+        uvz = np.array([rng.uniform(-100, 100), rng.uniform(-100, 100), rng.uniform(200, 800)])
+        for (v, z, ends), got in zip(rings, footprint._shadow_sides(rings, uvz, 4.0), strict=True):
+            f = (uvz[2] - 4.0) / np.maximum(uvz[2] - z, 1e-9)
+            pts = np.concatenate(
+                [np.column_stack((uvz[0] + (u - uvz[0]) * f, uvz[1] + (v - uvz[1]) * f)) for u in ends]
+            )
+            hull = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).reshape(-1)
+            for a, b in zip(got, footprint._sides(pts[hull]), strict=True):
+                np.testing.assert_array_equal(a, b)

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.vision.footprint import _line_fit
-from cell.vision.smallstats import median, percentile
+from cell.vision.smallstats import line_fit, median, percentile
 from cell.vision.subpixel import median_level
 
 
@@ -52,7 +51,7 @@ def test_line_fit_is_polyfits():
         n = int(rng.integers(5, 120))
         x = np.arange(n) + 0.5 + rng.uniform(0, 30)
         y = rng.uniform(-2, 2) + rng.uniform(-0.05, 0.05) * x + rng.normal(0, 0.3, n)
-        slope, offset = _line_fit(x, y)
+        slope, offset = line_fit(x, y)
         want_slope, want_offset = np.polyfit(x, y, 1)
         assert slope == pytest.approx(want_slope, rel=1e-12, abs=1e-14)
         assert offset == pytest.approx(want_offset, rel=1e-12, abs=1e-12)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from cell.vision.features import Profile
-from cell.vision.smallstats import median
+from cell.vision.smallstats import line_fit, median
 
 
 @dataclass
@@ -96,15 +96,6 @@ def _crossing_at(q: np.ndarray, w: np.ndarray, level: float, guess: float, risin
     return q0 + f * (q1 - q0)
 
 
-def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """The least-squares line y = slope x + offset (np.polyfit(x, y, 1) to about 1e-15 of its values,
-    in a tenth of its time), about the points' mean; x must not be all the same."""
-    xm, ym = float(x.mean()), float(y.mean())
-    dx = x - xm
-    slope = float(dx @ (y - ym)) / float(dx @ dx)
-    return slope, ym - slope * xm
-
-
 def axis_points_px(prof: Profile, head_width_px: float, shaft_width_px: float) -> np.ndarray:
     """(3, 2) image pixels on the shaft's midline where the profile's width crosses halfway between
     the head's and the shaft's (the head's back, its front) and at the profile's far end (the tip):
@@ -122,7 +113,7 @@ def axis_points_px(prof: Profile, head_width_px: float, shaft_width_px: float) -
     # tilts the blob's principal axis on short bolts by up to a degree or so.
     shaft = slice(last + 2, len(w) - 2)
     if len(pos[shaft]) >= 5:
-        slope, offset = _line_fit(pos[shaft], prof.centres_px[shaft])
+        slope, offset = line_fit(pos[shaft], prof.centres_px[shaft])
     else:
         slope, offset = 0.0, median(prof.centres_px)
     a = prof.axis_px
@@ -255,7 +246,10 @@ def _shadow_sides(
     out = []
     for v, z, ends in rings:
         f = (h - plane_mm) / np.maximum(h - z, 1e-9)  # a point at height z seen on the plane
-        pts = np.concatenate([np.column_stack((cu + (u - cu) * f, cv + (v - cv) * f)) for u in ends])
+        faces = np.empty((len(ends), len(v), 2))  # each end's ring, one after the other
+        faces[:, :, 0] = cu + (np.array(ends, dtype=np.float64).reshape(-1, 1) - cu) * f
+        faces[:, :, 1] = cv + (v - cv) * f
+        pts = faces.reshape(-1, 2)
         hull = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).reshape(-1)
         out.append(_sides(pts[hull]))
     return out

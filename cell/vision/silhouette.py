@@ -190,7 +190,8 @@ class _Caster:
         for vz, ends in ((head_vz, head_u), (shaft_vz, shaft_u)):
             k = c[2] / np.maximum(c[2] - vz[:, 1:], 1e-9)  # (n, 1)
             local = vz[:, :1] * side  # (n, 2): across the axis
-            base = np.concatenate([c[:2] + (u * axis + local - c[:2]) * k for u in ends])
+            along = np.array(ends, dtype=np.float64).reshape(-1, 1, 1) * axis  # (2, 1, 2): each end face's
+            base = (c[:2] + (along + local - c[:2]) * k).reshape(-1, 2)  # the two faces' points, one after the other
             self.solids.append((base, np.concatenate((k, k)) - 1.0))
 
     def moments(self, centre: np.ndarray) -> tuple[float, np.ndarray]:
@@ -203,7 +204,9 @@ class _Caster:
             )
             a12, c12 = (0.0, offset) if len(overlap) < 3 else polygon_moments(overlap)
             union = area + a2 - a12
-            offset = (area * offset + a2 * c2 - a12 * c12) / max(union, 1e-12)
+            # the 2-vectors' arithmetic in Python floats: the same operations, without numpy's overhead
+            (o0, o1), (d0, d1), (e0, e1), u = offset.tolist(), c2.tolist(), c12.tolist(), max(union, 1e-12)
+            offset = np.array([(area * o0 + a2 * d0 - a12 * e0) / u, (area * o1 + a2 * d1 - a12 * e1) / u])
             area = union
         return area, centre + offset
 

@@ -1,5 +1,6 @@
 """np.median and np.percentile (its default, linear method) of a short 1-D array of finite numbers,
-to the bit, without numpy's overhead per call (about 20 us each; locate takes several per part)."""
+to the bit, without numpy's overhead per call (about 20 us each; locate takes several per part), and
+a least-squares line in closed form."""
 
 from __future__ import annotations
 
@@ -34,3 +35,12 @@ def percentile(values: np.ndarray, q_pct: float) -> float:
     a, b = float(s[i]), float(s[i + 1])
     d = b - a
     return b - d * (1 - gamma) if gamma >= 0.5 else a + d * gamma
+
+
+def line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """The least-squares line y = slope x + offset (np.polyfit(x, y, 1) to about 1e-15 of its values,
+    in a tenth of its time), about the points' mean; x must not be all the same."""
+    xm, ym = float(x.mean()), float(y.mean())
+    dx = x - xm
+    slope = float(dx @ (y - ym)) / float(dx @ dx)
+    return slope, ym - slope * xm
