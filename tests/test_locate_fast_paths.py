@@ -1,11 +1,10 @@
 """locate's shortcuts of issue 29's speed item 5(a) give what the plain forms give, to the bit: a
 posed bolt's axis points mapped in the frame's one mapping call then lifted (bolt_pose's
-`axis_on_table_mm`) against bolt_pose mapping them itself, the convex overlap with its side tests laid out
-along the longer polygon, the outline resampled without np.diff /
-vstack / column_stack against the previous form, a nut's outline moments handed over against taken
-again, the shadow model's end faces stacked and its union's moments in Python floats against face by
-face and numpy's 2-vectors, and the camera centre kept against computed. No timing is asserted here: scripts/bench_parts.py
---speed measures it."""
+`axis_on_table_mm`) against bolt_pose mapping them itself; the convex overlap with its side tests
+laid out along the longer polygon; the outline resampled without np.diff / vstack / column_stack; a
+nut's outline moments handed over against taken again; the shadow model's end faces stacked and its
+union's moments in Python floats against face by face and numpy's 2-vectors; the camera centre kept
+against computed. No timing is asserted here: scripts/bench_parts.py --speed measures it."""
 
 from __future__ import annotations
 
