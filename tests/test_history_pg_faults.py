@@ -18,7 +18,7 @@ import pytest
 
 from cell.cli import main
 from cell.history.config import HistoryConfig
-from cell.history.db import open_postgresql
+from cell.history.db import libpq_params, open_postgresql
 from cell.history.query import open_reader
 from cell.history.store import backoff_s
 from tests import test_history_pg
@@ -109,10 +109,59 @@ def test_the_connection_carries_keepalives_a_user_timeout_and_a_statement_timeou
         finally:
             s.detach()  # the connection's socket: not ours to close
         assert db.execute("SHOW statement_timeout") == [("9s",)]
+        assert db.execute("SHOW idle_in_transaction_session_timeout") == [("30s",)]  # the shipped default
         assert db.execute("SHOW work_mem") == [("8MB",)]  # the URL's own options are kept
         assert db.execute("SHOW application_name") == [("pick-cell history test",)]
     finally:
         db.close()
+
+
+def test_no_timeouts_send_no_options_for_a_pooler(pg_url):
+    h = HistoryConfig(statement_timeout_s=0, idle_in_transaction_timeout_s=0)
+    assert "options" not in libpq_params(pg_url, h)
+    h = HistoryConfig(statement_timeout_s=0, idle_in_transaction_timeout_s=2)
+    assert libpq_params(pg_url, h)["options"] == "-c idle_in_transaction_session_timeout=2000"
+
+
+def test_a_session_left_in_a_transaction_by_a_silent_path_is_ended_and_the_rows_sent_again_arrive(
+    tmp_path, pg_url, proxy
+):
+    """A batch cut off mid-transaction by a path gone silent leaves the server holding that session
+    and its locks (the server's TCP sees nothing wrong); the same rows sent again would wait on them
+    until the server's keepalive gives up (hours by default). The server ends a session idle in a
+    transaction (idle_in_transaction_session_timeout, on the cell's sessions), and where it does not
+    (a session stuck part way through a message: seen with the whole service behind the proxy), the
+    forwarder ends its own cell's stale sessions, after a failed try or at its next connect."""
+    cfg = history_config(tmp_path, url=pg_url)
+    fill(cfg, []).close()  # the schema
+    for server_ends_it in (True, False):
+        stale = open_postgresql(
+            proxy.url(),
+            HistoryConfig(idle_in_transaction_timeout_s=2 if server_ends_it else 0),
+            "pick-cell history cell-a",
+        )
+        stale.conn.execute("BEGIN")
+        stale.conn.execute("LOCK TABLE picks IN SHARE ROW EXCLUSIVE MODE")  # what an unfinished batch's inserts hold
+        proxy.silence()  # the path goes silent with the transaction open
+        cfg = history_config(
+            tmp_path,
+            url=pg_url,
+            retry_initial_s=0.05,
+            retry_max_s=0.4,
+            statement_timeout_s=1,
+            idle_in_transaction_timeout_s=2,
+        )
+        store = fill(cfg, [verify(n) for n in range(1, 4)] if server_ends_it else [verify(n) for n in range(4, 7)])
+        try:
+            assert store.wait_sent(60), f"the rows never got past the stale session's locks ({server_ends_it=})"
+        finally:
+            store.close()
+            stale.close()
+        proxy.silent.clear()
+    assert pick_ids(cfg) == [f"{JOB}/{n}" for n in range(1, 7)]
+    with superuser(pg_url) as su:
+        left = su.execute("SELECT count(*) FROM pg_stat_activity WHERE application_name = 'pick-cell history cell-a'")
+        assert left.fetchone()[0] == 0  # ended, by the server or by the cell
 
 
 def test_insert_revoked_backs_off_on_one_connection_and_every_row_arrives_once_after_grant(tmp_path, pg_url):

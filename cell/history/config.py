@@ -86,6 +86,14 @@ class HistoryConfig(Strict):
     statement_timeout_s: float = Field(
         30.0, ge=0, le=3600, description="the server cancels a statement running longer (statement_timeout; 0: never)"
     )
+    idle_in_transaction_timeout_s: float = Field(
+        30.0,
+        ge=0,
+        le=3600,
+        description="the server ends this cell's session when it leaves a transaction open this long "
+        "(idle_in_transaction_session_timeout): a connection that went half-open in the middle of a batch "
+        "holds its rows' locks until then, and the rows sent again wait on them; 0: never",
+    )
     answer_timeout_s: float = Field(
         60.0,
         gt=0,

@@ -221,8 +221,10 @@ def libpq_params(url: str, history: HistoryConfig, application_name: str = "pick
     """The connection's timeouts as libpq parameters (they override the URL's; `options` is added to).
     TCP keepalives end a connection whose peer vanished while the cell waits for an answer;
     tcp_user_timeout one whose data goes unacknowledged; statement_timeout has the server cancel a
-    statement that runs too long. (A peer that keeps the connection up but never answers is
-    caught by the store's own `answer_timeout_s`.)"""
+    statement that runs too long; idle_in_transaction_session_timeout has it end a session that left
+    a transaction open (a path gone silent mid-batch: its locks would hold the same rows sent again
+    for as long as the server believes the old session alive, hours by default). (A peer that keeps
+    the connection up but never answers is caught by the store's own `answer_timeout_s`.)"""
     from psycopg.conninfo import conninfo_to_dict
 
     given = conninfo_to_dict(url)
@@ -234,9 +236,16 @@ def libpq_params(url: str, history: HistoryConfig, application_name: str = "pick
         "keepalives_count": history.keepalive_count,
         "tcp_user_timeout": round(history.tcp_user_timeout_s * 1000),
     }
-    if history.statement_timeout_s > 0:  # 0: no `options` at all (a pooler such as PgBouncer may refuse it)
-        statement = f"-c statement_timeout={round(history.statement_timeout_s * 1000)}"
-        params["options"] = f"{given['options']} {statement}" if given.get("options") else statement
+    settings = " ".join(  # none: no `options` at all (a pooler such as PgBouncer may refuse it)
+        f"-c {name}={round(seconds * 1000)}"
+        for name, seconds in (
+            ("statement_timeout", history.statement_timeout_s),
+            ("idle_in_transaction_session_timeout", history.idle_in_transaction_timeout_s),
+        )
+        if seconds > 0
+    )
+    if settings:
+        params["options"] = f"{given['options']} {settings}" if given.get("options") else settings
     if not given.get("application_name"):
         params["application_name"] = application_name
     return params

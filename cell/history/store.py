@@ -168,6 +168,14 @@ class ForwarderStats:
     dead_letter: int  # rows moved to the dead-letter table
 
 
+# this cell's other forwarder sessions the server holds in an open transaction, unchanged for over N
+# seconds (idle in it, or stuck part way through a message: 'active', waiting to read), ended
+STALE_SESSIONS_SQL = (
+    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE application_name = ? AND pid <> pg_backend_pid() "
+    "AND state <> 'idle' AND xact_start IS NOT NULL AND state_change < now() - make_interval(secs => ?)"
+)
+
+
 def cell_name(config: HistoryConfig) -> str:
     return config.cell_name or socket.gethostname()
 
@@ -310,7 +318,7 @@ class HistoryStore:
     def _connect_remote(self) -> Database:
         """A new connection (bounded by connect_timeout_s), the schema migrated on it; raises."""
         self.forward_connections += 1
-        db = open_postgresql(self.remote_url, self.config, f"pick-cell history {self.cell}"[:63])
+        db = open_postgresql(self.remote_url, self.config, self.session_name)
         with self._io:
             if self._stop_forwarder.is_set():
                 db.close()
@@ -318,12 +326,44 @@ class HistoryStore:
             self.remote = db  # from here on close() and the watchdog can interrupt it
         try:
             with self._network_io():
+                self._end_stale_sessions(db)
                 migrate(db)
         except BaseException:
             self._drop_remote()  # the next try migrates on a new connection
             raise
         self._first_try.set()
         return db
+
+    @property
+    def session_name(self) -> str:
+        """The forwarder's application_name at the server: this cell's, and only its forwarder's."""
+        return f"pick-cell history {self.cell}"[:63]
+
+    def _end_stale_sessions(self, remote: Database) -> None:
+        """End this cell's own earlier forwarder sessions that the server still holds in an open
+        transaction: a path that went silent in the middle of a batch leaves one behind, alive as far
+        as the server's TCP can tell, and its locks make the same rows, sent again, wait for hours. The
+        server ends such a session itself after idle_in_transaction_timeout_s, but not one stuck part
+        way through a message (it shows as active, reading); so at each connect and after each failed
+        try the forwarder ends the other sessions of its own name whose transaction has not moved for
+        longer than that (there is one forwarder per cell). Never fails the try."""
+        limit_s = self.config.idle_in_transaction_timeout_s
+        if limit_s <= 0:
+            return
+        try:
+            ended = remote.execute(STALE_SESSIONS_SQL, (self.session_name, limit_s))
+        except Exception as e:  # e.g. a server that hides other sessions: the server's own timeout is left
+            if remote.broken():
+                raise
+            log.info("history: could not look for this cell's stale sessions at the server: %s", describe(e))
+            return
+        if n := sum(1 for (done,) in ended if done):
+            log.warning(
+                "history: ended %d earlier session(s) of this cell that the server still held in an open "
+                "transaction for over %g s (a path that went silent mid-batch)",
+                n,
+                limit_s,
+            )
 
     def _drop_remote(self) -> None:
         with self._io:
@@ -484,6 +524,9 @@ class HistoryStore:
             while True:
                 try:
                     remote = self.remote or self._connect_remote()
+                    if failures:  # a try blocked on a stale session's locks fails by statement_timeout_s
+                        with self._network_io():
+                            self._end_stale_sessions(remote)
                     sent = self._forward_once(remote)
                 except Exception as e:
                     if self._stop_forwarder.is_set():

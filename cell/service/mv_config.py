@@ -26,7 +26,11 @@ class MachineVisionConfig(Strict):
     )
     recipes_dir: Path = Field(Path("recipes"), description="recipe TOML files, one per recipe (cell.recipes)")
     results_kept: int = Field(
-        10000, ge=1, le=1_000_000, description="results kept in memory for GetResultById / GetResultListFiltered"
+        1000,
+        ge=1,
+        le=1_000_000,
+        description="the newest results kept in memory for GetResultById / GetResultListFiltered (older ones: "
+        "GetResultById from the history store); the memory they take grows until this many are kept",
     )
     recipes_max: int = Field(
         200,

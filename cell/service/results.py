@@ -108,10 +108,11 @@ class MemoryResultStore:
     Each result is kept as one pickled blob (about 600 bytes, from the C allocator) beside the few
     fields a filter reads, not as its two dozen small Python objects: kept for hours among the
     short-lived objects of every pick, those pinned pages of Python's small-object allocator and
-    cost some 3.5 KB of RSS a result (35 MB at the default 10,000) where the blob costs what it
-    holds. `get` and a page of `query` unpickle only what they return (about 20 us a result)."""
+    cost some 3.5 KB of RSS a result (35 MB at 10,000) where the blob costs what it holds (about
+    1.3 KB of RSS a result in the soaks). `get` and a page of `query` unpickle only what they return
+    (about 20 us a result)."""
 
-    def __init__(self, capacity: int = 10000):
+    def __init__(self, capacity: int = 1000):
         if capacity < 1:
             raise ValueError(f"capacity {capacity}: at least 1")
         self.capacity = capacity
