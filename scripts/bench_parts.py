@@ -494,7 +494,8 @@ def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int, against:
             parts = random_scene(seed=seed, n_parts=(17, 19), area_mm=sim.scene_area_mm)
             frame = render_scene(sim.camera, parts, sim.optics, seed=seed, exposure=float(rng.uniform(0.8, 1.1)))
             now, before, own, elsewhere = [], [], [], []
-            mine, there = [], []
+            mine: list = []
+            there: list = []
             for w in workers or ():
                 w.frame(frame, cal, parts_config)
             for _ in range(repeat):
@@ -547,11 +548,13 @@ def speed_bench(cameras: int, scenes: int, repeat: int, seed_base: int, against:
         f"(measured differently since issue 29): {max(r[6] for r in rows):.3f} mm"
     )
     if workers:
-        here, there = np.array([r[7] for r in rows]), np.array([r[8] for r in rows])
-        print(f"  current, in a worker process: median {np.median(here):.1f} ms, worst {here.max():.1f} ms")
-        print(f"  against {against}, in a worker process: median {np.median(there):.1f} ms, worst {there.max():.1f} ms")
+        here_ms, there_ms = np.array([r[7] for r in rows]), np.array([r[8] for r in rows])
+        print(f"  current, in a worker process: median {np.median(here_ms):.1f} ms, worst {here_ms.max():.1f} ms")
         print(
-            f"  current / against: median {np.median(here / there):.2f}, worst {(here / there).max():.2f}; largest "
+            f"  against {against}, in a worker process: median {np.median(there_ms):.1f} ms, worst {there_ms.max():.1f} ms"
+        )
+        print(
+            f"  current / against: median {np.median(here_ms / there_ms):.2f}, worst {(here_ms / there_ms).max():.2f}; largest "
             f"difference of every part's position, grasp point, head (mm) and angle (deg): {max(r[9] for r in rows):.1e}"
             " (inf: a class differs)"
         )

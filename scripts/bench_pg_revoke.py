@@ -56,7 +56,8 @@ def cpu_s() -> float:
 
 
 def sessions(su, role: str) -> int:
-    return int(su.execute("SELECT count(*) FROM pg_stat_activity WHERE usename = %s", (role,)).fetchone()[0])
+    row = su.execute("SELECT count(*) FROM pg_stat_activity WHERE usename = %s", (role,)).fetchone()
+    return int(row[0]) if row else 0
 
 
 def main() -> int:
@@ -113,7 +114,8 @@ def main() -> int:
                     print(f"after GRANT: outbox empty in {time.monotonic() - t1:.1f} s" if sent else "outbox NOT empty")
                 finally:
                     store.close()
-                rows, unique = su.execute("SELECT count(*), count(DISTINCT id) FROM picks").fetchone()
+                counted = su.execute("SELECT count(*), count(DISTINCT id) FROM picks").fetchone()
+                rows, unique = counted if counted is not None else (0, 0)
                 want = {f"{JOB}/{k}" for k in range(1, n + 1)}
                 got = {r[0] for r in su.execute("SELECT id FROM picks").fetchall()}
                 print(f"rows at the server {rows}, unique {unique}, of {n} picks; missing {len(want - got)}")

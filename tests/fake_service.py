@@ -12,6 +12,7 @@ from collections import deque
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import NoReturn
 
 import cv2
 import numpy as np
@@ -108,11 +109,18 @@ class FakeLineService:
         self.steps: list[tuple[str, str, bool]] = []  # authorize(): (action or command, user, accepted)
         self.heartbeat = 0
         self._seq = 0
+        self.refused: list[tuple[Command, str, str]] = []  # refuse(): (command, action, message)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="fake-service", daemon=True)
         self._thread.start()
 
     # ---- the contract ---------------------------------------------------------------
+    def refuse(self, command: Command, origin: Origin, action: str, message: str, arguments=None) -> NoReturn:
+        """LineServiceAPI.refuse: an interface's own rule refused a step; kept, raised."""
+        with self._lock:
+            self.refused.append((command, action, message))
+        raise AccessDenied(command, f"{action} refused: {message}")
+
     def command(self, command: Command, origin: Origin = SERVICE_ORIGIN, request=None) -> CommandResult:
         with self._lock:
             if not origin.may(needed_role(command)):

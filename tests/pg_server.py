@@ -50,7 +50,10 @@ def why_no_postgresql() -> str | None:
 
 class PostgresServer:
     def __init__(self) -> None:
-        self.bin = bin_dir()
+        found = bin_dir()
+        if found is None:
+            raise RuntimeError(str(why_no_postgresql()))
+        self.bin: Path = found
         self.user = _run_as()
         self.root = Path(tempfile.mkdtemp(prefix="cell-pg-"))
         self.data = self.root / "data"
