@@ -48,6 +48,7 @@ HARMONICS = 12  # angular harmonics compared per ring
 HARMONIC_STEPS = 3  # the harmonics' raster is this many times coarser than the fit's (anti-aliased)
 RINGS = 8
 AREA_TOLERANCE = 0.05  # a footprint's area against the model's, relative (at least)
+EXAMPLE_SPREAD = 2.0  # a found part may misfit its model this many times its worst example (up to 2 x the shape's)
 FIT_OPENING_MM = 0.3  # differences thinner than twice this are edge noise, not shape
 SYMMETRY_ORDERS = (8, 6, 5, 4, 3, 2)
 _UPSAMPLE = 4  # at most; a large blob less (about 400 outline samples across it suffice)
@@ -870,12 +871,21 @@ def teach(
             hint="parts.jaw_max_opening_mm is the gripper's opening; a wider part needs another gripper",
         )
     n = len(examples)
-    consistency = {
-        "worst_misfit_mm2": max((f.misfit_mm2 for f in fits.values()), default=0.0),
+    model = ShapeModel(name, height_mm, outer, holes, symmetry, mirror_distinct, tol, grip, n, {})
+    # The examples against the model as it will be used (its symmetry sets how its angle is found:
+    # a many-toothed part's angle modulo its period is found less closely than a plain one's), and the
+    # tolerance widened to twice their worst misfit, at most twice the shape's own: the found parts of
+    # this camera spread as its examples do (a gear at 0.28 mm/px: examples up to 2.1 mm2 against 2.3).
+    fits = {k: model.match(e.footprint, e.silhouette, e.camera_centre) for k, e in enumerate(examples) if k != ref}
+    worst_mm2 = max((f.misfit_mm2 for f in fits.values()), default=0.0)
+    model.tolerance_mm2 = min(max(tol, EXAMPLE_SPREAD * worst_mm2), EXAMPLE_SPREAD * tol)
+    model.consistency = {
+        "worst_misfit_mm2": worst_mm2,
         "worst_score": min((f.score for f in fits.values()), default=1.0),
         "area_sd_mm2": float(np.std(areas)),
     }
-    model = ShapeModel(name, height_mm, outer, holes, symmetry, mirror_distinct, tol, grip, n, consistency)
+    consistency = model.consistency
+    tol = model.tolerance_mm2
     sym = "round (no angle)" if symmetry == 0 else ("none" if symmetry == 1 else f"{symmetry}-fold")
     lines = [
         f"{name}: {n} example(s), area {median:.1f} mm2 (sd {consistency['area_sd_mm2']:.2f}), "
