@@ -10,9 +10,10 @@ mosquitto, the screen's Starlette app."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
@@ -111,18 +112,26 @@ def test_a_type_taught_while_serving_is_counted_at_once_by_opcua_sparkplug_metri
             listener.close()
 
 
-async def taught_while_serving(service, app, cfg, listener, topics) -> None:
-    loopback = cfg.model_copy(deep=True)  # OPC UA on loopback without users (the screen's users stay the screen's)
+@contextlib.asynccontextmanager
+async def loopback_client(service, cfg) -> AsyncIterator[Client]:
+    """The service's OPC UA server on loopback without users (the screen's users stay the screen's),
+    and a client of it."""
+    loopback = cfg.model_copy(deep=True)
     loopback.service.users_file = None
     server = OpcUaServer(service, loopback)
     await server.start()
     try:
         url = f"opc.tcp://127.0.0.1:{cfg.service.opcua_port}/{cfg.service.opcua_path}"
         async with Client(url, timeout=10) as client:
-            cell = await Cell(client).open()
-            await through_every_interface(service, app, listener, topics, cell)
+            yield client
     finally:
         await server.stop()
+
+
+async def taught_while_serving(service, app, cfg, listener, topics) -> None:
+    async with loopback_client(service, cfg) as client:
+        cell = await Cell(client).open()
+        await through_every_interface(service, app, listener, topics, cell)
 
 
 async def through_every_interface(service, app, listener, topics, cell: Cell) -> None:
@@ -221,32 +230,24 @@ def test_prepare_recipe_over_opcua_of_a_type_without_a_bin_says_so_in_a_vision_i
             assert later.status_code == 200, later.text
 
         async def prepare_over_opcua() -> None:
-            loopback = cfg.model_copy(deep=True)
-            loopback.service.users_file = None
-            server = OpcUaServer(service, loopback)
-            await server.start()
-            try:
-                url = f"opc.tcp://127.0.0.1:{cfg.service.opcua_port}/{cfg.service.opcua_path}"
-                async with Client(url, timeout=10) as client:
-                    s = await SpecClient(client).setup()
-                    handler = Events()
-                    sub = await client.create_subscription(50, handler)
-                    info_type = await client.nodes.base_event_type.get_child(
-                        [f"{s.mv}:VisionEventType", f"{s.mv}:VisionInformationEventType"]
-                    )
-                    await sub.subscribe_events(s.vs, info_type)
-                    prepare = (ext(ua.RecipeIdExternalDataType(Id="later")), ext(ua.RecipeIdInternalDataType(Id="")))
-                    internal, completed, error = await s.call(s.recipes, "PrepareRecipe", *prepare)
-                    assert (internal.Id, completed, error) == ("later", True, 0)
-                    (said,) = await handler.wait(lambda e: "no bin" in e.Message.Text, 1)
-                    assert said.Message.Text == (
-                        "recipe later: bracket has no bin: found and counted but left on the table "
-                        "(give types.NAME.bin_robot_mm, or teach again with --bin-robot-mm X Y Z or --bin-of TYPE)"
-                    )
-                    assert said.Severity <= 300  # low: nothing to acknowledge
-                    await sub.delete()
-            finally:
-                await server.stop()
+            async with loopback_client(service, cfg) as client:
+                s = await SpecClient(client).setup()
+                handler = Events()
+                sub = await client.create_subscription(50, handler)
+                info_type = await client.nodes.base_event_type.get_child(
+                    [f"{s.mv}:VisionEventType", f"{s.mv}:VisionInformationEventType"]
+                )
+                await sub.subscribe_events(s.vs, info_type)
+                prepare = (ext(ua.RecipeIdExternalDataType(Id="later")), ext(ua.RecipeIdInternalDataType(Id="")))
+                internal, completed, error = await s.call(s.recipes, "PrepareRecipe", *prepare)
+                assert (internal.Id, completed, error) == ("later", True, 0)
+                (said,) = await handler.wait(lambda e: "no bin" in e.Message.Text, 1)
+                assert said.Message.Text == (
+                    "recipe later: bracket has no bin: found and counted but left on the table "
+                    "(give types.NAME.bin_robot_mm, or teach again with --bin-robot-mm X Y Z or --bin-of TYPE)"
+                )
+                assert said.Severity <= 300  # low: nothing to acknowledge
+                await sub.delete()
 
         asyncio.run(asyncio.wait_for(prepare_over_opcua(), 100))
         assert service.snapshot().recipe == "later"

@@ -126,33 +126,45 @@ def test_a_client_written_as_the_urscript_program_clears_the_dry_run_table(tmp_p
     assert all(e["accepted"] for e in reports)
 
 
+def taught_recipes(cfg, tmp_path, recipe_file) -> None:
+    """The taught recipe (and its models) as the service's only recipe, `taught`; a perfect calibration."""
+    import shutil
+
+    cfg.sim.perfect_calibration = True
+    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
+    (tmp_path / "recipes").mkdir()
+    shutil.copy(recipe_file, tmp_path / "recipes" / "taught.toml")
+    shutil.copytree(recipe_file.parent / "models", tmp_path / "recipes" / "models")
+
+
+def start_on_taught_table(service, shapes) -> None:
+    """Two of each taught type on the table, nothing else, their bins; recipe `taught` prepared, a job started."""
+    from cell.core.commands import RecipeRequest
+    from cell.sim.world import Bin, SimPart
+
+    world = service.cell.sim.world
+    poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0), (120.0, 140.0, 100.0), (230.0, 40.0, 300.0)]
+    placed = [TYPES[shapes[k % 2].name].placed(*pose) for k, pose in enumerate(poses)]
+    world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate(placed)]
+    world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
+    world.version += 1
+    service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
+    service.command(Command.START_SINGLE)
+
+
 def test_a_taught_type_is_told_its_recipe_class_no_unless_class_numbers_overrides_it(tmp_path, recipe):  # noqa: F811
     """The prepared recipe's class_no reaches the robot (the planner's number, passed down in the pick): the
     L bracket its recipe's 3, written when it was taught; the plate 40, as robot_server.class_numbers says,
     over its recipe's 4. Each into its own bin."""
-    import shutil
 
-    from cell.core.commands import RecipeRequest
     from cell.recipes import load_recipe_file
-    from cell.sim.world import Bin, SimPart
 
     loaded, shapes = load_recipe_file(recipe)
     assert loaded.class_numbers() == {"bolt": 1, "nut": 2, "l-bracket": 3, "plate-4h": 4}
     cfg = robot_config(tmp_path, class_numbers={"bolt": 1, "nut": 2, "plate-4h": 40})
-    cfg.sim.perfect_calibration = True
-    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
-    (tmp_path / "recipes").mkdir()
-    shutil.copy(recipe, tmp_path / "recipes" / "taught.toml")
-    shutil.copytree(recipe.parent / "models", tmp_path / "recipes" / "models")
+    taught_recipes(cfg, tmp_path, recipe)
     with serving(cfg) as (service, address):
-        world = service.cell.sim.world  # two of each taught type on the table, nothing else
-        poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0), (120.0, 140.0, 100.0), (230.0, 40.0, 300.0)]
-        placed = [TYPES[shapes[k % 2].name].placed(*pose) for k, pose in enumerate(poses)]
-        world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate(placed)]
-        world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
-        world.version += 1
-        service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
-        service.command(Command.START_SINGLE)
+        start_on_taught_table(service, shapes)
         robot = UrClient(address)
         told = []
         while (answer := robot.ask("NEXT"))[0] != -1:
@@ -442,11 +454,8 @@ def test_a_pymodbus_client_clears_the_dry_run_table_over_modbus_tcp(tmp_path):
 def test_over_modbus_a_taught_type_reads_its_recipe_class_no_in_class_no(tmp_path, recipe):  # noqa: F811
     """CLASS_NO (register 106) of a pick of a taught type: the class_no its recipe gave it when it was taught
     (the L bracket 3, the plate 4), as the socket's answer says; the bin registers are the type's own."""
-    import shutil
 
-    from cell.core.commands import RecipeRequest
     from cell.recipes import load_recipe_file
-    from cell.sim.world import Bin, SimPart
     from drivers.arm.robot_modbus import Reg, Request, words_float
 
     def at(regs: list[int], reg: Reg) -> int:
@@ -458,20 +467,9 @@ def test_over_modbus_a_taught_type_reads_its_recipe_class_no_in_class_no(tmp_pat
     loaded, shapes = load_recipe_file(recipe)
     assert loaded.class_numbers()["l-bracket"] == 3 and loaded.class_numbers()["plate-4h"] == 4
     cfg = robot_config(tmp_path, modbus_port=free_port())
-    cfg.sim.perfect_calibration = True
-    cfg.service.machine_vision.recipes_dir = tmp_path / "recipes"
-    (tmp_path / "recipes").mkdir()
-    shutil.copy(recipe, tmp_path / "recipes" / "taught.toml")
-    shutil.copytree(recipe.parent / "models", tmp_path / "recipes" / "models")
+    taught_recipes(cfg, tmp_path, recipe)
     with serving(cfg) as (service, _):
-        world = service.cell.sim.world  # two of each taught type on the table, nothing else
-        poses = [(60.0, 60.0, 30.0), (200.0, 110.0, 200.0), (120.0, 140.0, 100.0), (230.0, 40.0, 300.0)]
-        placed = [TYPES[shapes[k % 2].name].placed(*pose) for k, pose in enumerate(poses)]
-        world.parts[:] = [SimPart(i + 1, p) for i, p in enumerate(placed)]
-        world.bins[:0] = [Bin(name, BINS[name][:2], 40.0) for name in KINDS]
-        world.version += 1
-        service.command(Command.PREPARE_RECIPE, request=RecipeRequest("taught"))
-        service.command(Command.START_SINGLE)
+        start_on_taught_table(service, shapes)
         plc = Plc(cfg.robot_server.modbus_port)
         told = []
         while True:
